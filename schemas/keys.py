@@ -1,0 +1,264 @@
+"""The one place where magmesh key expressions are built and parsed.
+
+Every key starts with ``magmesh/``. Per-vehicle keys are ``magmesh/{vehicle}/{kind}/...``;
+service keys are ``magmesh/svc/{role}/{instance}[/status]``. Nothing else in the code base
+formats a key string by hand: services, tools and tests call these builders.
+
+A *vehicle pattern* may be given wherever a vehicle id is expected when building a
+subscription: ``*`` (every vehicle), an exact id, or a Zenoh chunk pattern such as ``car-$*``.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+ROOT = "magmesh"
+SVC = "svc"
+
+# vehicle ids and sensor/source names: one key chunk, no wildcards or Zenoh specials
+_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$")
+# patterns additionally allow Zenoh wildcards inside one chunk
+_PATTERN_RE = re.compile(r"^(\*|\*\*|[A-Za-z0-9_.\-$*]{1,64})$")
+
+#: per-vehicle stream kinds and how many further chunks they take
+KINDS = {
+    "raw": None,  # raw/mag/{sensor}, raw/imu, raw/gnss, raw/ins, raw/route
+    "clean": None,  # same sub-keys as raw, after ingest
+    "rejects": 0,
+    "cal": None,  # cal/mag/{sensor}, cal/params/{sensor}
+    "dmc": 0,
+    "heading": 0,
+    "fix": 1,  # fix/geomag
+    "track": 0,
+    "alarm": 1,  # alarm/{source}
+    "truth": 1,  # truth/{what}
+}
+
+#: sub-streams of raw/ and clean/
+RAW_STREAMS = ("mag", "imu", "gnss", "ins", "route")
+
+
+class KeyError_(ValueError):
+    """A key or key part that does not follow the magmesh key grammar."""
+
+
+def check_id(value: str, what: str = "vehicle id") -> str:
+    if not isinstance(value, str) or not _ID_RE.match(value):
+        raise KeyError_(
+            f"{what} {value!r} is not valid: use 1-64 characters of letters, digits, '_', '-', '.', "
+            "starting with a letter or digit"
+        )
+    return value
+
+
+def check_pattern(value: str, what: str = "vehicle pattern") -> str:
+    if not isinstance(value, str) or not _PATTERN_RE.match(value):
+        raise KeyError_(f"{what} {value!r} is not a single key chunk or chunk pattern")
+    return value
+
+
+def _v(vehicle: str) -> str:
+    """Accept an id or a pattern (for subscriptions)."""
+    if _ID_RE.match(vehicle or ""):
+        return vehicle
+    return check_pattern(vehicle)
+
+
+def _part(value: str, what: str) -> str:
+    if value in ("*", "**"):
+        return value
+    return check_id(value, what)
+
+
+# ---- per-vehicle keys -------------------------------------------------------------------------
+
+
+def raw_mag(vehicle: str, sensor: str) -> str:
+    return f"{ROOT}/{_v(vehicle)}/raw/mag/{_part(sensor, 'sensor')}"
+
+
+def raw_imu(vehicle: str) -> str:
+    return f"{ROOT}/{_v(vehicle)}/raw/imu"
+
+
+def raw_gnss(vehicle: str) -> str:
+    return f"{ROOT}/{_v(vehicle)}/raw/gnss"
+
+
+def raw_ins(vehicle: str) -> str:
+    return f"{ROOT}/{_v(vehicle)}/raw/ins"
+
+
+def raw_route(vehicle: str) -> str:
+    return f"{ROOT}/{_v(vehicle)}/raw/route"
+
+
+def raw_all(vehicle: str = "*") -> str:
+    return f"{ROOT}/{_v(vehicle)}/raw/**"
+
+
+def clean_mag(vehicle: str, sensor: str) -> str:
+    return f"{ROOT}/{_v(vehicle)}/clean/mag/{_part(sensor, 'sensor')}"
+
+
+def clean_imu(vehicle: str) -> str:
+    return f"{ROOT}/{_v(vehicle)}/clean/imu"
+
+
+def clean_gnss(vehicle: str) -> str:
+    return f"{ROOT}/{_v(vehicle)}/clean/gnss"
+
+
+def clean_ins(vehicle: str) -> str:
+    return f"{ROOT}/{_v(vehicle)}/clean/ins"
+
+
+def clean_route(vehicle: str) -> str:
+    return f"{ROOT}/{_v(vehicle)}/clean/route"
+
+
+def clean_all(vehicle: str = "*") -> str:
+    return f"{ROOT}/{_v(vehicle)}/clean/**"
+
+
+def raw_to_clean(raw_key: str) -> str:
+    """``magmesh/v/raw/x/..`` → ``magmesh/v/clean/x/..`` (the ingest mapping)."""
+    info = parse(raw_key)
+    if info.kind != "raw":
+        raise KeyError_(f"{raw_key!r} is not a raw key")
+    return "/".join([ROOT, info.vehicle, "clean", *info.rest])
+
+
+def rejects(vehicle: str) -> str:
+    return f"{ROOT}/{_v(vehicle)}/rejects"
+
+
+def cal_mag(vehicle: str, sensor: str) -> str:
+    return f"{ROOT}/{_v(vehicle)}/cal/mag/{_part(sensor, 'sensor')}"
+
+
+def cal_params(vehicle: str, sensor: str) -> str:
+    return f"{ROOT}/{_v(vehicle)}/cal/params/{_part(sensor, 'sensor')}"
+
+
+def dmc(vehicle: str) -> str:
+    return f"{ROOT}/{_v(vehicle)}/dmc"
+
+
+def heading(vehicle: str) -> str:
+    return f"{ROOT}/{_v(vehicle)}/heading"
+
+
+def fix_geomag(vehicle: str) -> str:
+    return f"{ROOT}/{_v(vehicle)}/fix/geomag"
+
+
+def track(vehicle: str) -> str:
+    return f"{ROOT}/{_v(vehicle)}/track"
+
+
+def alarm(vehicle: str, source: str) -> str:
+    return f"{ROOT}/{_v(vehicle)}/alarm/{_part(source, 'alarm source')}"
+
+
+def alarms_all(vehicle: str = "*") -> str:
+    return f"{ROOT}/{_v(vehicle)}/alarm/**"
+
+
+def truth(vehicle: str, what: str) -> str:
+    return f"{ROOT}/{_v(vehicle)}/truth/{_part(what, 'truth kind')}"
+
+
+def everything() -> str:
+    return f"{ROOT}/**"
+
+
+# ---- service keys -----------------------------------------------------------------------------
+
+
+def svc_token(role: str, instance: str) -> str:
+    return f"{ROOT}/{SVC}/{_part(role, 'role')}/{_part(instance, 'instance')}"
+
+
+def svc_status(role: str, instance: str) -> str:
+    return f"{svc_token(role, instance)}/status"
+
+
+def svc_control(role: str, instance: str) -> str:
+    """Queryable for control requests (hand-over during a live swap, etc.)."""
+    return f"{svc_token(role, instance)}/control"
+
+
+def svc_all() -> str:
+    return f"{ROOT}/{SVC}/*/*"
+
+
+def svc_status_all() -> str:
+    return f"{ROOT}/{SVC}/*/*/status"
+
+
+# ---- parsing ----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class KeyInfo:
+    """A parsed magmesh key.
+
+    For vehicle keys: ``vehicle``, ``kind`` (raw, clean, rejects, cal, dmc, heading, fix, track,
+    alarm, truth), ``rest`` (the remaining chunks, e.g. ``("mag", "1")``).
+    For service keys: ``vehicle`` is ``""``, ``kind`` is ``"svc"``, ``rest`` is
+    ``(role, instance)`` or ``(role, instance, "status")``.
+    """
+
+    key: str
+    vehicle: str
+    kind: str
+    rest: tuple[str, ...]
+
+    @property
+    def stream(self) -> str:
+        """``mag``/``imu``/``gnss``/... for raw, clean and cal keys; else the kind."""
+        return self.rest[0] if self.kind in ("raw", "clean", "cal") and self.rest else self.kind
+
+    @property
+    def sensor(self) -> str | None:
+        if self.kind in ("raw", "clean", "cal") and len(self.rest) == 2:
+            return self.rest[1]
+        return None
+
+    @property
+    def source(self) -> str | None:
+        return self.rest[0] if self.kind in ("alarm", "truth", "fix") and self.rest else None
+
+
+def parse(key: str) -> KeyInfo:
+    """Parse a concrete magmesh key; raise :class:`KeyError_` naming what is wrong."""
+    if not isinstance(key, str):
+        raise KeyError_(f"key must be a string, got {type(key).__name__}")
+    parts = key.split("/")
+    if len(parts) < 3 or parts[0] != ROOT:
+        raise KeyError_(f"key {key!r} does not start with '{ROOT}/<vehicle>/<kind>'")
+    if parts[1] == SVC:
+        if len(parts) not in (4, 5) or (len(parts) == 5 and parts[4] not in ("status", "control")):
+            raise KeyError_(f"service key {key!r} must be {ROOT}/svc/<role>/<instance>[/status|/control]")
+        return KeyInfo(key, "", "svc", tuple(parts[2:]))
+    vehicle, kind, rest = parts[1], parts[2], tuple(parts[3:])
+    check_id(vehicle)
+    if kind not in KINDS:
+        raise KeyError_(f"key {key!r}: unknown kind {kind!r} (expected one of {', '.join(KINDS)})")
+    n = KINDS[kind]
+    if n is not None and len(rest) != n:
+        raise KeyError_(f"key {key!r}: kind {kind!r} takes {n} further part(s), got {len(rest)}")
+    if kind in ("raw", "clean"):
+        if not rest or rest[0] not in RAW_STREAMS:
+            raise KeyError_(f"key {key!r}: {kind}/ must be followed by one of {', '.join(RAW_STREAMS)}")
+        if rest[0] == "mag" and len(rest) != 2:
+            raise KeyError_(f"key {key!r}: {kind}/mag/ takes a sensor id")
+        if rest[0] != "mag" and len(rest) != 1:
+            raise KeyError_(f"key {key!r}: {kind}/{rest[0]} takes no further parts")
+    if kind == "cal" and (len(rest) != 2 or rest[0] not in ("mag", "params")):
+        raise KeyError_(f"key {key!r}: cal/ must be cal/mag/<sensor> or cal/params/<sensor>")
+    for r in rest:
+        check_id(r, "key part")
+    return KeyInfo(key, vehicle, kind, rest)
