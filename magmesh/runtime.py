@@ -1,0 +1,679 @@
+"""The shared service runner: everything a magmesh process needs besides its own logic.
+
+A service subclasses :class:`Service` (or :class:`SimPublisher` for a data source), declares what it
+consumes and produces, and implements ``on_message``. :func:`main` does the rest:
+
+- Zenoh configuration from the standard flags (:mod:`magmesh.zconf`);
+- subscriptions received through FIFO channel handlers, drained by one reader thread each into the
+  service's own bounded queue (back-pressure, never loss); the service's logic runs in one main loop
+  that also publishes — nothing is called from inside a Zenoh callback;
+- decoding and validation of every input; bad inputs are counted and reported on ``rejects``;
+- publishers declared reliable with blocking congestion control, ``seq`` filled per key;
+- a liveliness token ``magmesh/svc/{role}/{instance}`` and a status queryable ``.../status``;
+- the currently raised alarms answered by query for late joiners;
+- per-vehicle state created on first sample; sharding by ``--vehicles PATTERN``;
+- structured logging; clean stop on SIGINT/SIGTERM within 2 s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import os
+import queue
+import signal
+import sys
+import threading
+import time
+import tomllib
+import traceback
+from collections import defaultdict
+from typing import Any, Callable, Iterator
+
+import msgpack
+
+from schemas import keys, messages
+from schemas.keys import KeyInfo
+from schemas.messages import SchemaError
+
+from . import __version__, zconf
+
+QUEUE_CAPACITY = 65536
+FIFO_CAPACITY = 4096
+STOP_GRACE_S = 1.5
+
+
+class Service:
+    """Base class of a magmesh service. Constructors have no side effects; see :func:`main`."""
+
+    role: str = "service"
+    impl: str = "service"
+    Settings: type | None = None
+    CONSUMES: tuple[str, ...] = ()
+    PRODUCES: tuple[str, ...] = ()
+    #: decode inputs before on_message (ingest turns this off to validate raw bytes itself)
+    DECODE_INPUTS: bool = True
+
+    def __init__(self, settings: Any = None, instance: str | None = None, vehicle_pattern: str = "*",
+                 vehicles_config: dict | None = None):
+        self.settings = settings if settings is not None else (self.Settings() if self.Settings else None)
+        self.instance = instance or f"{self.impl}-{os.getpid()}"
+        self.vehicle_pattern = keys.check_pattern(vehicle_pattern)
+        self.vehicles_config = vehicles_config or {}
+        self.log = logging.getLogger(f"magmesh.{self.role}.{self.instance}")
+        self._rt: Runner | None = None
+
+    # ---- hooks --------------------------------------------------------------------------------
+    def subscriptions(self) -> list[str]:
+        return []
+
+    def new_vehicle(self, vehicle: str) -> Any:
+        return None
+
+    def on_message(self, info: KeyInfo, msg: Any, state: Any) -> None:
+        pass
+
+    def on_tick(self) -> None:
+        pass
+
+    def status_extra(self) -> dict:
+        return {}
+
+    def queryables(self) -> dict[str, Callable[[str, dict], list[tuple[str, dict]]]]:
+        return {}
+
+    def on_start(self) -> None:
+        pass
+
+    def on_stop(self) -> None:
+        pass
+
+    # ---- API for subclasses -------------------------------------------------------------------
+    def publish(self, key: str, msg_type: str, vehicle: str, t_s: float, **fields: Any) -> dict:
+        """Publish one message on ``key``; returns the message sent (with its seq)."""
+        return self._runtime.publish(key, msg_type, vehicle, t_s, fields)
+
+    def alarm(self, vehicle: str, source: str, state: str, severity: str, reason: str,
+              value: float | None, threshold: float | None, t_s: float, unit: str = "", **extra: Any) -> dict:
+        """Publish an alarm transition on ``magmesh/{vehicle}/alarm/{source}``."""
+        fields = dict(source=source, state=state, severity=severity, reason=reason,
+                      value=None if value is None else float(value),
+                      threshold=None if threshold is None else float(threshold),
+                      service=self.instance, **extra)
+        if unit:
+            fields["unit"] = unit
+        return self._runtime.publish_alarm(keys.alarm(vehicle, source), vehicle, t_s, fields)
+
+    def reject(self, key: str, code: str, reason: str, field: str | None, payload_len: int,
+               vehicle: str | None = None, t_s: float | None = None, input_type: str | None = None) -> None:
+        """Count a refused input and report it on ``magmesh/{vehicle}/rejects``."""
+        self._runtime.reject(key, code, reason, field, payload_len, vehicle, t_s, input_type)
+
+    def count_drop(self, key: str, reason: str, n: int = 1) -> None:
+        self._runtime.count_drop(key, reason, n)
+
+    def state_for(self, vehicle: str) -> Any:
+        return self._runtime.state_for(vehicle)
+
+    @property
+    def vehicle_states(self) -> dict[str, Any]:
+        return self._runtime.vehicle_state
+
+    @property
+    def _runtime(self) -> Runner:
+        if self._rt is None:
+            raise RuntimeError("service is not running: start it with magmesh.runtime.main or Runner")
+        return self._rt
+
+
+class SimPublisher(Service):
+    """A data source: ``produce()`` yields ``(t_s, key, msg_type, fields)`` in time order.
+
+    The runner paces the stream by ``t_s`` at ``settings.speed`` × real time (0 = as fast as the mesh
+    takes it). ``self.vehicle`` is the vehicle id given by ``--vehicle``.
+    """
+
+    role = "sim"
+    vehicle: str = "sim-1"
+
+    def produce(self) -> Iterator[tuple[float, str, str, dict]]:
+        return iter(())
+
+
+# ---- settings ---------------------------------------------------------------------------------
+
+
+def _coerce(tp: Any, value: Any, name: str) -> Any:
+    tp_s = tp if isinstance(tp, str) else getattr(tp, "__name__", str(tp))
+    if isinstance(value, str):
+        if tp_s in ("bool",):
+            if value.lower() in ("1", "true", "yes", "on"):
+                return True
+            if value.lower() in ("0", "false", "no", "off"):
+                return False
+            raise ValueError(f"setting {name}: {value!r} is not a boolean")
+        if tp_s in ("int",):
+            return int(value)
+        if tp_s in ("float",):
+            return float(value)
+        if tp_s in ("str",):
+            return value
+        try:
+            return json.loads(value)
+        except json.JSONDecodeError:
+            return value
+    if tp_s == "float" and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if tp_s.startswith("tuple") and isinstance(value, list):
+        return tuple(value)
+    return value
+
+
+def build_settings(cls: type | None, values: dict) -> Any:
+    """Build a Settings dataclass from a dict; unknown names are an error that lists the known ones."""
+    if cls is None:
+        if values:
+            raise ValueError(f"this service takes no settings, got {sorted(values)}")
+        return None
+    flds = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - set(flds))
+    if unknown:
+        raise ValueError(f"unknown setting(s) {', '.join(unknown)}; known: {', '.join(flds)}")
+    kw = {k: _coerce(flds[k].type, v, k) for k, v in values.items()}
+    return cls(**kw)
+
+
+def settings_help(cls: type | None) -> str:
+    if cls is None:
+        return "  (none)"
+    lines = []
+    for f in dataclasses.fields(cls):
+        default = f.default if f.default is not dataclasses.MISSING else (
+            f.default_factory() if f.default_factory is not dataclasses.MISSING else "")
+        lines.append(f"  {f.name} = {default!r}")
+    return "\n".join(lines)
+
+
+def _plain(v: Any) -> Any:
+    if dataclasses.is_dataclass(v):
+        return {k: _plain(x) for k, x in dataclasses.asdict(v).items()}
+    if isinstance(v, dict):
+        return {str(k): _plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    if isinstance(v, (str, int, float, bool)) or v is None:
+        return v
+    try:
+        import numpy as np
+
+        if isinstance(v, np.generic):
+            return v.item()
+        if isinstance(v, np.ndarray):
+            return v.tolist()
+    except ImportError:  # pragma: no cover
+        pass
+    return str(v)
+
+
+# ---- the runner -------------------------------------------------------------------------------
+
+
+class _Counter:
+    __slots__ = ("n", "n_prev", "rate")
+
+    def __init__(self) -> None:
+        self.n = 0
+        self.n_prev = 0
+        self.rate = 0.0
+
+
+class Runner:
+    """Runs one :class:`Service` on an open Zenoh session."""
+
+    def __init__(self, service: Service, session: Any):
+        self.svc = service
+        self.session = session
+        self.q: queue.Queue = queue.Queue(maxsize=QUEUE_CAPACITY)
+        self.stop_event = threading.Event()
+        self.lock = threading.Lock()
+        self.started_mono = time.monotonic()
+        self.started_wall = time.time()
+        self.publishers: dict[str, Any] = {}
+        self.seq: dict[str, int] = {}
+        self.count_in: dict[str, _Counter] = defaultdict(_Counter)
+        self.count_out: dict[str, _Counter] = defaultdict(_Counter)
+        self.drops: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
+        self.rejects_total = 0
+        self.last_error: str | None = None
+        self.vehicle_state: dict[str, Any] = {}
+        self.raised: dict[str, dict] = {}
+        self.last_rate_mono = time.monotonic()
+        self.subs: list[Any] = []
+        self.qables: list[Any] = []
+        self.threads: list[threading.Thread] = []
+        self.token = None
+        self.extra_qables: dict[str, Callable] = {}
+        service._rt = self
+
+    # ---- output ---------------------------------------------------------------------------
+    def _publisher(self, key: str) -> Any:
+        pub = self.publishers.get(key)
+        if pub is None:
+            import zenoh
+
+            pub = self.session.declare_publisher(
+                key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
+            self.publishers[key] = pub
+        return pub
+
+    def publish(self, key: str, msg_type: str, vehicle: str, t_s: float, fields: dict) -> dict:
+        seq = self.seq.get(key, -1) + 1
+        msg = messages.make(msg_type, vehicle, t_s, seq, **_plain(fields))
+        payload = messages.encode(msg)  # validates: a service never emits what the contract forbids
+        self._publisher(key).put(payload)
+        self.seq[key] = seq
+        self.count_out[key].n += 1
+        return msg
+
+    def publish_alarm(self, key: str, vehicle: str, t_s: float, fields: dict) -> dict:
+        msg = self.publish(key, "alarm", vehicle, t_s, fields)
+        with self.lock:
+            if msg["state"] == "raised":
+                self.raised[key] = msg
+            else:
+                self.raised.pop(key, None)
+        self.svc.log.info("alarm %s %s: %s", key, msg["state"], msg["reason"])
+        return msg
+
+    def reject(self, key: str, code: str, reason: str, field: str | None, payload_len: int,
+               vehicle: str | None, t_s: float | None, input_type: str | None) -> None:
+        self.rejects_total += 1
+        self.drops[key][f"rejected:{code}"] += 1
+        if vehicle is None:
+            try:
+                vehicle = keys.parse(key).vehicle
+            except keys.KeyError_:
+                vehicle = None
+        if not vehicle:
+            self.svc.log.warning("rejected input on %s (%s): %s", key[:200], code, reason)
+            return
+        try:
+            self.publish(keys.rejects(vehicle), "reject", vehicle, t_s if t_s is not None else time.time(),
+                         dict(key=key[:4096], reason=reason[:4096], field=field, code=code, input_type=input_type,
+                              payload_len_bytes=int(payload_len), service=self.svc.instance))
+        except (SchemaError, keys.KeyError_) as e:  # pragma: no cover - reject of a reject
+            self.svc.log.warning("could not report reject on %s: %s", key[:200], e)
+
+    def count_drop(self, key: str, reason: str, n: int = 1) -> None:
+        self.drops[key][reason] += n
+
+    def state_for(self, vehicle: str) -> Any:
+        st = self.vehicle_state.get(vehicle, _MISSING)
+        if st is _MISSING:
+            st = self.svc.new_vehicle(vehicle)
+            self.vehicle_state[vehicle] = st
+            self.svc.log.info("new vehicle %s", vehicle)
+        return st
+
+    # ---- input ----------------------------------------------------------------------------
+    def _reader(self, handle: Any, kind: str) -> None:
+        while not self.stop_event.is_set():
+            try:
+                item = handle.recv()
+            except Exception:  # channel closed: session is closing
+                return
+            if kind == "s":
+                ev = ("s", str(item.key_expr), item.payload.to_bytes())
+            else:
+                if kind == "status":
+                    self._answer_status(item)
+                    continue
+                if kind == "alarms":
+                    self._answer_alarms(item)
+                    continue
+                ev = ("q", kind, item)
+            while not self.stop_event.is_set():
+                try:
+                    self.q.put(ev, timeout=0.2)
+                    break
+                except queue.Full:
+                    continue
+
+    def _spawn(self, target: Callable, *args: Any) -> None:
+        t = threading.Thread(target=target, args=args, daemon=True)
+        t.start()
+        self.threads.append(t)
+
+    def handle_sample(self, key: str, payload: bytes) -> None:
+        svc = self.svc
+        self.count_in[key].n += 1
+        try:
+            info = keys.parse(key)
+        except keys.KeyError_ as e:
+            self.reject(key, "key", str(e), None, len(payload), None, None, None)
+            return
+        if svc.DECODE_INPUTS:
+            try:
+                msg = messages.decode(payload, where=key, expected_type=messages.type_for_key(key))
+            except SchemaError as e:
+                code = "version" if e.field == "version" else ("decode" if e.field == "<payload>" else "schema")
+                self.reject(key, code, str(e), e.field, len(payload), info.vehicle, None, messages.peek_type(payload))
+                return
+            if msg["vehicle"] != info.vehicle:
+                self.reject(key, "key", f"field 'vehicle' of {key} is {msg['vehicle'][:64]!r}, "
+                            f"but the key names vehicle {info.vehicle!r}", "vehicle", len(payload),
+                            info.vehicle, msg["t_s"], msg["type"])
+                return
+        else:
+            msg = payload
+        state = self.state_for(info.vehicle)
+        try:
+            svc.on_message(info, msg, state)
+        except SchemaError as e:
+            self.last_error = f"{type(e).__name__}: {e}"
+            svc.log.error("output failed validation while handling %s: %s", key, e)
+            self.count_drop(key, "handler_error")
+        except Exception as e:
+            self.last_error = f"{type(e).__name__}: {e}"
+            svc.log.error("handler failed on %s: %s\n%s", key, e, traceback.format_exc(limit=4))
+            self.count_drop(key, "handler_error")
+
+    # ---- queries --------------------------------------------------------------------------
+    def status(self) -> dict:
+        now = time.monotonic()
+        with self.lock:
+            dt = now - self.last_rate_mono
+            if dt >= 1.0:
+                for c in list(self.count_in.values()) + list(self.count_out.values()):
+                    c.rate = (c.n - c.n_prev) / dt
+                    c.n_prev = c.n
+                self.last_rate_mono = now
+            st = {
+                "type": "status",
+                "version": 1,
+                "role": self.svc.role,
+                "impl": self.svc.impl,
+                "instance": self.svc.instance,
+                "pid": os.getpid(),
+                "host": os.uname().nodename,
+                "magmesh_version": __version__,
+                "uptime_s": round(now - self.started_mono, 3),
+                "vehicle_pattern": self.svc.vehicle_pattern,
+                "vehicles": sorted(self.vehicle_state),
+                "consumes": list(self.svc.CONSUMES),
+                "produces": list(self.svc.PRODUCES),
+                "in": {k: {"n": c.n, "rate_hz": round(c.rate, 2)} for k, c in list(self.count_in.items())},
+                "out": {k: {"n": c.n, "rate_hz": round(c.rate, 2)} for k, c in list(self.count_out.items())},
+                "rejects": self.rejects_total,
+                "drops": {k: dict(v) for k, v in list(self.drops.items())},
+                "drops_total": sum(sum(v.values()) for v in list(self.drops.values())),
+                "queue_depth": self.q.qsize(),
+                "last_error": self.last_error,
+                "settings": _plain(self.svc.settings) if self.svc.settings is not None else {},
+                "alarms_raised": sorted(self.raised),
+            }
+        try:
+            st.update(_plain(self.svc.status_extra()))
+        except Exception as e:  # status must always answer
+            st["status_extra_error"] = f"{type(e).__name__}: {e}"
+        return st
+
+    def _answer_status(self, query: Any) -> None:
+        try:
+            payload = msgpack.packb(self.status(), use_bin_type=True)
+            query.reply(keys.svc_status(self.svc.role, self.svc.instance), payload)
+        except Exception as e:
+            self.last_error = f"status reply failed: {e}"
+        finally:
+            query.drop()
+
+    def _answer_alarms(self, query: Any) -> None:
+        import zenoh
+
+        try:
+            qke = query.key_expr
+            with self.lock:
+                raised = list(self.raised.items())
+            for key, msg in raised:
+                if qke.intersects(zenoh.KeyExpr(key)):
+                    query.reply(key, messages.encode(msg, check=False))
+        except Exception as e:
+            self.last_error = f"alarm reply failed: {e}"
+        finally:
+            query.drop()
+
+    def handle_query(self, name: str, query: Any) -> None:
+        fn = self.extra_qables[name]
+        try:
+            params = dict(query.parameters) if query.parameters is not None else {}
+            for key, msg in fn(str(query.key_expr), params):
+                query.reply(key, messages.encode(msg) if isinstance(msg, dict) else bytes(msg))
+        except Exception as e:
+            self.last_error = f"query {name} failed: {e}"
+            try:
+                query.reply_err(f"{type(e).__name__}: {e}".encode())
+            except Exception:
+                pass
+        finally:
+            query.drop()
+
+    # ---- lifecycle ------------------------------------------------------------------------
+    def start(self) -> None:
+        import zenoh
+
+        svc = self.svc
+        for kexpr in svc.subscriptions():
+            sub = self.session.declare_subscriber(kexpr, zenoh.handlers.FifoChannel(FIFO_CAPACITY))
+            self.subs.append(sub)
+            self._spawn(self._reader, sub, "s")
+        qs = self.session.declare_queryable(keys.svc_status(svc.role, svc.instance), zenoh.handlers.FifoChannel(64))
+        self.qables.append(qs)
+        self._spawn(self._reader, qs, "status")
+        qa = self.session.declare_queryable(keys.alarms_all(svc.vehicle_pattern), zenoh.handlers.FifoChannel(64))
+        self.qables.append(qa)
+        self._spawn(self._reader, qa, "alarms")
+        for kexpr, fn in svc.queryables().items():
+            self.extra_qables[kexpr] = fn
+            qx = self.session.declare_queryable(kexpr, zenoh.handlers.FifoChannel(256))
+            self.qables.append(qx)
+            self._spawn(self._reader, qx, kexpr)
+        svc.on_start()
+        self.token = self.session.liveliness().declare_token(keys.svc_token(svc.role, svc.instance))
+        svc.log.info("started %s/%s (impl %s) on %s", svc.role, svc.instance, svc.impl,
+                     ", ".join(svc.subscriptions()) or "no subscriptions")
+
+    def tick_period(self) -> float | None:
+        s = self.svc.settings
+        t = getattr(s, "tick_s", None) if s is not None else None
+        return float(t) if t else None
+
+    def loop(self) -> None:
+        tick = self.tick_period()
+        next_tick = time.monotonic() + (tick or 0)
+        while not self.stop_event.is_set():
+            timeout = max(0.0, next_tick - time.monotonic()) if tick else 0.5
+            try:
+                ev = self.q.get(timeout=timeout)
+            except queue.Empty:
+                ev = None
+            if ev is not None:
+                if ev[0] == "s":
+                    self.handle_sample(ev[1], ev[2])
+                elif ev[0] == "q":
+                    self.handle_query(ev[1], ev[2])
+                elif ev[0] == "stop":
+                    break
+            if tick and time.monotonic() >= next_tick:
+                next_tick = time.monotonic() + tick
+                self._safe_tick()
+
+    def _safe_tick(self) -> None:
+        try:
+            self.svc.on_tick()
+        except Exception as e:
+            self.last_error = f"{type(e).__name__}: {e}"
+            self.svc.log.error("tick failed: %s\n%s", e, traceback.format_exc(limit=4))
+
+    def run_publisher(self) -> None:
+        """Main loop of a :class:`SimPublisher`: pace produce() by sample time."""
+        svc = self.svc
+        speed = float(getattr(svc.settings, "speed", 1.0) or 0.0)
+        t0_sample = None
+        t0_wall = time.monotonic()
+        for t_s, key, msg_type, fields in svc.produce():
+            if self.stop_event.is_set():
+                break
+            if t0_sample is None:
+                t0_sample = t_s
+            if speed > 0:
+                due = t0_wall + (t_s - t0_sample) / speed
+                delay = due - time.monotonic()
+                if delay > 0 and self.stop_event.wait(delay):
+                    break
+            try:
+                self.publish(key, msg_type, svc.vehicle, t_s, fields)
+            except SchemaError as e:
+                self.last_error = str(e)
+                self.count_drop(key, "invalid_output")
+                svc.log.error("not published: %s", e)
+        svc.log.info("source finished")
+
+    def stop(self) -> None:
+        self.stop_event.set()
+        try:
+            self.q.put_nowait(("stop",))
+        except queue.Full:
+            pass
+
+    def close(self) -> None:
+        svc = self.svc
+        try:
+            svc.on_stop()
+        except Exception as e:
+            svc.log.error("on_stop failed: %s", e)
+        try:
+            if self.token is not None:
+                self.token.undeclare()
+        except Exception:
+            pass
+
+
+_MISSING = object()
+
+
+# ---- process entry point ----------------------------------------------------------------------
+
+
+class _JsonFormatter(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        return json.dumps({"t": round(record.created, 3), "level": record.levelname, "logger": record.name,
+                           "msg": record.getMessage()})
+
+
+def setup_logging(level: str = "INFO", as_json: bool = False) -> None:
+    h = logging.StreamHandler(sys.stderr)
+    h.setFormatter(_JsonFormatter() if as_json else logging.Formatter(
+        "%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger()
+    root.handlers[:] = [h]
+    root.setLevel(level.upper())
+
+
+def make_parser(cls: type[Service]) -> argparse.ArgumentParser:
+    doc = (sys.modules[cls.__module__].__doc__ or cls.__doc__ or "").strip()
+    epilog = (f"role: {cls.role}   implementation: {cls.impl}\n"
+              f"consumes: {', '.join(cls.CONSUMES) or '-'}\nproduces: {', '.join(cls.PRODUCES) or '-'}\n"
+              f"(keys are magmesh/{{vehicle}}/...)\n\nsettings (--set NAME=VALUE):\n{settings_help(cls.Settings)}")
+    p = argparse.ArgumentParser(description=doc, epilog=epilog, formatter_class=argparse.RawDescriptionHelpFormatter)
+    zconf.add_zenoh_args(p)
+    g = p.add_argument_group("magmesh")
+    g.add_argument("--instance", default=None, help="instance name (default: <impl>-<pid>)")
+    if issubclass(cls, SimPublisher):
+        g.add_argument("--vehicle", default=cls.vehicle, help="vehicle id to publish as")
+    else:
+        g.add_argument("--vehicles", default="*", metavar="PATTERN",
+                       help="serve only vehicles matching this key-chunk pattern (sharding), default *")
+    g.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="a setting (repeatable)")
+    g.add_argument("--settings-json", default=None, help="settings as one JSON object")
+    g.add_argument("--manifest", default=None, help="mesh manifest (TOML) to read vehicle tables from")
+    g.add_argument("--log-level", default=os.environ.get("MAGMESH_LOG_LEVEL", "INFO"))
+    g.add_argument("--log-json", action="store_true", help="log one JSON object per line")
+    return p
+
+
+def service_from_args(cls: type[Service], args: argparse.Namespace) -> Service:
+    values: dict[str, Any] = {}
+    if args.settings_json:
+        values.update(json.loads(args.settings_json))
+    for item in args.set:
+        k, sep, v = item.partition("=")
+        if not sep:
+            raise SystemExit(f"--set {item!r}: expected NAME=VALUE")
+        values[k.strip()] = v
+    try:
+        settings = build_settings(cls.Settings, values)
+    except (ValueError, TypeError) as e:
+        raise SystemExit(f"{cls.impl}: {e}") from None
+    vehicles_config = {}
+    if args.manifest:
+        with open(args.manifest, "rb") as f:
+            vehicles_config = tomllib.load(f).get("vehicles", {})
+    if issubclass(cls, SimPublisher):
+        svc = cls(settings, args.instance, "*", vehicles_config)
+        svc.vehicle = keys.check_id(args.vehicle)
+        if svc.instance == f"{cls.impl}-{os.getpid()}" and args.instance is None:
+            svc.instance = f"{cls.impl}-{svc.vehicle}"
+    else:
+        svc = cls(settings, args.instance, args.vehicles, vehicles_config)
+    return svc
+
+
+def run(svc: Service, conf: Any, ready: threading.Event | None = None) -> None:
+    """Open a session, run ``svc`` until stopped (SIGINT/SIGTERM or its source ends), close."""
+    import zenoh
+
+    session = zenoh.open(conf)
+    runner = Runner(svc, session)
+
+    def _on_signal(signum: int, frame: Any) -> None:
+        svc.log.info("signal %d: stopping", signum)
+        runner.stop()
+        # a hard deadline: never hang on exit
+        threading.Timer(STOP_GRACE_S, lambda: os._exit(0)).start()
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, _on_signal)
+        signal.signal(signal.SIGTERM, _on_signal)
+    try:
+        runner.start()
+        if ready is not None:
+            ready.set()
+        if isinstance(svc, SimPublisher):
+            pub_thread = threading.Thread(target=runner.run_publisher, daemon=True)
+            pub_thread.start()
+            while pub_thread.is_alive() and not runner.stop_event.is_set():
+                pub_thread.join(0.2)
+            if not runner.stop_event.is_set():
+                # the source ended: keep answering status until stopped
+                runner.loop()
+        else:
+            runner.loop()
+    finally:
+        runner.stop()
+        runner.close()
+        session.close()
+        svc.log.info("stopped")
+
+
+def main(cls: type[Service], argv: list[str] | None = None) -> None:
+    parser = make_parser(cls)
+    args = parser.parse_args(argv)
+    setup_logging(args.log_level, args.log_json)
+    svc = service_from_args(cls, args)
+    try:
+        conf = zconf.config_from_args(args)
+    except Exception as e:
+        raise SystemExit(f"{cls.impl}: bad Zenoh configuration: {e}") from None
+    run(svc, conf)

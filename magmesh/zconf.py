@@ -1,0 +1,68 @@
+"""Zenoh configuration from the same flags as Zenoh's own tools.
+
+``--mode``, ``--connect``, ``--listen``, ``--config``, ``--cfg KEY:VALUE``, ``--no-multicast-scouting``.
+Without flags a magmesh process is a client of the demo mesh's router at ``tcp/127.0.0.1:7447``
+(or ``$MAGMESH_ENDPOINT``), retrying until it is up; multicast scouting is off so nothing leaves
+loopback unless asked.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+
+def default_endpoint() -> str:
+    return os.environ.get("MAGMESH_ENDPOINT", DEFAULT_ENDPOINT)
+
+
+def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
+    g = parser.add_argument_group("Zenoh")
+    g.add_argument("--mode", "-m", choices=["peer", "client", "router"], default=None,
+                   help="Zenoh session mode (default: client when connecting, else peer)")
+    g.add_argument("--connect", "-e", action="append", default=None, metavar="ENDPOINT",
+                   help=f"endpoint to connect to (repeatable; default {DEFAULT_ENDPOINT} or $MAGMESH_ENDPOINT)")
+    g.add_argument("--listen", "-l", action="append", default=None, metavar="ENDPOINT",
+                   help="endpoint to listen on (repeatable)")
+    g.add_argument("--config", "-c", default=None, metavar="FILE", help="Zenoh JSON5 configuration file")
+    g.add_argument("--cfg", action="append", default=None, metavar="KEY:VALUE",
+                   help="a Zenoh configuration entry, VALUE in JSON5 (repeatable), e.g. transport/link/tx/lease:1000")
+    g.add_argument("--multicast-scouting", action="store_true",
+                   help="enable multicast scouting (off by default)")
+
+
+def build_config(mode=None, connect=None, listen=None, config_file=None, cfg=None, multicast=False):
+    """Build a :class:`zenoh.Config`."""
+    import zenoh
+
+    conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
+    if connect is None and listen is None and mode is None and not config_file:
+        connect = [default_endpoint()]
+    if mode is None and not config_file:
+        mode = "client" if connect and not listen else "peer"
+    if mode:
+        conf.insert_json5("mode", json.dumps(mode))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+        # keep retrying: a service may start before its router
+        conf.insert_json5("connect/timeout_ms", "-1")
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    if not config_file:
+        conf.insert_json5("scouting/multicast/enabled", "true" if multicast else "false")
+        # notice frozen peers within ~1 s instead of ~10 s
+        conf.insert_json5("transport/link/tx/lease", "1000")
+        conf.insert_json5("transport/link/tx/keep_alive", "4")
+    for item in cfg or []:
+        k, _, v = item.partition(":")
+        if not k or not v:
+            raise ValueError(f"--cfg {item!r} must be KEY:VALUE")
+        conf.insert_json5(k, v)
+    return conf
+
+
+def config_from_args(args: argparse.Namespace):
+    return build_config(args.mode, args.connect, args.listen, args.config, args.cfg, args.multicast_scouting)

@@ -1,0 +1,1 @@
+"""Ingest service: validation of raw sensor samples."""

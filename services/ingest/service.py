@@ -1,0 +1,58 @@
+"""Ingest: validate every raw sample; republish accepted ones on clean keys, report the rest on rejects.
+
+Garbage bytes, NaN, wrong versions, absurd values, duplicates and time going backwards are refused with a
+reason on ``magmesh/{vehicle}/rejects`` and counted; nothing crashes the service.
+"""
+
+from __future__ import annotations
+
+from magmesh.runtime import Service
+from schemas import keys, messages
+from schemas.messages import SchemaError
+
+from .core import IngestSettings, Rejection, StreamState, VehicleState, accept, check_order, check_ranges
+
+
+class Ingest(Service):
+    role = "ingest"
+    impl = "ingest"
+    Settings = IngestSettings
+    CONSUMES = ("raw/mag/{sensor}", "raw/imu", "raw/gnss", "raw/ins", "raw/route")
+    PRODUCES = ("clean/mag/{sensor}", "clean/imu", "clean/gnss", "clean/ins", "clean/route", "rejects")
+    DECODE_INPUTS = False  # we decode ourselves to report every problem with its field
+
+    def subscriptions(self) -> list[str]:
+        return [keys.raw_all(self.vehicle_pattern)]
+
+    def new_vehicle(self, vehicle: str) -> VehicleState:
+        return VehicleState()
+
+    def on_message(self, info, payload: bytes, state: VehicleState) -> None:
+        key = info.key
+        try:
+            msg = messages.decode(payload, where=key, expected_type=messages.type_for_key(key))
+        except SchemaError as e:
+            code = "version" if e.field == "version" else ("decode" if e.field == "<payload>" else "schema")
+            self.reject(key, code, str(e), e.field, len(payload), info.vehicle, None, messages.peek_type(payload))
+            return
+        if msg["vehicle"] != info.vehicle:
+            self.reject(key, "key", f"field 'vehicle' of {key} is {msg['vehicle'][:64]!r}, but the key names "
+                        f"vehicle {info.vehicle!r}", "vehicle", len(payload), info.vehicle, msg["t_s"], msg["type"])
+            return
+        st = state.streams.get(key)
+        if st is None:
+            st = state.streams[key] = StreamState()
+        try:
+            check_ranges(msg, self.settings, key)
+            check_order(msg, st, self.settings, key)
+        except Rejection as r:
+            self.reject(key, r.code, r.reason, r.field, len(payload), info.vehicle, msg["t_s"], msg["type"])
+            return
+        accept(msg, st)
+        fields = {k: v for k, v in msg.items() if k not in ("type", "version", "vehicle", "t_s", "seq")}
+        self.publish(keys.raw_to_clean(key), msg["type"], info.vehicle, msg["t_s"], **fields)
+
+    def status_extra(self) -> dict:
+        gaps = {k: st.upstream_gaps for vs in list(self.vehicle_states.values()) if vs
+                for k, st in list(vs.streams.items()) if st.upstream_gaps}
+        return {"upstream_gaps": gaps}
