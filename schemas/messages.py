@@ -459,8 +459,10 @@ def decode(payload: bytes | bytearray | memoryview, where: str = "", expected_ty
         raise SchemaError("<payload>", f"must be bytes, got {type(payload).__name__}", where)
     if len(payload) == 0:
         raise SchemaError("<payload>", "is empty", where)
+    if len(payload) > 16 * 1024 * 1024:
+        raise SchemaError("<payload>", f"is {len(payload)} bytes (max 16 MiB)", where)
     try:
-        msg = msgpack.unpackb(payload, raw=False, strict_map_key=True, max_buffer_size=16 * 1024 * 1024)
+        msg = msgpack.unpackb(payload, raw=False, strict_map_key=True)
     except Exception as e:  # msgpack raises several exception types for bad bytes
         raise SchemaError("<payload>", f"is not valid msgpack ({type(e).__name__}: {str(e)[:80]})", where) from None
     return validate(msg, where, expected_type)
