@@ -1,0 +1,189 @@
+"""DMC detector: recognises dynamic magnetic interference from two compasses (ALGORITHMS.md §1).
+
+Consumes  magmesh/{vehicle}/clean/mag/1, clean/mag/2   the two compasses of the DMC, paired by time
+          magmesh/{vehicle}/cal/params/{sensor}        static compensation; overrides the manifest's
+Produces  magmesh/{vehicle}/dmc                        features, credibility and validity per epoch
+          magmesh/{vehicle}/alarm/dmc                  raised / cleared, with hysteresis
+
+Until ``cal/params`` arrive, the compensation comes from the mesh manifest's vehicle table
+(``mag_params.{sensor}`` with offset_nt, matrix, field_radius_nt; ``declination_rad``; optional
+``dh_ref_rad``). A vehicle with neither has its epochs counted as dropped, never guessed at.
+This module holds the ``threshold`` implementation; the other implementations of the role subclass
+:class:`DmcDetectorService` in ``impls.py``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from magmesh.runtime import Service
+from schemas import keys
+
+from . import core
+from .core import CompassParams, FeatureSettings, HysteresisSettings, Pairer, Thresholds
+
+
+@dataclass(frozen=True)
+class Settings:
+    sensor_a: str = "1"  # the reference compass (its heading is published)
+    sensor_b: str = "2"
+    pair_tolerance_s: float = 0.005  # samples of the two compasses closer than this form an epoch
+    dm_threshold_nt: float = Thresholds.dm_nt  # V_Δm
+    ddm_threshold_nt_s: float = Thresholds.ddm_nt_s  # V_dΔm
+    dh_threshold_deg: float = Thresholds.dh_deg  # V_Δh
+    ddh_threshold_deg_s: float = Thresholds.ddh_deg_s  # V_dΔh
+    smooth_window_s: float = FeatureSettings.smooth_window_s
+    rate_window_s: float = FeatureSettings.rate_window_s
+    raise_after_s: float = HysteresisSettings.raise_after_s
+    clear_after_s: float = HysteresisSettings.clear_after_s
+    severity: str = "warning"  # of alarm/dmc
+
+    def __post_init__(self):
+        if self.severity not in ("warning", "critical"):
+            raise ValueError(f"severity must be warning or critical, got {self.severity!r}")
+        keys.check_id(self.sensor_a, "sensor_a")
+        keys.check_id(self.sensor_b, "sensor_b")
+        self.thresholds()  # range checks
+        self.feature_settings()
+        self.hysteresis()
+
+    def thresholds(self) -> Thresholds:
+        return Thresholds(self.dm_threshold_nt, self.ddm_threshold_nt_s, self.dh_threshold_deg,
+                          self.ddh_threshold_deg_s)
+
+    def feature_settings(self, dh_ref_rad: float = 0.0) -> FeatureSettings:
+        return FeatureSettings(self.smooth_window_s, self.rate_window_s, dh_ref_rad)
+
+    def hysteresis(self) -> HysteresisSettings:
+        return HysteresisSettings(self.raise_after_s, self.clear_after_s)
+
+
+@dataclass
+class VehicleState:
+    pairer: Pairer
+    detector: Any
+    declination_rad: float = 0.0
+    params: dict[str, CompassParams] = field(default_factory=dict)
+    param_origin: dict[str, str] = field(default_factory=dict)  # sensor → "manifest" | "cal"
+    epochs: int = 0
+    n_valid: int = 0
+    warned_no_params: bool = False
+
+
+class DmcDetectorService(Service):
+    """Common wiring of every two-compass implementation: pairing, parameters, publishing."""
+
+    role = "dmc_detector"
+    impl = "threshold"
+    Settings = Settings
+    CONSUMES = ("clean/mag/{sensor}", "cal/params/{sensor}")
+    PRODUCES = ("dmc", "alarm/dmc")
+
+    # ---- hooks for implementations ---------------------------------------------------------
+    def make_detector(self, vehicle: str, dh_ref_rad: float) -> Any:
+        s = self.settings
+        return core.ThresholdDetector(core.ThresholdDetectorSettings(
+            s.thresholds(), s.feature_settings(dh_ref_rad), s.hysteresis()))
+
+    # ---- service --------------------------------------------------------------------------
+    @property
+    def sensors(self) -> tuple[str, str]:
+        return (self.settings.sensor_a, self.settings.sensor_b)
+
+    def subscriptions(self) -> list[str]:
+        p = self.vehicle_pattern
+        return [keys.clean_mag(p, s) for s in self.sensors] + [keys.cal_params(p, s) for s in self.sensors]
+
+    def new_vehicle(self, vehicle: str) -> VehicleState:
+        cfg = self.vehicles_config.get(vehicle, {}) or {}
+        dh_ref = float(cfg.get("dh_ref_rad", 0.0))
+        st = VehicleState(Pairer(self.sensors, self.settings.pair_tolerance_s), self.make_detector(vehicle, dh_ref),
+                          declination_rad=float(cfg.get("declination_rad", 0.0)))
+        for sensor, table in (cfg.get("mag_params") or {}).items():
+            sensor = str(sensor)
+            if sensor in self.sensors:
+                try:
+                    st.params[sensor] = CompassParams.from_mapping(table, param_id="manifest")
+                    st.param_origin[sensor] = "manifest"
+                except (KeyError, ValueError, TypeError) as e:
+                    self.log.error("vehicle %s: manifest mag_params.%s unusable: %s", vehicle, sensor, e)
+        return st
+
+    def on_message(self, info, msg: dict, state: VehicleState) -> None:
+        if info.kind == "cal":
+            self._on_params(info, msg, state)
+            return
+        pairs, dropped = state.pairer.push(info.sensor, msg["t_s"], msg["b_nt"])
+        if dropped:
+            self.count_drop(info.key, "unpaired", dropped)
+        for t_s, b_a, b_b in pairs:
+            self._on_epoch(info, state, t_s, b_a, b_b)
+
+    def _on_params(self, info, msg: dict, state: VehicleState) -> None:
+        if msg["status"] not in ("ok", "manifest"):
+            self.log.info("vehicle %s sensor %s: ignoring cal/params %s with status %s", info.vehicle, info.sensor,
+                          msg["param_id"], msg["status"])
+            return
+        try:
+            p = CompassParams.from_mapping(msg)
+        except (KeyError, ValueError) as e:
+            self.count_drop(info.key, "unusable_params")
+            self.log.error("vehicle %s sensor %s: unusable cal/params: %s", info.vehicle, info.sensor, e)
+            return
+        if state.params.get(info.sensor) == p:
+            return
+        state.params[info.sensor] = p
+        state.param_origin[info.sensor] = "cal" if msg["status"] == "ok" else "manifest"
+        # new compensation: the feature windows restart so no rate spans two parameter sets
+        state.detector.restart_features()
+        self.log.info("vehicle %s sensor %s: compensation %s from cal/params", info.vehicle, info.sensor,
+                      p.param_id)
+
+    def _param_source(self, state: VehicleState) -> str:
+        origins = {state.param_origin.get(s) for s in self.sensors}
+        return "cal" if origins == {"cal"} else "manifest"
+
+    def _on_epoch(self, info, state: VehicleState, t_s: float, b_a, b_b) -> None:
+        a, b = self.sensors
+        if a not in state.params or b not in state.params:
+            self.count_drop(info.key, "no_compensation_params")
+            if not state.warned_no_params:
+                state.warned_no_params = True
+                self.log.warning("vehicle %s: no compensation parameters for sensor(s) %s (manifest mag_params or "
+                                 "cal/params); epochs are dropped until they arrive", info.vehicle,
+                                 ", ".join(s for s in self.sensors if s not in state.params))
+            return
+        d = state.detector.update(t_s, b_a, b_b, state.params[a], state.params[b], state.declination_rad)
+        self._publish(info.vehicle, state, d, self._param_source(state))
+
+    def _publish(self, vehicle: str, state: VehicleState, d: core.Decision, param_source: str) -> None:
+        state.epochs += 1
+        state.n_valid += int(d.valid)
+        self.publish(keys.dmc(vehicle), "dmc", vehicle, d.t_s, dm_nt=d.dm_nt, ddm_nt_s=d.ddm_nt_s, dh_rad=d.dh_rad,
+                     ddh_rad_s=d.ddh_rad_s, heading_rad=d.heading_rad, stage1_pass=d.stage1_pass,
+                     credibility=d.credibility, valid=d.valid, impl=self.impl, param_source=param_source)
+        if d.transition is not None:
+            reason, value, threshold, unit = state.detector.describe(d)
+            raised_t = state.detector.latch.raised_t_s
+            extra = {"raised_t_s": raised_t} if raised_t is not None else {}
+            self.alarm(vehicle, "dmc", d.transition, self.settings.severity, reason, value, threshold, d.t_s,
+                       unit=unit, **extra)
+
+    def status_extra(self) -> dict:
+        out = {}
+        for v, st in list(self.vehicle_states.items()):
+            if st is None:
+                continue
+            det = st.detector
+            out[v] = {"epochs": st.epochs, "valid_frac": round(st.n_valid / st.epochs, 4) if st.epochs else None,
+                      "params": {s: {"origin": st.param_origin.get(s), "param_id": p.param_id}
+                                 for s, p in st.params.items()},
+                      "flags": det.flags, "internal_states": det.internal_states}
+        return {"detector": out}
+
+
+class ThresholdDmcDetector(DmcDetectorService):
+    """Stage 1 only: the four threshold tests of §1."""
+
+    impl = "threshold"
