@@ -1,0 +1,1 @@
+"""Replay publishers for the bundled real recordings (BROAD, the car circles, the indoor walks)."""
