@@ -150,7 +150,7 @@ def synthetic_paper_map(
     seed: int = 7,
     n_cells: int = 150,
     spacing_m: float = 100.0,
-    correlation_cells: float = 2.0,
+    correlation_cells: float = 3.0,
     mean_nt: float = PAPER_MAP_MEAN_NT,
     std_nt: float = PAPER_MAP_STD_NT,
 ) -> GridMap:
