@@ -92,6 +92,8 @@ MAG = _register(
             _F("calibrated", "bool", "true on cal/mag: hard/soft iron removed", required=False),
             _F("param_id", "str", "id of the cal/params set that produced this sample", required=False, nullable=True),
             _F("temp_c", "float", "sensor temperature, °C", required=False),
+            _F("f_nt", "float", "scalar total-field reading (e.g. an optically pumped sensor of a survey "
+               "vehicle), nT; b_nt then carries the co-located vector sensor", required=False, lo=0),
         ),
     )
 )
@@ -282,6 +284,11 @@ GEOMAG_FIX = _register(
             _F("margin_nt", "float", "runner-up distance minus best distance, nT", nullable=True),
             _F("search_area_m2", "float", "area searched, m²", lo=0),
             _F("n_samples", "int", "match length N", lo=0),
+            _F("correction_enu_m", "vec3", "pos_enu_m − ins_pos_enu_m: the INS correction this match implies, m",
+               required=False),
+            _F("lambda_nt", "float", "feasibility / SSDA threshold λ finally used, nT", required=False, lo=0),
+            _F("feasible_cells", "int", "cells kept by the pre-match (the feasible set U)", required=False, lo=0),
+            _F("match_ms", "float", "compute time of the match, ms", required=False, lo=0),
         ),
     )
 )
