@@ -36,6 +36,16 @@ MESSAGE_ENCODING = "msgpack"
 SCHEMA_ENCODING = "jsonschema"
 SCHEMA_PREFIX = "magmesh."
 METADATA_NAME = "magmesh.recording"
+#: pseudo message type of service liveliness events (token appeared / disappeared); not replayed
+LIVELINESS = "liveliness"
+LIVELINESS_SCHEMA = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": f"{SCHEMA_PREFIX}{LIVELINESS}",
+    "description": "a magmesh service liveliness token appeared (alive=true) or disappeared (msgpack map)",
+    "type": "object",
+    "properties": {"alive": {"type": "boolean"}, "token": {"type": "string"}},
+    "required": ["alive", "token"],
+}
 PROFILE = "magmesh"
 
 _JSON_KIND = {
@@ -141,6 +151,7 @@ class RecordCounts:
     written: Counter = field(default_factory=Counter)  # valid magmesh messages
     unvalidated: Counter = field(default_factory=Counter)  # kept, but did not decode as a magmesh message
     skipped: Counter = field(default_factory=Counter)  # not written (e.g. delete samples), with reason keys
+    liveliness: int = 0  # service appear/disappear events
 
     @property
     def total(self) -> int:
@@ -151,6 +162,7 @@ class RecordCounts:
             "written": int(sum(self.written.values())),
             "unvalidated": int(sum(self.unvalidated.values())),
             "skipped": int(sum(self.skipped.values())),
+            "liveliness": int(self.liveliness),
             "keys": len(set(self.written) | set(self.unvalidated)),
             "per_key": {k: int(v) for k, v in sorted((self.written + self.unvalidated).items())},
             "skipped_per_reason": {k: int(v) for k, v in sorted(self.skipped.items())},
@@ -182,7 +194,8 @@ class RecordingWriter:
     def _schema_id(self, msg_type: str) -> int:
         sid = self._schemas.get(msg_type)
         if sid is None:
-            data = json.dumps(json_schema(msg_type), ensure_ascii=False).encode()
+            js = LIVELINESS_SCHEMA if msg_type == LIVELINESS else json_schema(msg_type)
+            data = json.dumps(js, ensure_ascii=False).encode()
             sid = self._writer.register_schema(f"{SCHEMA_PREFIX}{msg_type}", SCHEMA_ENCODING, data)
             self._schemas[msg_type] = sid
         return sid
@@ -232,6 +245,14 @@ class RecordingWriter:
         """Encode (validating) and store one message dict."""
         self.write(key, messages.encode(msg), receive_ns, msg=messages.validate(msg, where=key))
 
+    def write_liveliness(self, token: str, alive: bool, receive_ns: int | None = None) -> None:
+        """Store a service liveliness event (token ``magmesh/svc/{role}/{instance}`` appeared or went)."""
+        receive_ns = time.time_ns() if receive_ns is None else int(receive_ns)
+        cid = self._channel_id(token, LIVELINESS)
+        payload = msgpack.packb({"alive": bool(alive), "token": token}, use_bin_type=True)
+        self._writer.add_message(cid, log_time=receive_ns, data=payload, publish_time=receive_ns, sequence=0)
+        self.counts.liveliness += 1
+
     def skip(self, key: str, reason: str) -> None:
         """Count a sample that was received but not stored (never dropped silently)."""
         self.counts.skipped[f"{reason}: {key}"] += 1
@@ -279,8 +300,12 @@ class Record:
         return messages.decode(self.payload, where=self.key)
 
 
-def read_records(path: str | Path, key_exprs: Sequence[str] | None = None) -> Iterator[Record]:
-    """The samples of a recording in receive-time order, optionally only keys matching ``key_exprs``."""
+def read_records(path: str | Path, key_exprs: Sequence[str] | None = None,
+                 liveliness: bool = False) -> Iterator[Record]:
+    """The samples of a recording in receive-time order, optionally only keys matching ``key_exprs``.
+
+    Service liveliness events are left out unless ``liveliness`` is true.
+    """
     with open(path, "rb") as fh:
         reader = make_reader(fh)
         for schema, channel, message in reader.iter_messages(log_time_order=True):
@@ -289,6 +314,8 @@ def read_records(path: str | Path, key_exprs: Sequence[str] | None = None) -> It
             msg_type = channel.metadata.get("magmesh_type") or None
             if msg_type is None and schema is not None and schema.name.startswith(SCHEMA_PREFIX):
                 msg_type = schema.name[len(SCHEMA_PREFIX):]
+            if msg_type == LIVELINESS and not liveliness:
+                continue
             yield Record(channel.topic, msg_type, bytes(message.data), int(message.log_time),
                          int(message.publish_time))
 
@@ -303,6 +330,16 @@ def load_messages(path: str | Path, key_exprs: Sequence[str] | None = None,
         except messages.SchemaError:
             if counts is not None:
                 counts[f"undecodable: {rec.key}"] += 1
+    return out
+
+
+def load_liveliness(path: str | Path) -> list[tuple[float, str, bool]]:
+    """Service liveliness events ``(receive time s since the epoch, token key, alive)``."""
+    out = []
+    for rec in read_records(path, liveliness=True):
+        if rec.msg_type == LIVELINESS:
+            ev = msgpack.unpackb(rec.payload, raw=False)
+            out.append((rec.receive_ns / 1e9, rec.key, bool(ev.get("alive"))))
     return out
 
 

@@ -166,3 +166,16 @@ def test_replay_with_fake_clock_applies_remap():
     assert [o[0] for o in out] == [0.0, 2.0, 4.0, 6.0]
     assert {o[1] for o in out} == {"magmesh/car-2/dmc"} and {o[2] for o in out} == {"car-2"}
     assert stats.max_late_s == 0.0
+
+
+def test_liveliness_events_are_stored_apart_from_messages(tmp_path):
+    path = tmp_path / "run.mcap"
+    with rc.RecordingWriter(path) as w:
+        w.write_message(keys.raw_mag("car-1", "1"), _mag("car-1", "1", 0.0, 0), 1_000)
+        w.write_liveliness(keys.svc_token("dmc_detector", "dmc-1"), True, 2_000)
+        w.write_liveliness(keys.svc_token("dmc_detector", "dmc-1"), False, 3_000)
+    assert w.counts.as_dict()["liveliness"] == 2
+    assert [r.key for r in rc.read_records(path)] == ["magmesh/car-1/raw/mag/1"]
+    assert rc.load_liveliness(path) == [(2e-6, "magmesh/svc/dmc_detector/dmc-1", True),
+                                        (3e-6, "magmesh/svc/dmc_detector/dmc-1", False)]
+    assert len(rc.load_messages(path)) == 1

@@ -1,0 +1,167 @@
+"""``magmesh record``: record mesh traffic to an MCAP file.
+
+    magmesh record -o run.mcap                       # everything under magmesh/**
+    magmesh record 'magmesh/car-1/**' -o car.mcap --duration 60
+
+Every sample received is written (payload bytes unchanged, receive time and sample time) or counted
+with the reason it was not (delete samples, duplicates from overlapping key expressions); the counts
+are printed at the end and stored in the file. Service liveliness (``magmesh/svc/**``) is recorded as
+appear/disappear events so a report can show when a service was swapped. Stops on Ctrl-C/SIGTERM or
+after ``--duration``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from schemas import keys
+
+from .. import zconf
+from ..recording import RecordingWriter, keyexpr_matches
+
+log = logging.getLogger("magmesh.record")
+
+FIFO_CAPACITY = 16384
+IDLE_SLEEP_S = 0.0005
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("record", help="record mesh traffic to an MCAP file",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_arguments(p)
+    p.set_defaults(func=run)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("key_exprs", nargs="*", metavar="KEYEXPR", help=f"key expressions (default {keys.everything()})")
+    p.add_argument("-o", "--output", required=True, help="MCAP file to write")
+    p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: until Ctrl-C)")
+    p.add_argument("--no-liveliness", action="store_true", help="do not record service liveliness events")
+    p.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd")
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress line")
+    zconf.add_zenoh_args(p)
+
+
+def record(
+    conf,
+    output: str | Path,
+    key_exprs: Sequence[str] = (),
+    duration_s: float = 0.0,
+    liveliness: bool = True,
+    compression: str = "zstd",
+    stop: threading.Event | None = None,
+    on_progress: Callable[[dict], None] | None = None,
+    ready: threading.Event | None = None,
+) -> dict:
+    """Record until ``stop`` is set or ``duration_s`` passes; return the counts (also stored in the file)."""
+    import zenoh
+
+    exprs = list(key_exprs) or [keys.everything()]
+    stop = stop or threading.Event()
+    info = {"key_exprs": exprs, "started_unix_s": time.time(), "tool": "magmesh record"}
+    with zenoh.open(conf) as session, RecordingWriter(output, info=info, compression=compression) as writer:
+        subs = [(e, session.declare_subscriber(e, zenoh.handlers.FifoChannel(FIFO_CAPACITY))) for e in exprs]
+        live = None
+        if liveliness:
+            live = session.liveliness().declare_subscriber(f"{keys.ROOT}/{keys.SVC}/**",
+                                                           zenoh.handlers.FifoChannel(1024), history=True)
+        if ready is not None:
+            ready.set()
+        t_end = time.monotonic() + duration_s if duration_s > 0 else None
+        last_report = time.monotonic()
+
+        def drain_once() -> int:
+            n = 0
+            for i, (expr, sub) in enumerate(subs):
+                while True:
+                    sample = sub.try_recv()
+                    if sample is None:
+                        break
+                    n += 1
+                    now_ns = time.time_ns()
+                    key = str(sample.key_expr)
+                    if sample.kind != zenoh.SampleKind.PUT:
+                        writer.skip(key, "delete sample")
+                    elif any(keyexpr_matches(prev, key) for prev, _ in subs[:i]):
+                        writer.skip(key, "duplicate (overlapping key expressions)")
+                    else:
+                        writer.write(key, sample.payload.to_bytes(), now_ns)
+            if live is not None:
+                while True:
+                    s = live.try_recv()
+                    if s is None:
+                        break
+                    n += 1
+                    writer.write_liveliness(str(s.key_expr), s.kind == zenoh.SampleKind.PUT, time.time_ns())
+            return n
+
+        while not stop.is_set() and (t_end is None or time.monotonic() < t_end):
+            if drain_once() == 0:
+                time.sleep(IDLE_SLEEP_S)
+            if on_progress is not None and time.monotonic() - last_report >= 1.0:
+                last_report = time.monotonic()
+                on_progress(writer.counts.as_dict())
+        # take what is already queued: nothing received is left uncounted
+        settle = time.monotonic() + 0.2
+        while time.monotonic() < settle:
+            if drain_once():
+                settle = time.monotonic() + 0.05
+            else:
+                time.sleep(0.01)
+        drain_once()
+        for _, sub in subs:
+            sub.undeclare()
+        if live is not None:
+            live.undeclare()
+        writer.info["stopped_unix_s"] = time.time()
+        counts = writer.close()
+    return counts
+
+
+def format_counts(counts: dict, path: str | Path) -> str:
+    lines = [f"recorded {counts['written']} messages on {counts['keys']} keys to {path}"]
+    if counts.get("liveliness"):
+        lines.append(f"  service liveliness events: {counts['liveliness']}")
+    if counts["unvalidated"]:
+        lines.append(f"  kept but not valid magmesh messages: {counts['unvalidated']}")
+    for reason, n in counts.get("skipped_per_reason", {}).items():
+        lines.append(f"  not written ({reason}): {n}")
+    width = max((len(k) for k in counts["per_key"]), default=0)
+    for k, n in counts["per_key"].items():
+        lines.append(f"  {k:<{width}}  {n}")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    conf = zconf.config_from_args(args)
+    stop = threading.Event()
+
+    def _on_signal(signum, frame):
+        stop.set()
+
+    signal.signal(signal.SIGINT, _on_signal)
+    signal.signal(signal.SIGTERM, _on_signal)
+    tty = sys.stderr.isatty() and not args.quiet
+
+    def progress(c: dict) -> None:
+        if tty:
+            print(f"\rrecording: {c['written']} messages, {c['keys']} keys, {c['skipped']} not written",
+                  end="", file=sys.stderr, flush=True)
+
+    counts = record(conf, args.output, args.key_exprs, args.duration, not args.no_liveliness, args.compression,
+                    stop, progress)
+    if tty:
+        print(file=sys.stderr)
+    print(format_counts(counts, args.output))
+    if getattr(args, "json", False):
+        print(json.dumps(counts))
+    return 0
