@@ -1,0 +1,186 @@
+"""BROAD replay for the heading evaluation: load a trial, run the fuser core and two peer AHRS
+(x-io Fusion via ``imufusion``, the ``ahrs`` package's EKF) on it, score the heading error.
+
+BROAD (Laidig et al., Data 6(7):72, 2021, CC-BY-4.0): myon aktos-t IMU with optical ground truth at
+285.714 Hz. ``opt_quat`` is sensor → ENU. The heading error is BROAD's own metric
+(``example_code/broad_utils.py``): the error quaternion in the Earth frame ``q_est ⊗ q_opt⁻¹`` and the
+angle of its rotation about the vertical, ``2·atan(|z / w|)``, RMS over the ``movement`` samples.
+
+All three estimators start from the same attitude: the one given by the first sample's accelerometer
+and magnetometer (BROAD's ``quatFromAccMag`` convention), with no start-up phase.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from magmesh import maths
+from magmesh.paths import DATA_DIR
+from services.heading_fuser.core import HeadingFilter, Settings
+
+BROAD_DIR = DATA_DIR / "broad"
+UT_TO_NT = 1000.0
+
+
+@dataclass
+class Trial:
+    name: str
+    rate_hz: float
+    gyro_rad_s: np.ndarray
+    accel_m_s2: np.ndarray
+    mag_nt: np.ndarray
+    quat_true: np.ndarray  # sensor → ENU, NaN where the cameras lost the board
+    movement: np.ndarray  # bool
+
+    def sliced(self, n: int) -> Trial:
+        return Trial(self.name, self.rate_hz, self.gyro_rad_s[:n], self.accel_m_s2[:n], self.mag_nt[:n],
+                     self.quat_true[:n], self.movement[:n])
+
+
+def trial_files(directory: Path | str = BROAD_DIR) -> list[Path]:
+    return sorted(Path(directory).glob("*.hdf5"))
+
+
+def load_trial(path: Path | str) -> Trial:
+    path = Path(path)
+    with h5py.File(path, "r") as f:
+        return Trial(
+            path.stem,
+            float(f.attrs["sampling_rate"]),
+            np.asarray(f["imu_gyr"], float),
+            np.asarray(f["imu_acc"], float),
+            np.asarray(f["imu_mag"], float) * UT_TO_NT,
+            np.asarray(f["opt_quat"], float),
+            np.asarray(f["movement"], bool),
+        )
+
+
+def is_disturbed(name: str) -> bool:
+    return "disturbed" in name and "undisturbed" not in name
+
+
+# ---- metric -----------------------------------------------------------------------------------
+
+
+def quat_mul_rows(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    pw, px, py, pz = p.T
+    qw, qx, qy, qz = q.T
+    return np.column_stack([
+        pw * qw - px * qx - py * qy - pz * qz,
+        pw * qx + px * qw + py * qz - pz * qy,
+        pw * qy - px * qz + py * qw + pz * qx,
+        pw * qz + px * qy - py * qx + pz * qw,
+    ])
+
+
+def heading_errors_rad(q_est: np.ndarray, q_true: np.ndarray) -> np.ndarray:
+    """BROAD heading error per sample: rotation about the vertical of ``q_est ⊗ q_true⁻¹`` (rad)."""
+    qt = q_true * np.array([1.0, -1.0, -1.0, -1.0])
+    d = quat_mul_rows(q_est, qt)
+    return 2.0 * np.arctan(np.abs(d[:, 3] / d[:, 0]))
+
+
+def heading_rms_deg(q_est: np.ndarray, trial: Trial) -> float:
+    e = heading_errors_rad(q_est, trial.quat_true)[trial.movement]
+    return float(np.degrees(np.sqrt(np.nanmean(e**2))))
+
+
+def initial_quat(trial: Trial) -> np.ndarray:
+    """Attitude from the first accelerometer + magnetometer sample (sensor → ENU, magnetic north)."""
+    f = HeadingFilter(Settings())
+    f.align(trial.accel_m_s2[0], trial.mag_nt[0])
+    return f.quaternion()
+
+
+# ---- the three estimators ---------------------------------------------------------------------
+
+
+def broad_settings(**overrides) -> Settings:
+    """Fuser settings for BROAD's handheld board (fast rotations, µT-class magnetometer noise)."""
+    base = dict(
+        gyro_noise_rad_s_rt_hz=0.003,
+        gyro_bias_walk_rad_s2_rt_hz=1e-4,
+        accel_noise_m_s2=0.4,
+        accel_rejection_m_s2=3.0,
+        accel_update_period_s=0.0,
+        mag_noise_nt=1000.0,
+        mag_update_period_s=0.0,
+        rejection_timeout_s=20.0,
+    )
+    base.update(overrides)
+    return Settings(**base)
+
+
+def run_magmesh(trial: Trial, settings: Settings | None = None) -> tuple[np.ndarray, dict]:
+    f = HeadingFilter(settings or broad_settings())
+    dt = 1.0 / trial.rate_hz
+    n = len(trial.gyro_rad_s)
+    out = np.empty((n, 4))
+    modes = {m: 0 for m in ("initialising", "magnetic", "gyro_only", "recovering")}
+    gyro, acc, mag = trial.gyro_rad_s.tolist(), trial.accel_m_s2, trial.mag_nt
+    f.update_imu(gyro[0], acc[0], 0.0)
+    f.update_mag(mag[0])
+    t0 = time.perf_counter()
+    out[0] = f.q
+    for i in range(1, n):
+        f.update_imu(gyro[i], acc[i], dt)
+        f.update_mag(mag[i])
+        out[i] = f.q
+        modes[f.mode] += 1
+    elapsed = time.perf_counter() - t0
+    info = {"us_per_sample": 1e6 * elapsed / max(n - 1, 1), "mode_frac": {k: v / max(n - 1, 1) for k, v in modes.items()},
+            "transitions": len(f.transitions)}
+    return out, info
+
+
+def run_imufusion(trial: Trial) -> np.ndarray:
+    """x-io Fusion with its magnetic rejection on (the README's example settings), same start attitude."""
+    import imufusion
+
+    rate = int(round(trial.rate_hz))
+    ahrs = imufusion.Ahrs()
+    ahrs.set_settings(imufusion.AhrsSettings(
+        convention=imufusion.CONVENTION_ENU, gain=0.5, gyroscope_range=2000.0,
+        acceleration_rejection=10.0, magnetic_rejection=10.0, rejection_timeout=5 * rate, sample_rate=rate))
+    ahrs.set_quaternion(initial_quat(trial))
+    ahrs.skip_startup()
+    gyro_deg = np.degrees(trial.gyro_rad_s)
+    acc_g = trial.accel_m_s2 / maths.G0
+    mag_ut = trial.mag_nt / UT_TO_NT
+    out = np.empty((len(gyro_deg), 4))
+    for i in range(len(gyro_deg)):
+        ahrs.update(gyro_deg[i], acc_g[i], mag_ut[i])
+        out[i] = ahrs.get_quaternion()
+    return out
+
+
+def run_ahrs_ekf(trial: Trial) -> np.ndarray:
+    """The ``ahrs`` package's quaternion EKF (its default noises), same start attitude.
+
+    ``ahrs``' ENU mode pairs the accelerometer reading (+up at rest) with a gravity reference of
+    ``[0, 0, −1]``: its Earth frame is West-North-Down, ENU turned 180° about north. Given a field
+    reference of the matching sign (``magnetic_ref = −dip``) it is consistent in that frame, so the
+    start attitude is turned into it and its output turned back: ``q_ENU = q_flip ⊗ q_WND``.
+    """
+    from ahrs.filters import EKF
+
+    mag_ut = trial.mag_nt / UT_TO_NT
+    flip = np.array([[0.0, 0.0, 1.0, 0.0]])  # 180° about north: v_ENU = diag(−1, 1, −1) v_WND
+    q0 = quat_mul_rows(flip * np.array([1.0, -1.0, -1.0, -1.0]), initial_quat(trial)[None])[0]
+    dip_deg = float(np.degrees(_dip_of_first_sample(trial)))
+    ekf = EKF(gyr=trial.gyro_rad_s, acc=trial.accel_m_s2, mag=mag_ut, frequency=trial.rate_hz, frame="ENU",
+              q0=q0, magnetic_ref=-dip_deg)
+    q = np.asarray(ekf.Q)
+    return quat_mul_rows(np.repeat(flip, len(q), axis=0), q)
+
+
+def _dip_of_first_sample(trial: Trial) -> float:
+    q = initial_quat(trial)
+    mn = maths.quat_rotate(q, trial.mag_nt[0])
+    return math.atan2(-mn[2], math.hypot(mn[0], mn[1]))

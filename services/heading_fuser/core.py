@@ -1,0 +1,547 @@
+"""Heading fuser core: an error-state quaternion EKF AHRS with adaptive magnetometer noise, a gyro
+fallback while the magnetic heading is invalid, and a guarded re-acquisition of the magnetic heading.
+
+Pure numpy; never imports zenoh. Usable on its own::
+
+    f = HeadingFilter(Settings(declination_rad=0.05))
+    for gyro, accel, mag in samples:
+        f.update(gyro, accel, mag, dt_s=0.01)          # mag may be None (no sample this step)
+        heading, pitch, roll = f.euler()
+
+Method (ALGORITHMS.md §2, Liu et al.; §1, Hao et al.):
+
+* Attitude quaternion ``q`` (body FLU → ENU) propagated with the bias-corrected gyro,
+  ``q_{k+1} = q_k ⊗ exp(½ (ω − b_g) T)`` — the closed form of §2's ``(I + T/2 · Ω(ω)) q`` (eq. 2.1).
+  The filter is written in error-state (multiplicative) form: the EKF state is the small body-frame
+  rotation error ``δθ`` and the gyro bias ``b_g`` (6 states), the standard way to keep the quaternion
+  unit-norm and the covariance 3-dimensional in attitude.
+* Accelerometer update: measured gravity direction against ``Rᵀ e_up`` (eq. 2.2), with the noise
+  inflated by the deviation of |a| from g and skipped beyond ``accel_rejection_m_s2``.
+* Magnetometer update: the paper fuses the field vector; this filter fuses the field's **heading**
+  only — the azimuth of the field rotated into ENU by the current attitude against the declination —
+  so that a disturbed magnetometer can never tilt the attitude (the practice of PX4 ekf2 and x-io Fusion).
+  The tilt uncertainty that leaks into that azimuth (∝ tan of the field inclination) is added to the
+  measurement variance (eq. 2.3).
+* Quasi-static field detection (§2): over a sliding window of ``quasi_static_window_s`` the field is
+  quasi-static when the variance of its strength stays below ``quasi_static_var_nt2`` **and** the
+  heading change seen by the magnetometer agrees with the gyro's within ``quasi_static_heading_rad``.
+  The paper tests the variance of the body-frame components, which any turn of the vehicle fails; the
+  strength and the field's dip are invariant to the vehicle's own rotation, so this filter tests them
+  instead (the strength variance and the dip variance).
+* Adaptive magnetometer noise (§2, reconstructed): ``R_m = R_m0`` when quasi-static, else
+  ``R_m = k · R_m0`` with ``k1`` (variance test failed) or ``k2`` (heading-change test failed).
+* Absolute field consistency: strength and dip against the reference field (given, or learned at
+  alignment); a field off by more than the tolerances is not fused at all.
+* Innovation gate (PX4 style): test ratio ``ν² / (gate² · S)``; a sample above 1 is not fused.
+* DMC switching (§1): while the differential compass says the magnetic heading is invalid the filter
+  runs on the gyro alone (mode ``gyro_only``); when it clears, mode ``recovering``.
+* Guarded re-acquisition (improvement over PX4/ArduPilot yaw resets): in ``recovering`` the
+  magnetometer must be consistent (strength, dip, quasi-static) for ``recovery_hold_s`` before it may
+  steer the heading, and then only at most ``recovery_slew_rad_s`` while its innovation is outside
+  the gate: never a sudden yaw jump towards a field that may still be disturbed. Back to ``magnetic``
+  once the innovation has been inside the gate for ``recovery_hold_s``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from magmesh import maths
+
+log = logging.getLogger("magmesh.heading_fuser.core")
+
+MODES = ("initialising", "magnetic", "gyro_only", "recovering")
+_EYE6 = np.eye(6)
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Filter settings. Units in the names; ranges checked in ``__post_init__``."""
+
+    # process noise
+    gyro_noise_rad_s_rt_hz: float = 0.002  # angle random walk density (plus model error), rad/s/√Hz
+    gyro_bias_walk_rad_s2_rt_hz: float = 2e-5  # bias random walk density, rad/s²/√Hz
+    gyro_bias_init_std_rad_s: float = 0.005  # initial 1-σ gyro bias
+    # initial attitude uncertainty
+    init_tilt_std_rad: float = 0.05
+    init_heading_std_rad: float = 0.2
+    init_duration_s: float = 0.0  # average accel + mag over this long before aligning (0: first sample)
+    # accelerometer
+    accel_noise_m_s2: float = 0.5  # 1-σ of the gravity direction, as specific force
+    accel_rejection_m_s2: float = 2.0  # skip the accel update when ||a| − g| exceeds this
+    accel_update_period_s: float = 0.0  # at most one accel update per this period (0: every sample)
+    # magnetometer
+    mag_noise_nt: float = 400.0  # 1-σ per axis of the (calibrated) field
+    mag_heading_noise_floor_rad: float = 0.01  # floor on the heading-measurement σ
+    mag_gate_sigma: float = 5.0  # innovation gate, standard deviations (PX4 EKF2_MAG_GATE)
+    mag_update_period_s: float = 0.0  # at most one mag update per this period (0: every sample)
+    declination_rad: float = 0.0  # magnetic declination, east positive
+    ref_field_nt: float = 0.0  # reference field strength (0: learn at alignment)
+    ref_dip_rad: float = float("nan")  # reference dip, down positive (nan: learn at alignment)
+    field_strength_tol_frac: float = 0.05  # window-mean |(|m| − B0)| / B0 above this: disturbed
+    field_dip_tol_rad: float = 0.052  # window-mean |dip − dip0| above this: disturbed (3°)
+    sample_strength_tol_frac: float = 0.15  # one sample this far off is not fused
+    sample_dip_tol_rad: float = 0.26  # one sample this far off is not fused (15°)
+    use_field_check: bool = True
+    # quasi-static detection and adaptive noise (§2)
+    adaptive_noise: bool = True
+    quasi_static_window_s: float = 1.0
+    quasi_static_var_nt2: float = 0.8e6  # the paper's var_initial = 0.8 µT²
+    quasi_static_dip_var_rad2: float = 3e-4  # dip variance limit, rad² (≈ 1° σ)
+    quasi_static_heading_rad: float = 0.035  # the paper's Δψ_initial, ≈ 2°
+    adaptive_gain_variance: float = 200.0  # k1
+    adaptive_gain_heading: float = 150.0  # k2
+    # DMC switching and recovery (§1)
+    use_dmc: bool = True
+    clear_hold_s: float = 1.0  # disturbance must be absent this long before leaving gyro_only
+    recovery_hold_s: float = 2.0  # consistency needed before the mag may steer; then inside the gate
+    recovery_slew_rad_s: float = 0.035  # max heading correction rate while re-acquiring (≈ 2°/s)
+    recovery_noise_gain: float = 10.0  # R_m multiplier while recovering
+    rejection_timeout_s: float = 5.0  # persistent gate rejections this long in magnetic → recovering
+    # alarm
+    heading_alarm_std_rad: float = 0.087  # heading σ above this while not magnetic raises the flag (5°)
+
+    def __post_init__(self):
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, bool) or f.name in ("ref_dip_rad",):
+                continue
+            if not isinstance(v, (int, float)) or (isinstance(v, float) and math.isnan(v)):
+                raise ValueError(f"setting {f.name} must be a number, got {v!r}")
+            if v < 0 and f.name != "declination_rad":
+                raise ValueError(f"setting {f.name} must be ≥ 0, got {v!r}")
+        if self.mag_gate_sigma <= 0:
+            raise ValueError(f"setting mag_gate_sigma must be > 0, got {self.mag_gate_sigma}")
+        if self.quasi_static_window_s <= 0:
+            raise ValueError("setting quasi_static_window_s must be > 0")
+
+
+@dataclass
+class InternalStates:
+    """Continuous diagnostics of the last update (read-only outputs, x-io Fusion style)."""
+
+    mag_innovation_rad: float | None = None  # heading innovation of the last mag sample
+    mag_innovation_var_rad2: float | None = None  # its predicted variance S
+    mag_test_ratio: float | None = None  # ν² / (gate² S)
+    mag_noise_gain: float = 1.0  # current adaptive multiplier on R_m
+    field_strength_error_frac: float = 0.0  # (|m| − B0) / B0
+    field_dip_error_rad: float = 0.0  # dip − dip0
+    accel_error_m_s2: float = 0.0  # |a| − g
+    time_since_mag_fused_s: float = 0.0
+    gyro_only_duration_s: float = 0.0
+    heading_std_rad: float = 0.0
+    gyro_bias_rad_s: tuple = (0.0, 0.0, 0.0)
+
+
+@dataclass
+class Flags:
+    """Boolean state (x-io Fusion style)."""
+
+    initialising: bool = True
+    mag_fused: bool = False  # the last magnetometer sample was used
+    mag_rejected_gate: bool = False  # the last one failed the innovation gate
+    field_inconsistent: bool = False  # strength or dip off the reference
+    quasi_static: bool = True  # §2 window test passed
+    dmc_valid: bool = True  # last DMC verdict (true when no DMC)
+    accel_ignored: bool = False
+    heading_uncertain: bool = False  # heading σ above heading_alarm_std_rad while not magnetic
+
+
+def _skew(v) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _quat_exp(rv0: float, rv1: float, rv2: float) -> tuple:
+    a = math.sqrt(rv0 * rv0 + rv1 * rv1 + rv2 * rv2)
+    if a < 1e-9:
+        return 1.0, 0.5 * rv0, 0.5 * rv1, 0.5 * rv2
+    s = math.sin(0.5 * a) / a
+    return math.cos(0.5 * a), rv0 * s, rv1 * s, rv2 * s
+
+
+def _qmul(p, q) -> tuple:
+    pw, px, py, pz = p
+    qw, qx, qy, qz = q
+    return (
+        pw * qw - px * qx - py * qy - pz * qz,
+        pw * qx + px * qw + py * qz - pz * qy,
+        pw * qy - px * qz + py * qw + pz * qx,
+        pw * qz + px * qy - py * qx + pz * qw,
+    )
+
+
+def _qmat(q) -> np.ndarray:
+    w, x, y, z = q
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+class _Window:
+    """Sliding-window sums over time for the quasi-static test (O(1) per sample)."""
+
+    def __init__(self, length_s: float):
+        self.length_s = length_s
+        self.items: deque = deque()
+        self.s = np.zeros(4)  # strength, strength², dip, dip²
+
+    def add(self, t: float, strength: float, dip: float, mag_minus_gyro: float) -> None:
+        self.items.append((t, strength, dip, mag_minus_gyro))
+        self.s += (strength, strength * strength, dip, dip * dip)
+        while self.items and t - self.items[0][0] > self.length_s:
+            _, b, d, _ = self.items.popleft()
+            self.s -= (b, b * b, d, d * d)
+
+    def full(self, t: float) -> bool:
+        return len(self.items) >= 3 and t - self.items[0][0] >= 0.8 * self.length_s
+
+    def stats(self) -> tuple[float, float, float, float, float]:
+        """(mean strength nT, strength variance nT², mean dip rad, dip variance rad², |Δψ_m − Δψ_g| rad)."""
+        n = len(self.items)
+        mb, md = self.s[0] / n, self.s[2] / n
+        var_b = max(0.0, self.s[1] / n - mb * mb)
+        var_d = max(0.0, self.s[3] / n - md * md)
+        # Δψ_m − Δψ_g = change over the window of (magnetometer yaw − integrated gyro yaw)
+        return mb, var_b, md, var_d, abs(math.remainder(self.items[-1][3] - self.items[0][3], 2 * math.pi))
+
+    def clear(self) -> None:
+        self.items.clear()
+        self.s[:] = 0.0
+
+
+class HeadingFilter:
+    """Quaternion error-state EKF AHRS with magnetic disturbance handling (see module docstring)."""
+
+    def __init__(self, settings: Settings | None = None):
+        self.settings = settings or Settings()
+        self.reset()
+
+    # ---- state --------------------------------------------------------------------------------
+    def reset(self) -> None:
+        s = self.settings
+        self.q = (1.0, 0.0, 0.0, 0.0)  # body → ENU
+        self.bias = np.zeros(3)
+        self.P = np.diag([s.init_tilt_std_rad**2] * 2 + [s.init_heading_std_rad**2] + [s.gyro_bias_init_std_rad_s**2] * 3)
+        self.t_s = 0.0
+        self.mode = "initialising"
+        self.states = InternalStates()
+        self.flags = Flags()
+        self.ref_field_nt = s.ref_field_nt
+        self.ref_dip_rad = s.ref_dip_rad
+        self._init_acc: list = []
+        self._init_mag: list = []
+        self._init_t0: float | None = None
+        self._window = _Window(s.quasi_static_window_s)
+        self._gyro_yaw = 0.0  # integrated gyro heading (CCW yaw), for the §2 heading-change test
+        self._last_accel_t = -1e9
+        self._last_mag_t = -1e9
+        self._last_fused_t = 0.0
+        self._mode_since_t = 0.0
+        self._clear_since_t: float | None = None
+        self._consistent_since_t: float | None = None
+        self._inside_gate_since_t: float | None = None
+        self._rejected_since_t: float | None = None
+        self._gyro_only_since_t: float | None = None
+        self.transitions: list[tuple[float, str, str, str]] = []  # (t_s, from, to, reason)
+
+    @property
+    def internal_states(self) -> InternalStates:
+        return self.states
+
+    @property
+    def aligned(self) -> bool:
+        return self.mode != "initialising"
+
+    def quaternion(self) -> np.ndarray:
+        return np.array(self.q)
+
+    def euler(self) -> tuple[float, float, float]:
+        """(heading, pitch, roll) in rad; heading clockwise from true north in [0, 2π)."""
+        return maths.euler_from_matrix(_qmat(self.q))
+
+    def heading_rad(self) -> float:
+        w, x, y, z = self.q
+        return float(maths.yaw_to_heading(math.atan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))))
+
+    def attitude_std(self) -> tuple[float, float, float]:
+        """1-σ (heading, pitch, roll) uncertainty, rad, from the attitude covariance in ENU."""
+        R = _qmat(self.q)
+        Pn = R @ self.P[:3, :3] @ R.T  # nav-frame rotation-error covariance
+        h = math.sqrt(max(Pn[2, 2], 0.0))
+        # pitch is a rotation about the horizontal right axis, roll about the horizontal forward axis
+        fwd = R[:, 0].copy()
+        fwd[2] = 0.0
+        n = math.hypot(fwd[0], fwd[1])
+        fwd = fwd / n if n > 1e-6 else np.array([1.0, 0.0, 0.0])
+        right = np.array([fwd[1], -fwd[0], 0.0])
+        return h, math.sqrt(max(right @ Pn @ right, 0.0)), math.sqrt(max(fwd @ Pn @ fwd, 0.0))
+
+    def _set_mode(self, mode: str, reason: str) -> None:
+        if mode == self.mode:
+            return
+        log.debug("t=%.2f s: %s → %s (%s)", self.t_s, self.mode, mode, reason)
+        self.transitions.append((self.t_s, self.mode, mode, reason))
+        if mode == "gyro_only":
+            self._gyro_only_since_t = self.t_s
+        elif mode == "magnetic":
+            self._gyro_only_since_t = None
+        self.mode = mode
+        self._mode_since_t = self.t_s
+        self._consistent_since_t = None
+        self._inside_gate_since_t = None
+        self._rejected_since_t = None
+        self._clear_since_t = None
+
+    # ---- alignment ----------------------------------------------------------------------------
+    def align(self, accel_m_s2, mag_nt) -> None:
+        """Set the attitude from one (averaged) accel + mag pair (ALGORITHMS.md §2 initial attitude)."""
+        up = np.asarray(accel_m_s2, float)
+        up = up / np.linalg.norm(up)
+        m = np.asarray(mag_nt, float)
+        east = np.cross(m, up)  # north × up = east
+        east /= np.linalg.norm(east)
+        north = np.cross(up, east)
+        R_mag = np.vstack([east, north, up])  # rows: ENU axes in body → body → magnetic ENU
+        q = maths.quat_from_matrix(R_mag)
+        # a field of declination D (east positive) has azimuth D, so v_true = Rz(−D) v_magnetic
+        qd = _quat_exp(0.0, 0.0, -self.settings.declination_rad)
+        self.q = _qmul(qd, tuple(q))
+        mn = _qmat(self.q) @ m
+        if not self.ref_field_nt:
+            self.ref_field_nt = float(np.linalg.norm(m))
+        if not math.isfinite(self.ref_dip_rad):
+            self.ref_dip_rad = math.atan2(-mn[2], math.hypot(mn[0], mn[1]))
+        self._set_mode("magnetic", "aligned")
+        self._last_fused_t = self.t_s
+
+    # ---- the update ---------------------------------------------------------------------------
+    def update(self, gyro_rad_s, accel_m_s2, mag_nt=None, dt_s: float = 0.01, dmc_valid: bool | None = None):
+        """One IMU step, then the magnetometer sample if any. Returns the mode."""
+        self.update_imu(gyro_rad_s, accel_m_s2, dt_s)
+        if mag_nt is not None:
+            self.update_mag(mag_nt, dmc_valid)
+        return self.mode
+
+    def update_imu(self, gyro_rad_s, accel_m_s2, dt_s: float) -> None:
+        s = self.settings
+        self.t_s += dt_s
+        if self.mode == "initialising":
+            self._init_acc.append(np.asarray(accel_m_s2, float))
+            return
+        self._predict(gyro_rad_s, dt_s)
+        if self.t_s - self._last_accel_t >= s.accel_update_period_s - 1e-9:
+            self._last_accel_t = self.t_s
+            self._fuse_accel(accel_m_s2)
+        st = self.states
+        st.time_since_mag_fused_s = self.t_s - self._last_fused_t
+        st.gyro_only_duration_s = 0.0 if self._gyro_only_since_t is None else self.t_s - self._gyro_only_since_t
+        up = _qmat(self.q)[2]
+        h_std = math.sqrt(max(float(up @ self.P[:3, :3] @ up), 0.0))
+        st.heading_std_rad = h_std
+        self.flags.heading_uncertain = self.mode != "magnetic" and h_std > s.heading_alarm_std_rad
+
+    def _predict(self, gyro, dt: float) -> None:
+        s = self.settings
+        b = self.bias
+        w0, w1, w2 = gyro[0] - b[0], gyro[1] - b[1], gyro[2] - b[2]
+        dq = _quat_exp(w0 * dt, w1 * dt, w2 * dt)
+        q = _qmul(self.q, dq)
+        n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+        self.q = (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
+        qw, qx, qy, qz = self.q
+        # nav-frame yaw rate = third row of R times body rate (for the quasi-static heading test)
+        self._gyro_yaw += ((2 * (qx * qz - qw * qy)) * w0 + (2 * (qy * qz + qw * qx)) * w1
+                           + (1 - 2 * (qx * qx + qy * qy)) * w2) * dt
+        # error-state transition (eq. 2.1 linearised): δθ' = (I − [ω T]×) δθ − T δb
+        F = np.eye(6)
+        F[:3, :3] -= _skew((w0 * dt, w1 * dt, w2 * dt))
+        F[0, 3] = F[1, 4] = F[2, 5] = -dt
+        P = F @ self.P @ F.T
+        qg = s.gyro_noise_rad_s_rt_hz**2 * dt
+        qb = s.gyro_bias_walk_rad_s2_rt_hz**2 * dt
+        P[0, 0] += qg
+        P[1, 1] += qg
+        P[2, 2] += qg
+        P[3, 3] += qb
+        P[4, 4] += qb
+        P[5, 5] += qb
+        self.P = P
+
+    def _inject(self, dx: np.ndarray) -> None:
+        self.q = _qmul(self.q, _quat_exp(dx[0], dx[1], dx[2]))
+        n = math.sqrt(sum(c * c for c in self.q))
+        self.q = tuple(c / n for c in self.q)
+        self.bias = self.bias + dx[3:]
+
+    def _fuse_accel(self, accel) -> None:
+        s = self.settings
+        a = np.asarray(accel, float)
+        na = math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+        err = na - maths.G0
+        self.states.accel_error_m_s2 = err
+        if abs(err) > s.accel_rejection_m_s2 or na < 1e-6:
+            self.flags.accel_ignored = True
+            return
+        self.flags.accel_ignored = False
+        z = a / na
+        qw, qx, qy, qz = self.q
+        g = np.array([2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)])  # Rᵀ e_up
+        # (eq. 2.2) g_true ≈ g + [g]× δθ  →  H = [[g]×, 0]
+        H = np.zeros((3, 6))
+        H[:, :3] = _skew(g)
+        sig = (s.accel_noise_m_s2 + 2.0 * abs(err)) / maths.G0
+        PHt = self.P @ H.T
+        S = H @ PHt + np.eye(3) * sig * sig
+        K = np.linalg.solve(S, PHt.T).T
+        # never let gravity move the heading: zero the gain of the rotation about the nav vertical
+        R = _qmat(self.q)
+        up_b = R[2]  # nav up expressed in body
+        K[:3] -= np.outer(up_b, up_b @ K[:3])
+        dx = K @ (z - g)
+        self._inject(dx)
+        # Joseph form: K is not the optimal gain after the projection above
+        A = _EYE6 - K @ H
+        P = A @ self.P @ A.T + (sig * sig) * (K @ K.T)
+        self.P = 0.5 * (P + P.T)
+
+    def update_mag(self, mag_nt, dmc_valid: bool | None = None) -> bool:
+        """Fuse one calibrated magnetometer sample (nT, body FLU). Returns whether it was fused."""
+        s = self.settings
+        m = np.asarray(mag_nt, float)
+        fl, st = self.flags, self.states
+        if self.mode == "initialising":
+            if self._init_t0 is None:
+                self._init_t0 = self.t_s
+            self._init_mag.append(m)
+            if self.t_s - self._init_t0 >= s.init_duration_s - 1e-9 and self._init_acc:
+                self.align(np.mean(self._init_acc, axis=0), np.mean(self._init_mag, axis=0))
+                self._init_acc, self._init_mag = [], []
+                fl.initialising = False
+            return False
+        if self.t_s - self._last_mag_t < s.mag_update_period_s - 1e-9:
+            return fl.mag_fused
+        dt_mag = min(self.t_s - self._last_mag_t, 1.0)
+        self._last_mag_t = self.t_s
+        t = self.t_s
+        R = _qmat(self.q)
+        mn = R @ m
+        x, y = mn[0], mn[1]
+        h2 = x * x + y * y
+        strength = math.sqrt(h2 + mn[2] * mn[2])
+        dip = math.atan2(-mn[2], math.sqrt(h2))
+        azimuth = math.atan2(x, y)  # clockwise from north
+        # ---- checks ----
+        st.field_strength_error_frac = (strength - self.ref_field_nt) / self.ref_field_nt
+        st.field_dip_error_rad = dip - self.ref_dip_rad
+        sample_bad = s.use_field_check and (
+            abs(st.field_strength_error_frac) > s.sample_strength_tol_frac or abs(st.field_dip_error_rad) > s.sample_dip_tol_rad
+        )
+        fl.dmc_valid = True if (dmc_valid is None or not s.use_dmc) else bool(dmc_valid)
+        # magnetometer yaw = estimated yaw + azimuth error of the field (the innovation below)
+        nu = math.remainder(azimuth - s.declination_rad, 2 * math.pi)
+        mag_yaw = math.atan2(R[1, 0], R[0, 0]) + nu
+        self._window.add(t, strength, dip, math.remainder(mag_yaw - self._gyro_yaw, 2 * math.pi))
+        gain = 1.0
+        fl.quasi_static = True
+        window_bad = False
+        if self._window.full(t):
+            mb, var_b, md, var_d, dpsi = self._window.stats()
+            window_bad = s.use_field_check and (
+                abs(mb - self.ref_field_nt) > s.field_strength_tol_frac * self.ref_field_nt
+                or abs(md - self.ref_dip_rad) > s.field_dip_tol_rad
+            )
+            var_fail = var_b > s.quasi_static_var_nt2 or var_d > s.quasi_static_dip_var_rad2
+            head_fail = dpsi > s.quasi_static_heading_rad
+            fl.quasi_static = not (var_fail or head_fail)
+            if s.adaptive_noise:
+                gain = max(s.adaptive_gain_variance if var_fail else 1.0, s.adaptive_gain_heading if head_fail else 1.0)
+        fl.field_inconsistent = window_bad or sample_bad
+        disturbed = window_bad or not fl.dmc_valid
+        # ---- innovation (eq. 2.3): φ_z = azimuth − D, H = e_upᵀ R (body error → nav yaw) ----
+        Hr = R[2]
+        Pn = R @ self.P[:3, :3] @ R.T
+        var_m = s.mag_noise_nt**2 / max(h2, 1.0)
+        leak = 0.0
+        if h2 > 1.0:  # tilt error leaks into the azimuth ∝ tan(inclination)
+            j = (mn[2] / h2) * np.array([y, -x])  # ∂azimuth/∂(φ_x, φ_y), sign irrelevant for the variance
+            leak = float(j @ Pn[:2, :2] @ j)
+        r = max(var_m, s.mag_heading_noise_floor_rad**2) * gain + leak
+        if self.mode == "recovering":
+            r *= s.recovery_noise_gain
+        st.mag_noise_gain = gain
+        PHt = self.P[:, :3] @ Hr
+        S = float(Hr @ PHt[:3]) + r
+        ratio = nu * nu / (s.mag_gate_sigma**2 * S)
+        st.mag_innovation_rad, st.mag_innovation_var_rad2, st.mag_test_ratio = nu, S, ratio
+        fl.mag_rejected_gate = ratio > 1.0
+        usable = not fl.mag_rejected_gate and not sample_bad
+        # ---- mode logic (§1) ----
+        fused = False
+        if self.mode == "magnetic":
+            if disturbed:
+                self._set_mode("gyro_only", "DMC says invalid" if not fl.dmc_valid else "field strength/dip off reference")
+            elif not usable:
+                if self._rejected_since_t is None:
+                    self._rejected_since_t = t
+                elif t - self._rejected_since_t > s.rejection_timeout_s:
+                    self._set_mode("recovering", "innovation outside the gate for too long")
+            else:
+                self._rejected_since_t = None
+                fused = True
+        elif self.mode == "gyro_only":
+            if disturbed:
+                self._clear_since_t = None
+            else:
+                if self._clear_since_t is None:
+                    self._clear_since_t = t
+                if t - self._clear_since_t >= s.clear_hold_s:
+                    self._set_mode("recovering", "disturbance cleared")
+        elif self.mode == "recovering":
+            if disturbed:
+                self._set_mode("gyro_only", "disturbed again while recovering")
+            else:
+                if fl.quasi_static:
+                    if self._consistent_since_t is None:
+                        self._consistent_since_t = t
+                else:
+                    self._consistent_since_t = None
+                    self._inside_gate_since_t = None
+                consistent = self._consistent_since_t is not None and t - self._consistent_since_t >= s.recovery_hold_s
+                if usable and fl.quasi_static:
+                    if self._inside_gate_since_t is None:
+                        self._inside_gate_since_t = t
+                    fused = True
+                    if t - self._inside_gate_since_t >= s.recovery_hold_s:
+                        self._set_mode("magnetic", "magnetometer consistent and inside the gate")
+                else:
+                    self._inside_gate_since_t = None
+                    if consistent and not sample_bad:
+                        self._slew(nu, Hr, dt_mag)
+        if fused:
+            K = PHt / S
+            self._inject(K * nu)
+            self.P = self.P - np.outer(K, PHt)
+            self.P = 0.5 * (self.P + self.P.T)
+            self._last_fused_t = t
+        fl.mag_fused = fused
+        return fused
+
+    def _slew(self, nu: float, Hr: np.ndarray, dt: float) -> None:
+        """Rate-limited heading correction towards a consistent magnetometer outside the gate."""
+        step = max(-self.settings.recovery_slew_rad_s * dt, min(self.settings.recovery_slew_rad_s * dt, nu))
+        # rotate about the nav vertical by `step`: δθ_body = Rᵀ e_up · step
+        self._inject(np.concatenate([Hr * step, np.zeros(3)]))
+
+
+def magnetic_heading(mag_nt, accel_m_s2, declination_rad: float = 0.0):
+    """Tilt-compensated magnetometer-only heading (rad), the baseline a single compass gives."""
+    return maths.tilt_compensated_heading(mag_nt, accel_m_s2, declination_rad)
