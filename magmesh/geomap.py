@@ -146,6 +146,16 @@ def _spline_cache(m: GridMap):
     return s
 
 
+def core_field_enu_nt(lat_deg: float, lon_deg: float, alt_m: float = 0.0) -> np.ndarray:
+    """IGRF main field at a map's reference place, ENU, nT: anomaly = total field − its magnitude.
+
+    Over a map of some ten kilometres the core field is treated as uniform.
+    """
+    from .maths import earth_field_enu_nt
+
+    return np.array(earth_field_enu_nt(float(lat_deg), float(lon_deg), float(alt_m)))
+
+
 def synthetic_paper_map(
     seed: int = 7,
     n_cells: int = 150,

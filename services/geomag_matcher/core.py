@@ -459,7 +459,9 @@ class GeomagMatcher:
         self._new = 0
         t0 = time.perf_counter()
         ins = np.array(self._p)
-        res = match_sequence(self.map, np.array(self._h), ins, s.match)
+        # once a fix was accepted, search around the corrected INS start instead of the raw one
+        centre = ins[0] if self.last_accepted is None else ins[0] + self.last_accepted.correction_m
+        res = match_sequence(self.map, np.array(self._h), ins, s.match, centre_m=centre)
         self.last_match_ms = (time.perf_counter() - t0) * 1e3
         status = self.acceptor.update(res, ins[-1])
         corr = res.end_m - ins[-1] if res.found else np.full(2, np.nan)

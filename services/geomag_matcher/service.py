@@ -1,0 +1,196 @@
+"""Geomagnetic matcher: match the last N total-field samples against an anomaly map and publish fix/geomag.
+
+Consumes the scalar field (`f_nt` of clean/mag/{sensor}) and the INS navigation (clean/ins) of each
+vehicle; every `match_every_samples` new samples it runs the paper's pipeline (one-cell pre-match
+with SSDA early abandon at λ, bilinear fine match, Hausdorff score), classifies the match with the
+M-of-N rule and publishes the outcome on fix/geomag — a rejected or ambiguous match is published as
+such, never as an accepted fix. It raises alarm/match while the INS and the accepted fixes disagree
+by more than `divergence_alarm_m`.
+
+Per vehicle, the manifest's vehicle table may give `map` (a map spec: file under data/ or
+`synthetic[:seed]`) and `lat_deg`, `lon_deg`, `alt_m` (where the map lies, for the IGRF core field
+subtracted from the total field); the settings give the defaults.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from magmesh.geomap import GridMap, core_field_enu_nt, load_map
+from magmesh.runtime import Service
+from schemas import keys
+
+from .core import AcceptSettings, GeomagMatcher, MatcherSettings, MatchSettings
+
+
+@dataclass(frozen=True)
+class Settings:
+    map: str = "synthetic:7"  # default map spec (a vehicle table's `map` overrides it)
+    n_samples: int = 20  # match length N
+    window_samples: int = 0  # Hausdorff pairing window along the strip; -1: the paper's unordered set
+    rank_frac: float = 1.0  # partial Hausdorff rank (1: classic)
+    lambda_nt: float = 8.4  # SSDA / feasibility threshold λ, nT
+    subdivisions: int = 3  # fine-match subdivisions per cell (2–4)
+    prematch_score: str = "centre"  # centre | corners
+    search_radius_m: float = 3000.0  # half-width of the search square around the (corrected) INS start; 0: whole map
+    match_every_samples: int = 5  # match each time this many new samples arrived
+    m_agree: int = 2  # M of the M-of-N rule
+    n_window: int = 3  # N of the M-of-N rule
+    agree_radius_m: float = 250.0  # fixes agree when their INS corrections differ by less, m
+    min_margin_nt: float = 0.3  # runner-up margin below this: ambiguous
+    max_hausdorff_nt: float = 30.0  # best distance above this: rejected
+    divergence_alarm_m: float = 1000.0  # raise alarm/match when |accepted fix − INS| exceeds this, m
+    lat_deg: float = 45.4  # default reference place of the map (IGRF core field)
+    lon_deg: float = -75.7
+    alt_m: float = 300.0
+    ins_buffer: int = 200  # INS samples kept for time interpolation
+    max_ins_gap_s: float = 30.0  # a field sample farther than this from any INS sample is dropped
+
+
+class VehicleMatch:
+    """Per-vehicle state: the matcher, recent INS samples, field samples waiting for INS."""
+
+    def __init__(self, matcher: GeomagMatcher, buffer: int):
+        self.matcher = matcher
+        self.ins_t: deque = deque(maxlen=buffer)
+        self.ins_p: deque = deque(maxlen=buffer)
+        self.pending: deque = deque(maxlen=buffer)  # (t_s, f_nt)
+        self.alarm_raised = False
+
+    def ins_at(self, t_s: float, max_gap_s: float) -> np.ndarray | None:
+        """INS position at t_s by linear interpolation (None if t_s is not covered)."""
+        ts = list(self.ins_t)
+        if not ts or t_s > ts[-1] + 1e-9 or t_s < ts[0] - max_gap_s:
+            return None
+        k = bisect.bisect_left(ts, t_s)
+        if k < len(ts) and abs(ts[k] - t_s) < 1e-9:
+            return self.ins_p[k]
+        if k == 0:
+            return self.ins_p[0] if ts[0] - t_s <= max_gap_s else None
+        t0, t1 = ts[k - 1], ts[k]
+        if t1 - t0 > max_gap_s:
+            return None
+        w = (t_s - t0) / (t1 - t0)
+        return (1 - w) * self.ins_p[k - 1] + w * self.ins_p[k]
+
+
+class GeomagMatcherService(Service):
+    role = "geomag_matcher"
+    impl = "hausdorff_ssda"
+    Settings = Settings
+    CONSUMES = ("clean/mag/{sensor} (f_nt)", "clean/ins")
+    PRODUCES = ("fix/geomag", "alarm/match")
+
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        self._maps: dict[str, GridMap] = {}
+
+    def subscriptions(self) -> list[str]:
+        p = self.vehicle_pattern
+        return [keys.clean_mag(p, "*"), keys.clean_ins(p)]
+
+    def _map(self, spec: str) -> GridMap:
+        if spec not in self._maps:
+            self._maps[spec] = load_map(spec)
+            self.log.info("loaded map %s: %s cells of %.0f m, std %.2f nT", spec, self._maps[spec].shape,
+                          self._maps[spec].dx_m, self._maps[spec].std_nt)
+        return self._maps[spec]
+
+    def matcher_settings(self, vcfg: dict) -> MatcherSettings:
+        s = self.settings
+        core = core_field_enu_nt(vcfg.get("lat_deg", s.lat_deg), vcfg.get("lon_deg", s.lon_deg),
+                                 vcfg.get("alt_m", s.alt_m))
+        return MatcherSettings(
+            match=MatchSettings(
+                n_samples=s.n_samples, window_samples=None if s.window_samples < 0 else s.window_samples,
+                rank_frac=s.rank_frac, lambda_nt=s.lambda_nt, subdivisions=s.subdivisions,
+                prematch_score=s.prematch_score, search_radius_m=s.search_radius_m),
+            accept=AcceptSettings(m_agree=s.m_agree, n_window=s.n_window, agree_radius_m=s.agree_radius_m,
+                                  min_margin_nt=s.min_margin_nt, max_hausdorff_nt=s.max_hausdorff_nt),
+            match_every_samples=s.match_every_samples,
+            divergence_alarm_m=s.divergence_alarm_m,
+            main_field_nt=float(vcfg.get("main_field_nt", np.linalg.norm(core))),
+        )
+
+    def new_vehicle(self, vehicle: str) -> VehicleMatch:
+        vcfg = self.vehicles_config.get(vehicle, {}) or {}
+        grid = self._map(str(vcfg.get("map", self.settings.map)))
+        ms = self.matcher_settings(vcfg)
+        self.log.info("vehicle %s: map %s, core field %.1f nT subtracted", vehicle, grid.name, ms.main_field_nt)
+        return VehicleMatch(GeomagMatcher(grid, ms), self.settings.ins_buffer)
+
+    def on_message(self, info, msg, state: VehicleMatch) -> None:
+        if info.kind == "clean" and info.stream == "ins":
+            t = msg["t_s"]
+            if state.ins_t and t <= state.ins_t[-1]:
+                self.count_drop(info.key, "ins_out_of_order")
+                return
+            state.ins_t.append(t)
+            state.ins_p.append(np.asarray(msg["pos_enu_m"][:2], float))
+        elif info.kind == "clean" and info.stream == "mag":
+            if "f_nt" not in msg:
+                self.count_drop(info.key, "no_scalar_field")
+                return
+            state.pending.append((msg["t_s"], msg["f_nt"]))
+        else:
+            self.count_drop(info.key, "unexpected_key")
+            return
+        self._drain(info, state)
+
+    def _drain(self, info, state: VehicleMatch) -> None:
+        while state.pending:
+            t, f = state.pending[0]
+            if state.ins_t and t > state.ins_t[-1]:
+                return  # wait for the INS to catch up
+            state.pending.popleft()
+            p = state.ins_at(t, self.settings.max_ins_gap_s)
+            if p is None:
+                self.count_drop(keys.clean_ins(info.vehicle), "no_ins_at_field_time")
+                continue
+            fix = state.matcher.update(t, f, p)
+            if fix is not None:
+                self._publish_fix(info.vehicle, fix, state)
+
+    def _publish_fix(self, vehicle: str, fix, state: VehicleMatch) -> None:
+        r = fix.result
+        ms = state.matcher.settings
+        ins3 = [float(fix.ins_end_m[0]), float(fix.ins_end_m[1]), 0.0]
+        pos3 = [float(r.end_m[0]), float(r.end_m[1]), 0.0] if r.found else ins3
+        fields = dict(
+            status=fix.status, accepted=fix.accepted, pos_enu_m=pos3, ins_pos_enu_m=ins3,
+            hausdorff_nt=float(r.hausdorff_nt) if r.found else 0.0,
+            margin_nt=None if r.margin_nt is None else float(r.margin_nt),
+            search_area_m2=float(r.search_area_m2), n_samples=int(ms.match.n_samples),
+            lambda_nt=float(r.lambda_nt), feasible_cells=int(r.n_feasible),
+            match_ms=float(state.matcher.last_match_ms),
+        )
+        if r.found:
+            fields["correction_enu_m"] = [pos3[0] - ins3[0], pos3[1] - ins3[1], 0.0]
+        self.publish(keys.fix_geomag(vehicle), "geomag_fix", vehicle, fix.t_s, **fields)
+        if fix.status != "accepted":
+            self.log.debug("%s: match %s (d_H %.2f nT, margin %s)", vehicle, fix.status, r.hausdorff_nt, r.margin_nt)
+            return
+        thr = ms.divergence_alarm_m
+        if fix.divergence_m > thr and not state.alarm_raised:
+            state.alarm_raised = True
+            self.alarm(vehicle, "match", "raised", "warning",
+                       f"INS position is {fix.divergence_m:.0f} m from the accepted geomagnetic fix "
+                       f"(limit {thr:.0f} m)", fix.divergence_m, thr, fix.t_s, unit="m")
+        elif fix.divergence_m < 0.8 * thr and state.alarm_raised:
+            state.alarm_raised = False
+            self.alarm(vehicle, "match", "cleared", "warning",
+                       f"INS position within {fix.divergence_m:.0f} m of the accepted geomagnetic fix",
+                       fix.divergence_m, thr, fix.t_s, unit="m")
+
+    def status_extra(self) -> dict:
+        out = {}
+        for v, st in self.vehicle_states.items():
+            s = st.matcher.internal_states
+            out[v] = {**{k: (None if isinstance(x, float) and not math.isfinite(x) else x) for k, x in s.items()},
+                      **st.matcher.flags, "alarm": st.alarm_raised}
+        return {"vehicles": out}
