@@ -229,12 +229,17 @@ class FeatureTracker:
 
 @dataclass(frozen=True)
 class Thresholds:
-    """Stage-1 thresholds (V_Δm, V_dΔm, V_Δh, V_dΔh) in the project's units."""
+    """Stage-1 thresholds (V_Δm, V_dΔm, V_Δh, V_dΔh) in the project's units.
 
-    dm_nt: float = 800.0
-    ddm_nt_s: float = 800.0
-    dh_deg: float = 2.0
-    ddh_deg_s: float = 2.0
+    The defaults sit above what a compass calibrated to ~1 % (offset ~300 nT, scale/misalignment
+    ~0.5 %) shows undisturbed (|Δm| up to ~700 nT, |Δh| up to ~1.5°) and well below the simulated
+    urban sources (median |Δm| of samples with > 5° heading error: ~8000 nT).
+    """
+
+    dm_nt: float = 1000.0
+    ddm_nt_s: float = 1000.0
+    dh_deg: float = 3.0
+    ddh_deg_s: float = 3.0
 
     def __post_init__(self):
         for name in ("dm_nt", "ddm_nt_s", "dh_deg", "ddh_deg_s"):
@@ -521,3 +526,27 @@ class Pairer:
             q_self.popleft()
             dropped += 1
         return [], dropped
+
+
+# ---- the single-compass baseline (§1 Table 2) -------------------------------------------------
+
+
+class SingleCompassDetector(ThresholdDetector):
+    """One compass only: |Δm| < V_Δm and |dΔm| < V_dΔm (no differential tests). The paper's baseline.
+
+    Published with compass 2's entries and the heading-difference features set to 0.
+    """
+
+    impl = "single"
+
+    def update(self, t_s: float, b1_nt, b2_nt, p1: CompassParams, p2: CompassParams,
+               declination_rad: float = 0.0) -> Decision:
+        f = self.tracker.update(t_s, b1_nt, b1_nt, p1, p1, declination_rad)
+        f.dm_nt[:, 1] = 0.0
+        f.ddm_nt_s[:, 1] = 0.0
+        th = self.settings.thresholds
+        r = single_compass_ratios(f, th)[0]
+        ratios = {"dm": float(r[0]), "ddm": float(r[1])}
+        failed = tuple(sorted((k for k, v in ratios.items() if v >= 1.0), key=lambda k: -ratios[k]))
+        ok = not failed
+        return self._finish(f, ok, 1.0 if ok else 0.0, ok, ratios, failed)

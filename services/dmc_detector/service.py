@@ -91,6 +91,11 @@ class DmcDetectorService(Service):
     def sensors(self) -> tuple[str, str]:
         return (self.settings.sensor_a, self.settings.sensor_b)
 
+    @property
+    def required_sensors(self) -> tuple[str, ...]:
+        """Sensors whose compensation parameters an epoch needs."""
+        return self.sensors
+
     def subscriptions(self) -> list[str]:
         p = self.vehicle_pattern
         return [keys.clean_mag(p, s) for s in self.sensors] + [keys.cal_params(p, s) for s in self.sensors]
@@ -102,7 +107,7 @@ class DmcDetectorService(Service):
                           declination_rad=float(cfg.get("declination_rad", 0.0)))
         for sensor, table in (cfg.get("mag_params") or {}).items():
             sensor = str(sensor)
-            if sensor in self.sensors:
+            if sensor in self.required_sensors:
                 try:
                     st.params[sensor] = CompassParams.from_mapping(table, param_id="manifest")
                     st.param_origin[sensor] = "manifest"
@@ -141,21 +146,26 @@ class DmcDetectorService(Service):
                       p.param_id)
 
     def _param_source(self, state: VehicleState) -> str:
-        origins = {state.param_origin.get(s) for s in self.sensors}
+        origins = {state.param_origin.get(s) for s in self.required_sensors}
         return "cal" if origins == {"cal"} else "manifest"
 
     def _on_epoch(self, info, state: VehicleState, t_s: float, b_a, b_b) -> None:
-        a, b = self.sensors
-        if a not in state.params or b not in state.params:
-            self.count_drop(info.key, "no_compensation_params")
-            if not state.warned_no_params:
-                state.warned_no_params = True
-                self.log.warning("vehicle %s: no compensation parameters for sensor(s) %s (manifest mag_params or "
-                                 "cal/params); epochs are dropped until they arrive", info.vehicle,
-                                 ", ".join(s for s in self.sensors if s not in state.params))
+        if not self._have_params(info, state):
             return
+        a, b = self.sensors
         d = state.detector.update(t_s, b_a, b_b, state.params[a], state.params[b], state.declination_rad)
         self._publish(info.vehicle, state, d, self._param_source(state))
+
+    def _have_params(self, info, state: VehicleState) -> bool:
+        missing = [s for s in self.required_sensors if s not in state.params]
+        if not missing:
+            return True
+        self.count_drop(info.key, "no_compensation_params")
+        if not state.warned_no_params:
+            state.warned_no_params = True
+            self.log.warning("vehicle %s: no compensation parameters for sensor(s) %s (manifest mag_params or "
+                             "cal/params); epochs are dropped until they arrive", info.vehicle, ", ".join(missing))
+        return False
 
     def _publish(self, vehicle: str, state: VehicleState, d: core.Decision, param_source: str) -> None:
         state.epochs += 1

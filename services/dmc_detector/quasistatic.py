@@ -1,0 +1,181 @@
+"""Quasi-static magnetic field detection for a vehicle with one magnetometer (ALGORITHMS.md §2).
+
+Pure numpy; never imports zenoh. Liu et al. (AIRCAS): over a sliding window of length L the field is
+quasi-static (Earth field + the vehicle's own, i.e. trustworthy for heading) when
+
+    var(m_x), var(m_y), var(m_z) < var_initial       and      |Δψ_m − Δψ_g| < Δψ_initial
+
+with Δψ_m the heading change over the window from the magnetometer and Δψ_g the same change from
+the gyro. The paper's settings: open road var_initial = 0.8 µT², Δψ_initial = 0.5°; garage 8 µT², 2°.
+
+In a car the body-frame components change whenever the car turns, so the component variance test
+fails in every turn whatever the field. ``variance_of = "magnitude"`` (the default here) tests the
+variance of the compensated field strength |h| instead, which turning does not change; ``"components"``
+is the paper's form. The gyro heading rate is the angular rate about the measured up direction
+(accelerometer, FLU): dψ/dt = −ω · â (heading is clockwise, yaw rate counter-clockwise).
+
+Added here: the field-strength test |Δm| = ||h| − R| < ``dm_threshold_nt`` of §1, which catches a
+disturbance that stays constant while the vehicle stands in it (quasi-static, but wrong);
+``dm_threshold_nt = 0`` gives the paper's two tests alone.
+
+Input pairing is by time: a magnetometer epoch is decided once the gyro stream has reached its time
+(or fell ``max_imu_lag_s`` behind, then the epoch is decided with the gyro data there is and counted).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from magmesh import maths
+
+from .core import AlarmLatch, CompassParams, Decision, HysteresisSettings, compass_heading, reason_sentence
+
+
+@dataclass(frozen=True)
+class QuasiStaticSettings:
+    window_s: float = 1.0  # sliding window L
+    var_threshold_nt2: float = 0.8e6  # var_initial (0.8 µT² = 0.8e6 nT²)
+    dpsi_threshold_deg: float = 1.5  # Δψ_initial
+    variance_of: str = "magnitude"  # "magnitude" (|h|) or "components" (the paper's m_x, m_y, m_z)
+    dm_threshold_nt: float = 1500.0  # added test |Δm| = ||h| − R| < this; 0 switches it off (the paper)
+    max_imu_lag_s: float = 0.5
+    hysteresis: HysteresisSettings = HysteresisSettings()
+
+    def __post_init__(self):
+        if not 0 < self.window_s <= 60:
+            raise ValueError(f"window_s must be in (0, 60] s, got {self.window_s}")
+        if not (self.var_threshold_nt2 > 0 and self.dpsi_threshold_deg > 0):
+            raise ValueError("var_threshold_nt2 and dpsi_threshold_deg must be positive")
+        if self.dm_threshold_nt < 0:
+            raise ValueError("dm_threshold_nt must be ≥ 0 (0: off)")
+        if self.variance_of not in ("magnitude", "components"):
+            raise ValueError(f"variance_of must be 'magnitude' or 'components', got {self.variance_of!r}")
+
+
+class QuasiStaticDetector:
+    """Per vehicle. ``add_imu`` per IMU sample, ``add_mag`` per magnetometer sample → decisions."""
+
+    impl = "quasistatic"
+
+    def __init__(self, settings: QuasiStaticSettings | None = None):
+        self.settings = settings or QuasiStaticSettings()
+        self.latch = AlarmLatch(self.settings.hysteresis)
+        self.reset()
+
+    def reset(self):
+        self._gyro: deque[tuple[float, float]] = deque()  # (t, integrated gyro heading ψ_g)
+        self._psi_g = 0.0
+        self._last_imu: tuple[float, float] | None = None  # (t, heading rate)
+        self._mag: deque[tuple[float, np.ndarray, float, float]] = deque()  # (t, h, |h|−R, ψ_m) in window
+        self._pending: deque = deque()  # mag epochs waiting for the gyro
+        self.latch.reset()
+        self.last: Decision | None = None
+        self.n_imu_lagged = 0
+
+    def restart_features(self):
+        self._mag.clear()
+
+    # ---- inputs ---------------------------------------------------------------------------
+    def add_imu(self, t_s: float, gyro_rad_s, accel_m_s2) -> list[Decision]:
+        w = np.asarray(gyro_rad_s, float)
+        a = np.asarray(accel_m_s2, float)
+        na = float(np.linalg.norm(a))
+        up = a / na if na > 1.0 else np.array([0.0, 0.0, 1.0])
+        rate = -float(w @ up)  # heading rate, clockwise positive
+        if self._last_imu is not None and t_s > self._last_imu[0]:
+            t0, r0 = self._last_imu
+            if t_s - t0 < 1.0:
+                self._psi_g += 0.5 * (r0 + rate) * (t_s - t0)  # trapezoid
+        self._last_imu = (t_s, rate)
+        self._gyro.append((t_s, self._psi_g))
+        horizon = t_s - self.settings.window_s - self.settings.max_imu_lag_s - 1.0
+        while len(self._gyro) > 2 and self._gyro[1][0] < horizon:
+            self._gyro.popleft()
+        return self._drain(t_s)
+
+    def add_mag(self, t_s: float, b_nt, params: CompassParams, declination_rad: float = 0.0) -> list[Decision]:
+        h = params.compensate(b_nt)
+        self._pending.append((t_s, h, float(params.strength(h) - params.field_radius_nt),
+                              float(compass_heading(h, declination_rad))))
+        imu_t = self._last_imu[0] if self._last_imu else -math.inf
+        return self._drain(imu_t, mag_t=t_s)
+
+    def _drain(self, imu_t: float, mag_t: float | None = None) -> list[Decision]:
+        out = []
+        while self._pending:
+            t = self._pending[0][0]
+            lagged = mag_t is not None and mag_t - t > self.settings.max_imu_lag_s
+            if t > imu_t and not lagged:
+                break
+            if t > imu_t:
+                self.n_imu_lagged += 1
+            out.append(self._decide(*self._pending.popleft()))
+        return out
+
+    def _psi_g_at(self, t: float) -> float | None:
+        g = self._gyro
+        if not g or t < g[0][0]:
+            return None
+        ts = [x[0] for x in g]
+        i = int(np.searchsorted(ts, t))
+        if i >= len(g):
+            return g[-1][1]
+        if ts[i] == t or i == 0:
+            return g[i][1]
+        (t0, p0), (t1, p1) = g[i - 1], g[i]
+        return p0 + (p1 - p0) * (t - t0) / (t1 - t0)
+
+    # ---- the test -------------------------------------------------------------------------
+    def _decide(self, t_s: float, h: np.ndarray, dm: float, psi_m: float) -> Decision:
+        s = self.settings
+        if self._mag and t_s <= self._mag[-1][0]:
+            self._mag.clear()
+        self._mag.append((t_s, h, dm, psi_m))
+        while self._mag and self._mag[0][0] < t_s - s.window_s:
+            self._mag.popleft()
+        full = t_s - self._mag[0][0] >= 0.9 * s.window_s and len(self._mag) >= 3
+        if s.variance_of == "magnitude":
+            var = float(np.var([x[2] for x in self._mag]))
+        else:
+            var = float(np.max(np.var(np.array([x[1] for x in self._mag]), axis=0)))
+        dpsi = 0.0
+        t0 = self._mag[0][0]
+        g0, g1 = self._psi_g_at(t0), self._psi_g_at(t_s)
+        if full and g0 is not None and g1 is not None:
+            dpsi_m = float(maths.angle_diff(psi_m, self._mag[0][3]))
+            dpsi = float(maths.wrap_pi(dpsi_m - (g1 - g0)))
+        ratios = {"var": var / s.var_threshold_nt2 if full else 0.0,
+                  "dpsi": abs(math.degrees(dpsi)) / s.dpsi_threshold_deg}
+        if s.dm_threshold_nt > 0:
+            ratios["dm"] = abs(dm) / s.dm_threshold_nt
+        failed = tuple(sorted((k for k, v in ratios.items() if v >= 1.0), key=lambda k: -ratios[k]))
+        valid = not failed
+        transition = self.latch.update(t_s, valid)
+        self.last = Decision(t_s=t_s, dm_nt=[dm, 0.0], ddm_nt_s=[0.0, 0.0], dh_rad=dpsi, ddh_rad_s=0.0,
+                             heading_rad=psi_m, stage1_pass=valid, credibility=1.0 if valid else 0.0, valid=valid,
+                             ready=full, ratios=ratios, failed=failed, transition=transition)
+        return self.last
+
+    def describe(self, d: Decision) -> tuple[str, float | None, float | None, str]:
+        s = self.settings
+        if d.transition == "cleared" or not d.failed:
+            return reason_sentence((), {}, {}), None, None, ""
+        limits = {"var": (d.ratios["var"] * s.var_threshold_nt2, s.var_threshold_nt2, "nT²"),
+                  "dpsi": (d.ratios["dpsi"] * s.dpsi_threshold_deg, s.dpsi_threshold_deg, "deg"),
+                  "dm": (d.ratios.get("dm", 0.0) * s.dm_threshold_nt, s.dm_threshold_nt, "nT")}
+        reason = reason_sentence(d.failed, d.ratios, {k: limits[k][:2] for k in d.failed})
+        return (reason, *limits[d.failed[0]])
+
+    @property
+    def internal_states(self) -> dict:
+        d = self.last
+        return {"imu_lagged_epochs": self.n_imu_lagged, **({"ratios": d.ratios} if d else {})}
+
+    @property
+    def flags(self) -> dict:
+        d = self.last
+        return {"alarm_raised": self.latch.raised, "valid": bool(d and d.valid), "warming": bool(d is None or not d.ready)}
