@@ -19,11 +19,15 @@ Update (Joseph form)::
 noise at ground speed v. An innovation beyond ``gate_sigma`` standard deviations is rejected (a
 magnetic disturbance, a GNSS outlier), PX4 style.
 
-Observability: with small pitch and roll the heading does not depend on ``b_z`` (the third column of
-H is ≈ 0), so its variance stays near the prior. A component counts as observable when its
-standard deviation has fallen below ``observable_ratio`` of its prior. :meth:`applied_offset` returns
-the estimate with every unobservable component held at its prior value: an unobservable
-correction is never applied.
+Observability: with small pitch and roll the heading hardly depends on ``b_z`` (the third column of
+H is ≈ sin(tilt)), and what little it does is swamped by the error of the tilt estimate itself: left
+free, ``b_z`` drifts towards the vertical field (which makes the heading blind to tilt errors) and
+drags ``b_x``, ``b_y`` along through the cross-axis terms of M. So ``b_z`` is estimated only once the
+RMS tilt of the fused epochs reaches ``min_tilt_for_vertical_rad`` (never for a car); until then the
+third column of H is zeroed and ``b_z`` keeps its prior. A component counts as observable when it is
+estimated and its standard deviation has fallen below ``observable_ratio`` of its prior.
+:meth:`applied_offset` returns the estimate with every unobservable component held at its prior
+value: an unobservable correction is never applied.
 """
 
 from __future__ import annotations
@@ -51,6 +55,7 @@ class EkfSettings:
     gate_sigma: float = 3.0  # innovation gate, standard deviations
     observable_ratio: float = 0.3  # std/prior below this → component observable
     converged_std_nt: float = 300.0  # all observable components below this std → converged
+    min_tilt_for_vertical_rad: float = 0.15  # RMS tilt of the fused epochs needed before b_z is estimated
 
     def __post_init__(self):
         if self.prior_std_nt <= 0 or self.heading_noise_rad <= 0 or self.gate_sigma <= 0:
@@ -109,6 +114,15 @@ class HardIronEkf:
         self.n_skipped = 0
         self.skip_reason = ""
         self.fused = False
+        self.tilt_sq_sum = 0.0
+
+    @property
+    def tilt_rms_rad(self) -> float:
+        return math.sqrt(self.tilt_sq_sum / self.n_fused) if self.n_fused else 0.0
+
+    @property
+    def vertical_excited(self) -> bool:
+        return self.n_fused >= 10 and self.tilt_rms_rad >= self.settings.min_tilt_for_vertical_rad
 
     # ---- model -------------------------------------------------------------------------------
 
@@ -157,6 +171,8 @@ class HardIronEkf:
             return False
         psi, lev, R = self.heading(m_nt, self.x, roll_rad, pitch_rad, declination_rad)
         H = self.jacobian(lev, R)
+        if not self.vertical_excited:
+            H[2] = 0.0  # b_z not estimated (see module doc)
         z = float(maths.wrap_pi(course_rad - psi))  # innovation ψ_gnss − ψ_m(b̂)
         r = st.heading_noise_rad**2 + (st.gnss_vel_std_m_s / max(speed_m_s, 0.1)) ** 2
         S = float(H @ self.P @ H + r)
@@ -170,6 +186,7 @@ class HardIronEkf:
         IKH = np.eye(3) - np.outer(K, H)
         self.P = IKH @ self.P @ IKH.T + np.outer(K, K) * r
         self.n_fused += 1
+        self.tilt_sq_sum += roll_rad**2 + pitch_rad**2
         self.fused = True
         return True
 
@@ -182,7 +199,9 @@ class HardIronEkf:
     @property
     def observable(self) -> tuple[bool, bool, bool]:
         ratio = self.std_nt / self.settings.prior_std_nt
-        return tuple(bool(r < self.settings.observable_ratio) for r in ratio)
+        obs = [bool(r < self.settings.observable_ratio) for r in ratio]
+        obs[2] = obs[2] and self.vertical_excited
+        return tuple(obs)
 
     @property
     def converged(self) -> bool:
@@ -205,6 +224,7 @@ class HardIronEkf:
             "n_fused": self.n_fused,
             "n_rejected": self.n_rejected,
             "n_skipped": self.n_skipped,
+            "tilt_rms_rad": self.tilt_rms_rad,
         }
 
     @property
