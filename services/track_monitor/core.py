@@ -1,0 +1,524 @@
+"""Track monitor core: cross-track deviation, heading-innovation and combined magnetic-anomaly detectors.
+
+Pure Python/numpy; never imports zenoh. Method: He, Luo, Wu (seed paper 003, ALGORITHMS.md §4).
+
+* Cross-track deviation (eq. 6): d = |(X − A) × (B − A)| / |B − A|, horizontal, from RTK GNSS. The
+  track detector raises when d > ``track_threshold_m`` (1 m in the paper, where the mission fails) on
+  GNSS good enough to trust it (fix type, satellites, PDOP, stated accuracy, age); it arms only once the
+  vehicle has been on the line, and clears with hysteresis (d < ``track_clear_m`` for ``clear_hold_s``).
+* Heading innovation e = ψ_mag − ψ_attitude (the flight controller's tilt-compensated magnetometer
+  heading minus its complementary-filter heading). The paper's test: |e| > k·σ with k = 5 and σ the
+  standard deviation of e on undisturbed flight (``innovation_test = "paper"``). It catches steps and fast
+  ramps quickly but false-alarms on short magnetometer bursts and misses slow ramps, which the filter
+  follows. The default test (``"robust"``) keeps the k·σ gate but
+  - applies it to the running median of e over ``median_window_s`` (bursts shorter than half the window
+    cannot raise it), with σ the robust (MAD) spread of e, and
+  - adds a two-sided CUSUM (Page) on block means of e, clipped at ±``clip_sigma``·σ (Huber) and normalised
+    by the learned spread of those block means: g⁺ ← max(0, g⁺ + z − ν), g⁻ ← max(0, g⁻ − z − ν),
+    raise when g > h. A slow ramp makes the filter lag the magnetometer by (ramp rate × filter time
+    constant), a small persistent bias that the CUSUM accumulates within a few blocks.
+  σ is learned from the first ``learn_s`` seconds of flight (assumed undisturbed) unless given.
+* The combined verdict (``mag_anomaly``) is the earliest reliable alarm of the two; its reason names the
+  detector that fired. It clears only when both detectors have been quiet for ``anomaly_clear_hold_s``
+  (a magnetometer that stays disturbed at a constant level leaves the innovation quiet once the filter
+  has followed it, so the verdict is held).
+
+Shape (x-io Fusion style): :class:`TrackMonitorSettings`, :class:`TrackMonitor` with ``set_route``,
+``update_gnss``, ``update_attitude``, ``internal_states``, ``flags``, ``reset``. Updates return the alarm
+transitions (:class:`AlarmEvent`) they caused.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+
+INNOVATION_TESTS = ("robust", "paper")
+
+
+@dataclass(frozen=True)
+class TrackMonitorSettings:
+    # ---- track-deviation detector (paper eq. 6) ----
+    track_threshold_m: float = 1.0  # raise when d exceeds this (paper: 1 m)
+    track_clear_m: float = 0.5  # clear when d stays below this ...
+    clear_hold_s: float = 2.0  # ... for this long (every detector's hysteresis hold)
+    track_persist_s: float = 0.15  # d must exceed the threshold this long (≥ 2 GNSS epochs at 10 Hz)
+    arm_within_m: float = 1.0  # the track detector arms once d has been below this on a route
+    gnss_fix_types: tuple = ("rtk_fixed",)  # fix types good enough to trust d
+    gnss_min_sats: int = 6
+    gnss_max_pdop: float = 3.0
+    gnss_max_horiz_std_m: float = 0.1  # stated 1-σ accuracy, when the receiver gives one
+    route_margin_m: float = 5.0  # along-track slack before A and beyond B where d is still monitored
+    # ---- heading-innovation detector ----
+    innovation_test: str = "robust"  # "paper": |e| > kσ per sample; "robust": median + CUSUM (see module doc)
+    innovation_k_sigma: float = 5.0  # paper: 5σ
+    innovation_sigma_rad: float = 0.0  # σ of e on undisturbed flight; 0: learn it
+    median_sigma_rad: float = 0.0  # σ of the running median of e; 0: learn it
+    block_sigma_rad: float = 0.0  # σ of block means of clipped e; 0: learn it
+    learn_skip_s: float = 5.0  # ignore the first seconds of the attitude stream (take-off transients)
+    learn_s: float = 30.0  # then learn σ over this much (assumed undisturbed) flight
+    sigma_floor_rad: float = 0.001  # lower bound for learned σ
+    median_window_s: float = 0.6
+    block_s: float = 0.5  # CUSUM block length
+    clip_sigma: float = 3.0  # Huber clip of e before block averaging, in σ
+    cusum_drift: float = 2.0  # ν, in block σ
+    cusum_threshold: float = 12.0  # h, in block σ
+    innovation_clear_sigma: float = 2.5  # clear when the median |e| and block means stay below this, in σ
+    burst_sigma: float = 8.0  # a sample this far (in σ) from the running median is a burst ...
+    burst_min_rad: float = 0.035  # ... and at least this far (2°; the only gate while σ is learned)
+    burst_max_s: float = 0.5  # a burst lasting this long is a step disturbance
+    fc_mag_gain_per_s: float = 1.0  # magnetometer gain k of the flight controller's heading filter (0: unknown)
+    max_attitude_gap_s: float = 1.0  # a longer gap restarts the median window and the CUSUM
+    # ---- combined verdict ----
+    anomaly_clear_hold_s: float = 10.0
+
+    def __post_init__(self) -> None:
+        if self.innovation_test not in INNOVATION_TESTS:
+            raise ValueError(f"innovation_test must be one of {', '.join(INNOVATION_TESTS)}, "
+                             f"got {self.innovation_test!r}")
+        for name in ("track_threshold_m", "innovation_k_sigma", "learn_s", "median_window_s", "block_s",
+                     "clip_sigma", "cusum_threshold", "sigma_floor_rad"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
+        if not (0 <= self.track_clear_m < self.track_threshold_m):
+            raise ValueError(f"track_clear_m must be in [0, track_threshold_m), got {self.track_clear_m}")
+        if not (0 < self.innovation_clear_sigma <= self.innovation_k_sigma):
+            raise ValueError("innovation_clear_sigma must be in (0, innovation_k_sigma]")
+        for name in ("clear_hold_s", "track_persist_s", "anomaly_clear_hold_s", "learn_skip_s",
+                     "innovation_sigma_rad", "median_sigma_rad", "block_sigma_rad", "cusum_drift", "route_margin_m"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be ≥ 0, got {getattr(self, name)!r}")
+
+    def replace(self, **changes) -> TrackMonitorSettings:
+        vals = {f.name: getattr(self, f.name) for f in fields(self)}
+        vals.update(changes)
+        return TrackMonitorSettings(**vals)
+
+
+@dataclass(frozen=True)
+class AlarmEvent:
+    """One alarm transition (published on ``alarm/{source}``)."""
+
+    source: str  # track | heading_innovation | mag_anomaly
+    state: str  # raised | cleared
+    t_s: float
+    reason: str
+    value: float | None
+    threshold: float | None
+    unit: str
+    severity: str = "warning"
+    raised_t_s: float | None = None
+
+
+# ---- geometry ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Route:
+    a_enu_m: tuple
+    b_enu_m: tuple
+    route_id: str
+
+    @property
+    def length_m(self) -> float:
+        return math.hypot(self.b_enu_m[0] - self.a_enu_m[0], self.b_enu_m[1] - self.a_enu_m[1])
+
+
+def cross_track(route: Route, pos_enu_m) -> tuple[float, float]:
+    """(signed cross-track distance, along-track distance), horizontal, m.
+
+    Eq. 6: |d| = |(X − A) × (B − A)| / |B − A|; the sign is + left of the direction A → B.
+    Along-track: (X − A) · (B − A) / |B − A|.
+    """
+    ax, ay = route.a_enu_m[0], route.a_enu_m[1]
+    ux, uy = route.b_enu_m[0] - ax, route.b_enu_m[1] - ay
+    n = math.hypot(ux, uy)
+    rx, ry = pos_enu_m[0] - ax, pos_enu_m[1] - ay
+    return (ux * ry - uy * rx) / n, (ux * rx + uy * ry) / n
+
+
+def wrap_pi(x: float) -> float:
+    return (x + math.pi) % (2 * math.pi) - math.pi
+
+
+# ---- detectors --------------------------------------------------------------------------------
+
+
+@dataclass
+class _Hysteresis:
+    """Raised/cleared state with a clear hold time."""
+
+    raised: bool = False
+    raised_t_s: float | None = None
+    quiet_since_s: float | None = None
+
+    def clear_step(self, quiet: bool, t_s: float, hold_s: float) -> bool:
+        """Advance the clear condition; True when the alarm should clear now."""
+        if not quiet:
+            self.quiet_since_s = None
+            return False
+        if self.quiet_since_s is None:
+            self.quiet_since_s = t_s
+        return t_s - self.quiet_since_s >= hold_s
+
+
+class TrackDetector:
+    """d > threshold on trusted GNSS (paper §3), with arming and hysteresis."""
+
+    def __init__(self, s: TrackMonitorSettings):
+        self.s = s
+        self.reset()
+
+    def reset(self) -> None:
+        self.armed = False
+        self.state = _Hysteresis()
+        self.above_since_s: float | None = None
+        self.cross_track_m: float | None = None
+        self.along_track_m: float | None = None
+        self.cross_track_rate_m_s: float | None = None
+        self.gnss_ok = False
+        self.gnss_reason = "no GNSS yet"
+
+    def gnss_quality(self, fix_type: str, num_sats: int, pdop: float, horiz_std_m: float | None) -> tuple[bool, str]:
+        s = self.s
+        if fix_type not in s.gnss_fix_types:
+            return False, f"fix type {fix_type} is not one of {', '.join(s.gnss_fix_types)}"
+        if num_sats < s.gnss_min_sats:
+            return False, f"{num_sats} satellites (< {s.gnss_min_sats})"
+        if pdop > s.gnss_max_pdop:
+            return False, f"PDOP {pdop:.1f} (> {s.gnss_max_pdop:g})"
+        if horiz_std_m is not None and horiz_std_m > s.gnss_max_horiz_std_m:
+            return False, f"stated accuracy {horiz_std_m:.2f} m (> {s.gnss_max_horiz_std_m:g} m)"
+        return True, "ok"
+
+    def update(self, route: Route, t_s: float, pos_enu_m, vel_enu_m_s, gnss_ok: bool, gnss_reason: str,
+               ) -> list[AlarmEvent]:
+        s = self.s
+        d_signed, along = cross_track(route, pos_enu_m)
+        d = abs(d_signed)
+        ux = (route.b_enu_m[0] - route.a_enu_m[0]) / route.length_m
+        uy = (route.b_enu_m[1] - route.a_enu_m[1]) / route.length_m
+        self.cross_track_m, self.along_track_m = d, along
+        self.cross_track_rate_m_s = ux * vel_enu_m_s[1] - uy * vel_enu_m_s[0]
+        self.gnss_ok, self.gnss_reason = gnss_ok, gnss_reason
+        on_leg = -s.route_margin_m <= along <= route.length_m + s.route_margin_m
+        events: list[AlarmEvent] = []
+        if not self.armed:
+            if gnss_ok and on_leg and d < s.arm_within_m:
+                self.armed = True
+            return events
+        if not self.state.raised:
+            trusted = gnss_ok and on_leg
+            if trusted and d > s.track_threshold_m:
+                if self.above_since_s is None:
+                    self.above_since_s = t_s
+                if t_s - self.above_since_s >= s.track_persist_s:
+                    self.state = _Hysteresis(raised=True, raised_t_s=t_s)
+                    events.append(AlarmEvent(
+                        "track", "raised", t_s,
+                        f"cross-track deviation {d:.2f} m exceeds {s.track_threshold_m:g} m on trusted GNSS "
+                        f"({along:.0f} m along route {route.route_id})",
+                        d, s.track_threshold_m, "m", "critical", t_s))
+            else:
+                self.above_since_s = None
+        else:
+            # clear only on trusted GNSS showing the vehicle back on the line
+            if self.state.clear_step(gnss_ok and d < s.track_clear_m, t_s, s.clear_hold_s):
+                events.append(AlarmEvent(
+                    "track", "cleared", t_s,
+                    f"cross-track deviation {d:.2f} m back below {s.track_clear_m:g} m for {s.clear_hold_s:g} s",
+                    d, s.track_clear_m, "m", "critical", self.state.raised_t_s))
+                self.state = _Hysteresis()
+                self.above_since_s = None
+        return events
+
+
+class InnovationDetector:
+    """|ψ_mag − ψ_attitude| > kσ (paper §1), and the robust median + CUSUM version (module doc)."""
+
+    def __init__(self, s: TrackMonitorSettings):
+        self.s = s
+        self.reset()
+
+    def reset(self) -> None:
+        s = self.s
+        self.sigma_rad: float | None = s.innovation_sigma_rad or None
+        self.block_sigma_rad: float | None = s.block_sigma_rad or None
+        self.median_sigma_rad: float | None = s.median_sigma_rad or None
+        self.learning = self.sigma_rad is None or (
+            s.innovation_test == "robust" and (self.block_sigma_rad is None or self.median_sigma_rad is None))
+        if self.learning:  # all are learned from the same window
+            self.sigma_rad = self.block_sigma_rad = self.median_sigma_rad = None
+        self._learn: list[float] = []
+        self._t_first: float | None = None
+        self._restart()
+        self.state = _Hysteresis()
+        self.innovation_rad: float | None = None
+        self.test_ratio: float | None = None
+        self.n_bursts = 0
+
+    def _restart(self) -> None:
+        self._window: deque[tuple[float, float]] = deque()
+        self._block_sum = 0.0
+        self._block_n = 0
+        self._block_t0: float | None = None
+        self.block_mean_rad: float | None = None
+        self.cusum_pos = 0.0
+        self.cusum_neg = 0.0
+        self._t_last: float | None = None
+        self._t_prev: float | None = None
+        self._recovery = 0.0
+        self._burst_t0: float | None = None
+        self.burst_s = 0.0
+        self.median_rad: float | None = None
+        self.corrected_rad: float | None = None
+
+    # σ learning ------------------------------------------------------------------------------
+    def _learn_step(self, t_s: float, e_raw: float, e: float, med: float) -> None:
+        s = self.s
+        if self._t_first is None:
+            self._t_first = t_s
+        age = t_s - self._t_first
+        if age < s.learn_skip_s:
+            return
+        self._learn.append((e_raw if s.innovation_test == "paper" else e, med))
+        if age < s.learn_skip_s + s.learn_s:
+            return
+        x = np.asarray([v[0] for v in self._learn])
+        meds = np.asarray([v[1] for v in self._learn])
+        if s.innovation_test == "paper":
+            sigma = float(np.std(x))  # the paper's σ: spread of the heading difference on undisturbed flight
+        else:
+            sigma = float(1.4826 * np.median(np.abs(x - np.median(x))))  # robust to bursts
+        sigma = max(sigma, s.sigma_floor_rad)
+        # the gated statistic is the running median: its own spread on undisturbed flight sets the gate
+        self.median_sigma_rad = max(float(np.std(meds)), s.sigma_floor_rad)
+        per_block = max(1, int(round(len(x) / (s.learn_s / s.block_s))))
+        clipped = np.clip(x, -s.clip_sigma * sigma, s.clip_sigma * sigma)
+        nb = len(clipped) // per_block
+        means = clipped[: nb * per_block].reshape(nb, per_block).mean(axis=1)
+        self.sigma_rad = sigma
+        self.block_sigma_rad = max(float(np.std(means)), s.sigma_floor_rad / 4) if nb >= 4 else sigma
+        self.learning = False
+        self._learn = []
+
+    # update ------------------------------------------------------------------------------------
+    def update(self, t_s: float, heading_rad: float, mag_heading_rad: float) -> list[AlarmEvent]:
+        s = self.s
+        e = wrap_pi(mag_heading_rad - heading_rad)  # innovation, rad
+        self.innovation_rad = e
+        if self._t_last is not None and t_s - self._t_last > s.max_attitude_gap_s:
+            self._restart()
+        self._t_last = t_s
+        # burst excision: a sample that jumps away from the recent median by more than the burst gate is
+        # left out, and the pull it gave the flight controller's filter (dψ̂ = k e dt) is modelled and removed
+        # from the following samples while the filter recovers (dD/dt = −k D), so the recovery is not
+        # mistaken for a disturbance. A jump that lasts burst_max_s is a step: it raises the alarm.
+        dt = 0.0 if self._t_prev is None else max(0.0, t_s - self._t_prev)
+        self._t_prev = t_s
+        kf = s.fc_mag_gain_per_s
+        if dt > 0 and kf > 0:
+            self._recovery *= math.exp(-kf * dt)
+        ec = e + self._recovery
+        gate = s.burst_min_rad if self.sigma_rad is None else max(s.burst_min_rad, s.burst_sigma * self.sigma_rad)
+        step_fired = False
+        if self.median_rad is not None and abs(ec - self.median_rad) > gate:
+            if self._burst_t0 is None:
+                self._burst_t0 = t_s
+                self.n_bursts += 1
+            self._recovery += kf * e * dt
+            self.burst_s = t_s - self._burst_t0
+            step_fired = self.burst_s >= s.burst_max_s
+            x = ec if step_fired else self.median_rad
+        else:
+            self._burst_t0 = None
+            self.burst_s = 0.0
+            x = ec
+        self.corrected_rad = ec
+        # running median over the window
+        self._window.append((t_s, x))
+        while self._window and t_s - self._window[0][0] > s.median_window_s:
+            self._window.popleft()
+        med = float(np.median([v for _, v in self._window]))
+        self.median_rad = med
+        e = x
+        if self.learning:
+            self._learn_step(t_s, self.innovation_rad, e, med)
+            return []
+        sigma, k = self.sigma_rad, s.innovation_k_sigma
+        events: list[AlarmEvent] = []
+        if s.innovation_test == "paper":
+            e = self.innovation_rad  # the paper's test sees every sample as it is
+            level = abs(e)
+            thr, clear_thr = k * sigma, s.innovation_clear_sigma * sigma
+            fired = level > thr
+            quiet = level < s.innovation_clear_sigma * sigma
+            detail = f"heading innovation {math.degrees(e):+.2f}° exceeds {k:g}σ = {math.degrees(k * sigma):.2f}°"
+            self.test_ratio = level / (k * sigma)
+        else:
+            msig = self.median_sigma_rad
+            # CUSUM on block means of the Huber-clipped innovation
+            c = s.clip_sigma * sigma
+            if self._block_t0 is None:
+                self._block_t0 = t_s
+            self._block_sum += min(c, max(-c, e))
+            self._block_n += 1
+            block_done = t_s - self._block_t0 >= s.block_s - 1e-9
+            if block_done:
+                m = self._block_sum / self._block_n
+                self.block_mean_rad = m
+                z = m / self.block_sigma_rad
+                self.cusum_pos = max(0.0, self.cusum_pos + z - s.cusum_drift)
+                self.cusum_neg = max(0.0, self.cusum_neg - z - s.cusum_drift)
+                self._block_sum, self._block_n, self._block_t0 = 0.0, 0, None
+            g = max(self.cusum_pos, self.cusum_neg)
+            gate_fired = abs(med) > k * msig
+            cusum_fired = g > s.cusum_threshold
+            fired = gate_fired or cusum_fired or step_fired
+            self.test_ratio = max(abs(med) / (k * msig), g / s.cusum_threshold)
+            bm = self.block_mean_rad
+            quiet = abs(med) < s.innovation_clear_sigma * msig and (
+                bm is None or abs(bm) < s.innovation_clear_sigma * self.block_sigma_rad)
+            level = abs(med)
+            thr, clear_thr = k * msig, s.innovation_clear_sigma * msig
+            if step_fired and not gate_fired:
+                detail = (f"the magnetometer heading jumped by {math.degrees(e - (self._window[0][1])):+.2f}° "
+                          f"and stayed there {self.burst_s:.2f} s")
+            elif gate_fired:
+                detail = (f"median heading innovation {math.degrees(med):+.2f}° exceeds {k:g}σ = "
+                          f"{math.degrees(k * msig):.2f}°")
+            else:
+                detail = (f"persistent heading innovation (CUSUM {g:.1f} > {s.cusum_threshold:g} block σ; "
+                          f"last block mean {math.degrees(bm or 0.0):+.2f}°)")
+        if not self.state.raised:
+            if fired:
+                self.state = _Hysteresis(raised=True, raised_t_s=t_s)
+                events.append(AlarmEvent("heading_innovation", "raised", t_s,
+                                         f"{detail}: the magnetometer heading disagrees with the attitude",
+                                         math.degrees(level), math.degrees(thr), "deg", "warning", t_s))
+        elif self.state.clear_step(quiet and not fired, t_s, s.clear_hold_s):
+            events.append(AlarmEvent("heading_innovation", "cleared", t_s,
+                                     f"heading innovation back within {s.innovation_clear_sigma:g}σ for "
+                                     f"{s.clear_hold_s:g} s", math.degrees(level),
+                                     math.degrees(clear_thr), "deg", "warning",
+                                     self.state.raised_t_s))
+            self.state = _Hysteresis()
+            self.cusum_pos = self.cusum_neg = 0.0
+        return events
+
+
+# ---- the monitor ------------------------------------------------------------------------------
+
+
+@dataclass
+class TrackMonitor:
+    """Track, heading-innovation and combined magnetic-anomaly detectors of one vehicle."""
+
+    settings: TrackMonitorSettings = field(default_factory=TrackMonitorSettings)
+
+    def __post_init__(self) -> None:
+        self.track = TrackDetector(self.settings)
+        self.innovation = InnovationDetector(self.settings)
+        self.reset()
+
+    def reset(self) -> None:
+        self.route: Route | None = None
+        self.track.reset()
+        self.innovation.reset()
+        self.anomaly = _Hysteresis()
+        self.anomaly_source: str | None = None
+        self.t_s: float | None = None
+        self.n_gnss = 0
+        self.n_attitude = 0
+        self.n_gnss_untrusted = 0
+
+    def set_route(self, a_enu_m, b_enu_m, route_id: str) -> None:
+        """A new planned line: the track detector re-arms (alarms already raised stay until cleared)."""
+        new = Route(tuple(float(x) for x in a_enu_m), tuple(float(x) for x in b_enu_m), str(route_id))
+        if new.length_m < 1e-6:
+            raise ValueError(f"route {route_id!r} has A == B")
+        if self.route != new:
+            self.route = new
+            self.track.armed = False
+
+    def update_gnss(self, t_s: float, pos_enu_m, vel_enu_m_s, fix_type: str, num_sats: int, pdop: float,
+                    horiz_std_m: float | None = None) -> list[AlarmEvent]:
+        self.t_s = t_s
+        self.n_gnss += 1
+        ok, why = self.track.gnss_quality(fix_type, num_sats, pdop, horiz_std_m)
+        if not ok:
+            self.n_gnss_untrusted += 1
+        if self.route is None:
+            self.track.gnss_ok, self.track.gnss_reason = ok, why
+            return []
+        events = self.track.update(self.route, t_s, pos_enu_m, vel_enu_m_s, ok, why)
+        return self._combine(events, t_s)
+
+    def update_attitude(self, t_s: float, heading_rad: float, mag_heading_rad: float | None) -> list[AlarmEvent]:
+        self.t_s = t_s
+        self.n_attitude += 1
+        if mag_heading_rad is None:
+            return self._combine([], t_s)
+        return self._combine(self.innovation.update(t_s, heading_rad, mag_heading_rad), t_s)
+
+    def _combine(self, events: list[AlarmEvent], t_s: float) -> list[AlarmEvent]:
+        """The combined verdict: raised by the first detector that raises; held until both are quiet."""
+        s = self.settings
+        out = list(events)
+        if not self.anomaly.raised:
+            for ev in events:
+                if ev.state == "raised":
+                    self.anomaly = _Hysteresis(raised=True, raised_t_s=t_s)
+                    self.anomaly_source = ev.source
+                    name = "track deviation" if ev.source == "track" else "heading innovation"
+                    out.append(AlarmEvent("mag_anomaly", "raised", t_s,
+                                          f"magnetic anomaly: the {name} detector fired first ({ev.reason})",
+                                          ev.value, ev.threshold, ev.unit, "critical", t_s))
+                    break
+        else:
+            quiet = not self.track.state.raised and not self.innovation.state.raised
+            if self.anomaly.clear_step(quiet, t_s, s.anomaly_clear_hold_s):
+                out.append(AlarmEvent("mag_anomaly", "cleared", t_s,
+                                      f"magnetic anomaly cleared: track and heading innovation quiet for "
+                                      f"{s.anomaly_clear_hold_s:g} s (raised by {self.anomaly_source})",
+                                      None, None, "", "critical", self.anomaly.raised_t_s))
+                self.anomaly = _Hysteresis()
+                self.anomaly_source = None
+        return out
+
+    # ---- outputs ------------------------------------------------------------------------------
+    @property
+    def internal_states(self) -> dict:
+        tr, inn = self.track, self.innovation
+        return {
+            "cross_track_m": tr.cross_track_m,
+            "along_track_m": tr.along_track_m,
+            "cross_track_rate_m_s": tr.cross_track_rate_m_s,
+            "progress_frac": (tr.along_track_m / self.route.length_m
+                              if self.route is not None and tr.along_track_m is not None else None),
+            "heading_innovation_rad": inn.innovation_rad,
+            "innovation_median_rad": inn.median_rad,
+            "innovation_sigma_rad": inn.sigma_rad,
+            "median_sigma_rad": inn.median_sigma_rad,
+            "block_sigma_rad": inn.block_sigma_rad,
+            "cusum": max(inn.cusum_pos, inn.cusum_neg),
+            "corrected_innovation_rad": inn.corrected_rad,
+            "bursts": inn.n_bursts,
+            "innovation_test_ratio": inn.test_ratio,
+            "gnss_reason": tr.gnss_reason,
+        }
+
+    @property
+    def flags(self) -> dict:
+        return {
+            "route_known": self.route is not None,
+            "track_armed": self.track.armed,
+            "gnss_ok": self.track.gnss_ok,
+            "learning": self.innovation.learning,
+            "track_alarm": self.track.state.raised,
+            "innovation_alarm": self.innovation.state.raised,
+            "anomaly_alarm": self.anomaly.raised,
+        }
