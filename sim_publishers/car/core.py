@@ -544,6 +544,19 @@ def _steel_moments(rng, n: int, b_earth_enu: np.ndarray, m_am2: float) -> np.nda
     return (induced + remanent) * mag
 
 
+def _along(half_m: float, step_m: float) -> np.ndarray:
+    return np.arange(-half_m, half_m + 1e-6, step_m)
+
+
+def _grid(frame, xs, ys, zs) -> list[np.ndarray]:
+    """Points at road-frame offsets (x along, y left, z above the road surface) from a source centre.
+
+    The road surface follows the route's own altitude profile, so a girder 0.3 m under the road
+    stays 0.3 m under the car wherever the road climbs."""
+    centre, fwd, left, up, road_z = frame
+    return [centre + x * fwd + y * left + (road_z(x) - centre[2] + z) * up for x in xs for y in ys for z in zs]
+
+
 def _place_sources(s: CarSimSettings, specs, plan: _Plan, traj: _Trajectory, b_earth_enu) -> list[Source]:
     out: list[Source] = []
     h = s.mount_height_m
@@ -567,45 +580,30 @@ def _place_sources(s: CarSimSettings, specs, plan: _Plan, traj: _Trajectory, b_e
         current = 0.0
         vel = np.zeros(3)
         t_pass = 0.0
+        half = sp.length_m / 2
+        frame = (centre, fwd, left, up,
+                 lambda x, s_c=s_c: float(np.interp(s_c + x, traj.dist, traj.pos[:, 2])) - h)
         if sp.kind == "bridge":
-            # deck cross-girders 0.5 m under the road every 2.5 m (3 dipoles across), truss walls ±5 m
-            xs = np.arange(-sp.length_m / 2, sp.length_m / 2 + 1e-6, 2.5)
-            pts = [centre + x * fwd + y * left - 0.5 * up for x in xs for y in (-4.0, 0.0, 4.0)]
-            n_deck = len(pts)
-            xw = np.arange(-sp.length_m / 2, sp.length_m / 2 + 1e-6, 5.0)
-            pts += [centre + x * fwd + y * left + z * up for x in xw for y in (-5.0, 5.0) for z in (0.5, 5.0)]
-            pos = np.array(pts)
-            mom = np.concatenate([
-                _steel_moments(rng, n_deck, b_earth_enu, 400.0 * k),
-                _steel_moments(rng, len(pts) - n_deck, b_earth_enu, 4000.0 * k),
-            ])
-            extent = sp.length_m / 2
-        elif sp.kind in ("viaduct", "tunnel"):
-            # steel overhead: two rows of beams every 3 m; pillars (viaduct) or wall ribs (tunnel)
-            z_top = 5.5 if sp.kind == "viaduct" else 4.5
-            m_top = 5000.0 if sp.kind == "viaduct" else 3500.0
-            xs = np.arange(-sp.length_m / 2, sp.length_m / 2 + 1e-6, 3.0)
-            pts = [centre + x * fwd + y * left + z_top * up for x in xs for y in (-2.5, 2.5)]
-            n_top = len(pts)
-            if sp.kind == "viaduct":
-                xp = np.arange(-sp.length_m / 2, sp.length_m / 2 + 1e-6, 30.0)
-                pts += [centre + x * fwd + y * left + z * up for x in xp for y in (-6.5, 6.5) for z in (1.0, 3.5)]
-                m_side = 10000.0
-            else:
-                xp = np.arange(-sp.length_m / 2, sp.length_m / 2 + 1e-6, 6.0)
-                pts += [centre + x * fwd + y * left + 1.5 * up for x in xp for y in (-5.0, 5.0)]
-                m_side = 2000.0
-            n_side = len(pts) - n_top
-            if sp.kind == "tunnel":  # reinforced floor slab: rebar every 1.5 m, 0.3 m under the road
-                xf = np.arange(-sp.length_m / 2, sp.length_m / 2 + 1e-6, 1.5)
-                pts += [centre + x * fwd + y * left - 0.3 * up for x in xf for y in (-1.0, 1.0)]
-            pos = np.array(pts)
-            mom = np.concatenate([
-                _steel_moments(rng, n_top, b_earth_enu, m_top * k),
-                _steel_moments(rng, n_side, b_earth_enu, m_side * k),
-                _steel_moments(rng, len(pts) - n_top - n_side, b_earth_enu, 40.0 * k),
-            ])
-            extent = sp.length_m / 2
+            # steel deck: cross-girders 0.3 m under the road every 1.5 m (3 dipoles across the
+            # carriageway, one under the car's lane), truss walls at ±5 m from 0.5 to 5 m high
+            groups = [(_grid(frame, _along(half, 1.5), (-3.0, 0.0, 3.0), (-0.3,)), 200.0),
+                      (_grid(frame, _along(half, 5.0), (-5.0, 5.0), (0.5, 5.0)), 3000.0)]
+        elif sp.kind == "viaduct":
+            # elevated road overhead (two rows of steel beams 5.5 m up, every 3 m), pillars at ±6.5 m
+            # every 30 m, and a steel expansion joint in the road surface at every pillar
+            groups = [(_grid(frame, _along(half, 3.0), (-2.5, 2.5), (5.5,)), 5000.0),
+                      (_grid(frame, _along(half, 30.0), (-6.5, 6.5), (1.0, 3.5)), 10000.0),
+                      (_grid(frame, _along(half, 30.0), (-2.0, 0.0, 2.0), (-0.15,)), 60.0)]
+        elif sp.kind == "tunnel":
+            # steel roof ribs 4.5 m up every 3 m, wall ribs at ±5 m every 6 m, and a reinforced floor
+            # slab (rebar mats every 1.5 m, 0.3 m under the road)
+            groups = [(_grid(frame, _along(half, 3.0), (-2.5, 2.5), (4.5,)), 3500.0),
+                      (_grid(frame, _along(half, 6.0), (-5.0, 5.0), (1.5,)), 2000.0),
+                      (_grid(frame, _along(half, 1.5), (-1.0, 1.0), (-0.3,)), 70.0)]
+        if sp.kind in ("bridge", "viaduct", "tunnel"):
+            pos = np.array([p for pts, _ in groups for p in pts])
+            mom = np.concatenate([_steel_moments(rng, len(pts), b_earth_enu, m * k) for pts, m in groups])
+            extent = half
         elif sp.kind == "truck":
             # three dipoles along a 12 m truck in the next lane (left, 3.5 m), passing at t_pass
             t_pass = float(np.interp(s_c, traj.dist, traj.t))

@@ -1,0 +1,253 @@
+"""Car simulator: determinism, message contract, physics of the DMC and interference zones, GNSS, rates."""
+
+from __future__ import annotations
+
+import math
+import time
+import tomllib
+
+import numpy as np
+import pytest
+
+from bench.eval_sim_car import compensated, dmc_features, levelled_heading
+from magmesh import maths
+from magmesh.paths import DEPLOY_DIR
+from schemas import keys, messages
+from sim_publishers.car import core
+from sim_publishers.car.publisher import CarPublisherSettings, car_events
+
+
+@pytest.fixture(scope="module")
+def drive():
+    return core.simulate(core.CarSimSettings(layout="urban_a", seed=1))
+
+
+@pytest.fixture(scope="module")
+def drive_b():
+    return core.simulate(core.CarSimSettings(layout="urban_b", seed=2))
+
+
+def test_simulate_is_fast():
+    t0 = time.perf_counter()
+    core.simulate(core.CarSimSettings(layout="urban_c", seed=5, duration_s=300.0))
+    assert time.perf_counter() - t0 < 2.0
+
+
+def test_deterministic_for_a_seed():
+    s = core.CarSimSettings(layout="urban_b", seed=4, duration_s=90.0)
+    a, b = core.simulate(s), core.simulate(s)
+    for sid in core.SENSORS:
+        np.testing.assert_array_equal(a.mag_b_nt[sid], b.mag_b_nt[sid])
+    np.testing.assert_array_equal(a.gyro_rad_s, b.gyro_rad_s)
+    np.testing.assert_array_equal(a.gnss.pos_enu_m, b.gnss.pos_enu_m)
+    np.testing.assert_array_equal(a.truth.disturbed, b.truth.disturbed)
+    c = core.simulate(core.CarSimSettings(layout="urban_b", seed=5, duration_s=90.0))
+    assert not np.allclose(a.truth.pos_enu_m, c.truth.pos_enu_m)
+    # the car's calibration belongs to vehicle_seed, not to the drive
+    np.testing.assert_array_equal(a.true_params["1"].offset_nt, c.true_params["1"].offset_nt)
+
+
+def test_rates_and_sizes():
+    s = core.CarSimSettings(duration_s=40.0, mag_rate_hz=25.0, imu_rate_hz=200.0, gnss_rate_hz=10.0)
+    d = core.simulate(s)
+    assert d.t_mag_s.size == 40 * 25 + 1 and np.allclose(np.diff(d.t_mag_s), 1 / 25)
+    assert d.t_imu_s.size == 40 * 200 + 1 and np.allclose(np.diff(d.t_imu_s), 1 / 200)
+    assert d.gnss.t_s.size == 40 * 10 + 1 and np.allclose(np.diff(d.gnss.t_s), 1 / 10)
+    for sid in core.SENSORS:
+        assert d.mag_b_nt[sid].shape == (d.t_mag_s.size, 3)
+    assert d.truth.b_sensor_nt["2"].shape == (d.t_mag_s.size, 3)
+    dflt = core.CarSimSettings()
+    assert (dflt.mag_rate_hz, dflt.imu_rate_hz, dflt.gnss_rate_hz) == (50.0, 100.0, 5.0)
+    assert dflt.baseline_m == pytest.approx(0.10)
+
+
+def test_settings_are_checked():
+    with pytest.raises(ValueError, match="layout"):
+        core.CarSimSettings(layout="nowhere")
+    with pytest.raises(ValueError, match="calib_turns"):
+        core.CarSimSettings(calib_turns=0.5)
+    with pytest.raises(ValueError, match="mag_rate_hz"):
+        core.CarSimSettings(mag_rate_hz=0)
+
+
+def test_messages_validate_and_are_in_time_order():
+    d = core.simulate(core.CarSimSettings(duration_s=30.0))
+    counts: dict[str, int] = {}
+    last_t = -math.inf
+    seq: dict[str, int] = {}
+    for t, key, mtype, fields in core.iter_messages(d, "car-1", t_offset_s=100.0):
+        assert t >= last_t
+        last_t = t
+        info = keys.parse(key)
+        assert info.vehicle == "car-1" and messages.type_for_key(key) == mtype
+        seq[key] = seq.get(key, -1) + 1
+        msg = messages.decode(messages.encode(messages.make(mtype, "car-1", t, seq[key], **fields)), key, mtype)
+        if mtype == "mag":
+            assert msg["sensor"] == info.sensor
+        if mtype == "truth":
+            assert msg["what"] == info.source
+        counts[key] = counts.get(key, 0) + 1
+    assert last_t == pytest.approx(130.0)
+    assert counts[keys.raw_mag("car-1", "1")] == counts[keys.raw_mag("car-1", "2")] == 1501
+    assert counts[keys.raw_imu("car-1")] == 3001
+    assert counts[keys.raw_gnss("car-1")] == 151
+    for what in ("pose", "field", "sources"):
+        assert counts[keys.truth("car-1", what)] == 301
+
+
+def test_initial_turn_covers_a_full_circle(drive):
+    t0, t1 = drive.calib_turn_t_s
+    m = (drive.t_mag_s >= t0) & (drive.t_mag_s <= t1)
+    turned = np.unwrap(drive.truth.heading_rad[m])
+    assert abs(turned[-1] - turned[0]) >= 2 * math.pi
+    # every heading sector of 10° is visited during the circle
+    sectors = np.unique((np.degrees(drive.truth.heading_rad[m]) // 10).astype(int))
+    assert sectors.size == 36
+    assert t1 - t0 < 60.0 and not drive.truth.disturbed[m].any()
+
+
+def test_true_calibration_recovers_the_true_field(drive):
+    for sid in core.SENSORS:
+        h = drive.true_params[sid].apply(drive.mag_b_nt[sid])
+        resid = h - drive.truth.b_sensor_nt[sid]
+        noise = drive.settings.mag_noise_nt
+        assert 0.7 * noise < np.std(resid) < 1.4 * noise  # only sensor noise is left
+    p1, p2 = drive.true_params["1"], drive.true_params["2"]
+    assert not np.allclose(p1.offset_nt, p2.offset_nt) and not np.allclose(p1.matrix, p2.matrix)
+    for p in (p1, p2):
+        assert 500 < np.max(np.abs(p.offset_nt)) < 5000  # hard iron of a few 1000 nT
+        assert np.max(np.abs(np.linalg.inv(p.matrix) - np.eye(3))) < 0.11  # soft iron ≤ ~10 %
+
+
+def test_sensors_disagree_near_sources_and_agree_far(drive, drive_b):
+    for d in (drive, drive_b):
+        h = compensated(d)
+        diff = np.linalg.norm(h["1"] - h["2"], axis=1)
+        near = d.truth.disturbed
+        far = ~d.truth.active.any(axis=1)
+        assert near.sum() > 20 * d.settings.mag_rate_hz  # tens of seconds in zones
+        noise = d.settings.mag_noise_nt * math.sqrt(2 * 3)  # |n1 − n2|, 3 axes
+        assert np.percentile(diff[far], 99) < 2.5 * noise
+        assert np.percentile(diff[near], 90) > 4 * noise
+        f = dmc_features(d)
+        dh_far = np.percentile(np.abs(np.degrees(f["dh_rad"][far])), 99)
+        dh_near = np.percentile(np.abs(np.degrees(f["dh_rad"][near])), 95)
+        assert dh_far < 0.3 and dh_near > 0.5 and dh_near > 3 * dh_far
+
+
+def test_single_compass_heading_error_in_and_out_of_zones(drive, drive_b):
+    for d in (drive, drive_b):
+        err = np.degrees(np.abs(maths.angle_diff(levelled_heading(d, compensated(d)["1"]), d.truth.heading_rad)))
+        outside = ~d.truth.active.any(axis=1)
+        assert np.percentile(err[outside], 99) < 1.0
+        for j, src in enumerate(d.sources):
+            m = d.truth.active[:, j]
+            if src.kind == "cable":
+                continue  # a weak buried cable: a few degrees at most
+            assert m.any(), src.name
+            assert 10.0 < np.max(err[m]) < 60.0, (src.name, np.max(err[m]))
+        # the truth's own error (true field, no noise) agrees with the measurement
+        true_err = np.degrees(np.abs(d.truth.heading_error_rad["1"]))
+        assert np.percentile(np.abs(true_err - err), 99) < 0.5
+
+
+def test_truth_error_is_zero_without_sources():
+    d = core.simulate(core.CarSimSettings(layout="clean", seed=3, duration_s=120.0))
+    assert not d.truth.disturbed.any() and d.truth.active.shape[1] == 0
+    for sid in core.SENSORS:
+        assert np.max(np.abs(d.truth.heading_error_rad[sid])) < 1e-9
+        np.testing.assert_allclose(d.truth.b_sensor_nt[sid], d.truth.b_earth_body_nt, atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(d.truth.b_earth_body_nt, axis=1), np.linalg.norm(d.earth_field_enu_nt))
+    assert math.degrees(d.declination_rad) == pytest.approx(-6.24, abs=0.1)  # IGRF, Nanjing 2026
+
+
+def test_inertial_sensors_match_the_trajectory():
+    s = core.CarSimSettings(layout="clean", seed=2, duration_s=120.0, gyro_noise_rad_s=0.0, gyro_bias_max_rad_s=0.0,
+                            gyro_bias_walk_rad_s_sqrt_s=0.0, accel_noise_m_s2=0.0, accel_bias_max_m_s2=0.0)
+    d = core.simulate(s)
+    tr = d.truth
+    # strapdown integration of the gyro (trapezoidal rates) reproduces the true attitude
+    q = maths.quat_from_euler(tr.heading_rad[0], tr.pitch_rad[0], tr.roll_rad[0])
+    dt = 1.0 / s.imu_rate_hz
+    w = d.gyro_rad_s
+    step = int(s.imu_rate_hz / s.mag_rate_hz)
+    worst = 0.0
+    for k in range(w.shape[0] - 1):
+        q = maths.quat_normalize(maths.quat_mul(q, maths.quat_from_rotvec(0.5 * (w[k] + w[k + 1]) * dt)))
+        if (k + 1) % (step * 50) == 0:
+            hd, _, _ = maths.euler_from_quat(q)
+            worst = max(worst, abs(float(maths.angle_diff(hd, tr.heading_rad[(k + 1) // step]))))
+    assert math.degrees(worst) < 0.02
+    # at rest the accelerometer gives gravity and the true roll and pitch
+    rest = d.t_imu_s < s.stationary_start_s - 0.5
+    roll, pitch = maths.roll_pitch_from_accel(d.accel_m_s2[rest])
+    assert np.linalg.norm(d.accel_m_s2[rest], axis=1) == pytest.approx(maths.G0, abs=1e-3)
+    assert roll[0] == pytest.approx(tr.roll_rad[0], abs=1e-4) and pitch[0] == pytest.approx(tr.pitch_rad[0], abs=1e-4)
+
+
+def test_gyro_bias_drifts_and_noise_is_as_set(drive):
+    b = drive.truth.gyro_bias_rad_s
+    s = drive.settings
+    assert np.max(np.abs(b[0])) <= s.gyro_bias_max_rad_s
+    walk = np.std(b[-1] - b[0]) / math.sqrt(s.duration_s)
+    assert 0.2 * s.gyro_bias_walk_rad_s_sqrt_s < walk < 5 * s.gyro_bias_walk_rad_s_sqrt_s
+
+
+def test_gnss_noise_statistics():
+    errs, vel_errs = [], []
+    for seed in (1, 2, 3):
+        d = core.simulate(core.CarSimSettings(layout="clean", seed=seed))
+        g = d.gnss
+        assert set(np.unique(g.fix_type)) == {"3d"}
+        errs.append((g.pos_enu_m - g.true_pos_enu_m)[:, :2].ravel())
+        ve = np.interp(g.t_s, d.t_mag_s, d.truth.vel_enu_m_s[:, 0])
+        vel_errs.append(g.vel_enu_m_s[:, 0] - ve)
+        assert np.all((g.num_sats >= 8) & (g.pdop < 3.0))
+        course_err = maths.angle_diff(g.course_rad, np.arctan2(g.vel_enu_m_s[:, 0], g.vel_enu_m_s[:, 1]))
+        assert np.max(np.abs(course_err)) < 1e-9
+    e = np.concatenate(errs)
+    s = core.CarSimSettings()
+    assert 0.75 * s.gnss_pos_std_m < np.std(e) < 1.25 * s.gnss_pos_std_m
+    assert abs(np.mean(e)) < 0.5
+    assert 0.85 * s.gnss_vel_std_m_s < np.std(np.concatenate(vel_errs)) < 1.15 * s.gnss_vel_std_m_s
+    lat, lon, _ = core.enu_to_geodetic(np.array([1000.0, 1000.0, 0.0]), 32.06, 118.80)
+    assert lat == pytest.approx(32.06 + 1000 / 110_860, abs=2e-5)  # ~110.86 km per degree of latitude here
+    assert lon == pytest.approx(118.80 + 1000 / 94_460, abs=2e-5)
+
+
+def test_gnss_degrades_under_steel_and_is_lost_in_tunnels(drive):
+    g = drive.gnss
+    tunnel = next(s for s in drive.sources if s.kind == "tunnel")
+    d = np.linalg.norm(g.true_pos_enu_m[:, :2] - tunnel.centre_enu_m[:2], axis=1)
+    inside = d < 20.0
+    assert inside.any() and np.all(g.fix_type[inside] == "none")
+    assert np.all(g.pdop[g.fix_type == "none"] >= 50) and np.all(g.num_sats[g.fix_type == "none"] < 4)
+    assert np.any(g.fix_type == "2d")  # under the bridge / viaduct
+    assert np.mean(g.fix_type == "3d") > 0.8
+
+
+def test_manifest_compensation_is_close_to_the_truth():
+    with open(DEPLOY_DIR / "mesh.toml", "rb") as f:
+        car = tomllib.load(f)["vehicles"]["car-1"]
+    d = core.simulate(core.CarSimSettings(duration_s=20.0))
+    assert car["declination_rad"] == pytest.approx(d.declination_rad, abs=1e-3)
+    for sid, p in d.true_params.items():
+        m = car["mag_params"][sid]
+        assert np.max(np.abs(np.asarray(m["offset_nt"]) - p.offset_nt)) < 100.0
+        assert np.max(np.abs(np.asarray(m["matrix"]).reshape(3, 3) - p.matrix)) < 0.01
+        assert m["field_radius_nt"] == pytest.approx(p.field_radius_nt, rel=1e-3)
+
+
+def test_publisher_loops_with_time_running_on():
+    s = CarPublisherSettings(duration_s=10.0, loop=True, truth=False, speed=0.0)
+    last: dict[str, float] = {}
+    laps = []
+    n = 0
+    for t, key, _mtype, _fields in car_events(s, "car-7", max_laps=3, on_lap=lambda k, d: laps.append(d.settings.seed)):
+        assert t > last.get(key, -1.0)
+        last[key] = t
+        assert keys.parse(key).kind == "raw"
+        n += 1
+    assert laps == [1, 2, 3]
+    assert last[keys.raw_mag("car-7", "1")] == pytest.approx(3 * 10.0 + 2 * 0.02)
+    assert n == 3 * (2 * 501 + 1001 + 51)
