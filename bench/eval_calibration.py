@@ -158,15 +158,14 @@ def run_ekf_on_drive(drive, sensor: str = "1", settings: online_ekf.EkfSettings 
     ekf = online_ekf.HardIronEkf(settings, offset0, matrix)
     t_hist, off_hist = [], []
     t_conv = None
-    prev = None
+    speed_rate = online_ekf.SpeedRate()
     for k in range(len(g.t_s)):
         tk = float(g.t_s[k])
         mk = _window_mean(drive.t_mag_s, m, tk, 0.2)
         ak = _window_mean(drive.t_imu_s, drive.accel_m_s2, tk, 0.2)
         wz = float(_window_mean(drive.t_imu_s, drive.gyro_rad_s, tk, 0.2)[2])
         sp = float(g.speed_m_s[k])
-        rate = 0.0 if prev is None else (sp - prev[1]) / max(tk - prev[0], 1e-3)
-        prev = (tk, sp)
+        rate = speed_rate.update(tk, sp)
         roll, pitch = online_ekf.car_roll_pitch(ak, rate, sp, wz)
         ok, _ = online_ekf.gnss_usable(str(g.fix_type[k]), int(g.num_sats[k]), float(g.pdop[k]), sp, settings)
         ekf.update(tk, mk, float(g.course_rad[k]), roll, pitch, drive.declination_rad, sp, wz, ok)

@@ -42,7 +42,7 @@ class ArlsSettings:
     tolerance: float = 1e-7  # relative change of X that ends the iteration
     min_sigma_rel: float = 1e-6  # floor of σ̂, relative to the median |v|
     refine: bool = True  # geometric IGG re-weighted Gauss–Newton after the algebraic ARLS
-    refine_iterations: int = 8
+    refine_iterations: int = 5
 
     def __post_init__(self):
         if not (0 < self.k0 < self.k1):
@@ -105,7 +105,7 @@ def _refine_geometric(x: np.ndarray, X0: np.ndarray, n: int, st: ArlsSettings):
         dS[iu] = step[n:]
         dS = dS + np.triu(dS, 1).T
         S = S + dS
-        if np.linalg.norm(step) < 1e-10:
+        if np.linalg.norm(step) < 1e-9:
             break
     if np.linalg.eigvalsh(0.5 * (S + S.T)).min() <= 0:
         return None
@@ -123,6 +123,9 @@ def fit_arls(m_nt, model: str = "3d", radius_nt: float | None = None,
     x, norm = two_step.normalise(two_step.model_axes(m, model))
     n = x.shape[1]
     A = two_step.design_matrix(x)
+    p = A.shape[1]
+    # rows' outer products, once: AᵀPA = Σ w_i a_i a_iᵀ becomes one matrix-vector product per iteration
+    outer = (A[:, :, None] * A[:, None, :]).reshape(len(A), p * p)
     w = np.ones(len(x))
     converged = False
     iterations = 0
@@ -133,9 +136,9 @@ def fit_arls(m_nt, model: str = "3d", radius_nt: float | None = None,
             v = A @ X - 1.0  # V = A X − L
             sig = robust_sigma(v, settings.min_sigma_rel)
             w = igg3_weights(v / sig, settings.k0, settings.k1)
-            if np.count_nonzero(w) < 2 * A.shape[1]:
+            if np.count_nonzero(w) < 2 * p:
                 raise ValueError("too few samples keep a non-zero weight")
-            X_new = two_step.solve_weighted(A, w)
+            X_new = np.linalg.solve((w @ outer).reshape(p, p), w @ A)  # X = (AᵀPA)⁻¹ AᵀPL, L = 1
             change = np.linalg.norm(X_new - X) / max(np.linalg.norm(X), 1e-300)
             X = X_new
             if change < settings.tolerance:

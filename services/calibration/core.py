@@ -307,7 +307,7 @@ class VehicleCalibration:
         self.declination_override = declination_rad
         self.accel: np.ndarray | None = None
         self.gyro: np.ndarray | None = None
-        self.last_speed: tuple[float, float] | None = None  # (t, speed)
+        self.speed_rate = online_ekf.SpeedRate()
         self.mag_recent: dict[str, deque] = {}
         self.gnss_reason = ""
 
@@ -345,10 +345,7 @@ class VehicleCalibration:
         if not self.online.enabled:
             return out
         speed = float(g["speed_m_s"])
-        rate = 0.0
-        if self.last_speed is not None and t_s > self.last_speed[0]:
-            rate = (speed - self.last_speed[1]) / (t_s - self.last_speed[0])
-        self.last_speed = (t_s, speed)
+        rate = self.speed_rate.update(t_s, speed)
         ok, why = online_ekf.gnss_usable(g["fix_type"], int(g["num_sats"]), float(g["pdop"]), speed,
                                          self.online.ekf)
         self.gnss_reason = why

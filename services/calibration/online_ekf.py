@@ -77,6 +77,33 @@ def gnss_usable(fix_type: str, num_sats: int, pdop: float, speed_m_s: float, st:
     return True, ""
 
 
+class SpeedRate:
+    """Forward acceleration from GNSS speed: least-squares slope over the last ``window_s``.
+
+    A two-epoch difference at 5 Hz turns 0.08 m/s of speed noise into ≈ 0.6 m/s² (3.3° of pitch);
+    the slope over 1 s cuts it to ≈ 0.1 m/s² at the price of ≈ 0.5 s lag.
+    """
+
+    def __init__(self, window_s: float = 1.0):
+        self.window_s = window_s
+        self.t: list[float] = []
+        self.v: list[float] = []
+
+    def update(self, t_s: float, speed_m_s: float) -> float:
+        self.t.append(float(t_s))
+        self.v.append(float(speed_m_s))
+        while self.t and self.t[0] < t_s - self.window_s:
+            self.t.pop(0)
+            self.v.pop(0)
+        if len(self.t) < 2:
+            return 0.0
+        t = np.asarray(self.t) - self.t[-1]
+        v = np.asarray(self.v)
+        tc = t - t.mean()
+        den = float(tc @ tc)
+        return float(tc @ (v - v.mean()) / den) if den > 0 else 0.0
+
+
 def car_roll_pitch(accel_m_s2, speed_rate_m_s2: float = 0.0, speed_m_s: float = 0.0, yaw_rate_rad_s: float = 0.0):
     """Roll and pitch of a car from its accelerometer with the motion removed (FLU body).
 
