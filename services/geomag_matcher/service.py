@@ -55,8 +55,8 @@ class Settings:
 class VehicleMatch:
     """Per-vehicle state: the matcher, recent INS samples, field samples waiting for INS."""
 
-    def __init__(self, matcher: GeomagMatcher, buffer: int):
-        self.matcher = matcher
+    def __init__(self, buffer: int):
+        self.matcher: GeomagMatcher | None = None  # built on the first scalar field sample
         self.ins_t: deque = deque(maxlen=buffer)
         self.ins_p: deque = deque(maxlen=buffer)
         self.pending: deque = deque(maxlen=buffer)  # (t_s, f_nt)
@@ -118,11 +118,14 @@ class GeomagMatcherService(Service):
         )
 
     def new_vehicle(self, vehicle: str) -> VehicleMatch:
+        return VehicleMatch(self.settings.ins_buffer)
+
+    def _build_matcher(self, vehicle: str) -> GeomagMatcher:
         vcfg = self.vehicles_config.get(vehicle, {}) or {}
         grid = self._map(str(vcfg.get("map", self.settings.map)))
         ms = self.matcher_settings(vcfg)
         self.log.info("vehicle %s: map %s, core field %.1f nT subtracted", vehicle, grid.name, ms.main_field_nt)
-        return VehicleMatch(GeomagMatcher(grid, ms), self.settings.ins_buffer)
+        return GeomagMatcher(grid, ms)
 
     def on_message(self, info, msg, state: VehicleMatch) -> None:
         if info.kind == "clean" and info.stream == "ins":
@@ -134,18 +137,23 @@ class GeomagMatcherService(Service):
             state.ins_p.append(np.asarray(msg["pos_enu_m"][:2], float))
         elif info.kind == "clean" and info.stream == "mag":
             if "f_nt" not in msg:
-                self.count_drop(info.key, "no_scalar_field")
+                self.count_drop(info.key, "no_scalar_field")  # a vector-only vehicle: nothing to match
                 return
+            if state.matcher is None:
+                state.matcher = self._build_matcher(info.vehicle)
+            if len(state.pending) == state.pending.maxlen:
+                self.count_drop(info.key, "waiting_for_ins_overflow")  # the oldest waiting sample goes
             state.pending.append((msg["t_s"], msg["f_nt"]))
         else:
             self.count_drop(info.key, "unexpected_key")
             return
-        self._drain(info, state)
+        if state.matcher is not None:
+            self._drain(info, state)
 
     def _drain(self, info, state: VehicleMatch) -> None:
         while state.pending:
             t, f = state.pending[0]
-            if state.ins_t and t > state.ins_t[-1]:
+            if not state.ins_t or t > state.ins_t[-1]:
                 return  # wait for the INS to catch up
             state.pending.popleft()
             p = state.ins_at(t, self.settings.max_ins_gap_s)
@@ -190,6 +198,8 @@ class GeomagMatcherService(Service):
     def status_extra(self) -> dict:
         out = {}
         for v, st in self.vehicle_states.items():
+            if st.matcher is None:
+                continue
             s = st.matcher.internal_states
             out[v] = {**{k: (None if isinstance(x, float) and not math.isfinite(x) else x) for k, x in s.items()},
                       **st.matcher.flags, "alarm": st.alarm_raised}
