@@ -101,6 +101,9 @@ class CarSimSettings:
     gyro_noise_rad_s: float = 0.0017  # 1-σ white noise per sample (≈ 0.1 °/s at 100 Hz)
     gyro_bias_max_rad_s: float = 0.01  # initial bias components drawn up to ±this
     gyro_bias_walk_rad_s_sqrt_s: float = 2e-4  # bias random walk
+    electrical_step_nt: float = 60.0  # car's switched loads: hard-iron steps of about this size
+    electrical_events_per_min: float = 1.0  # how often a load switches on (each lasts 5–60 s)
+    clutter_per_km: float = 15.0  # manhole covers and parked cars along the streets (not in "clean")
     accel_noise_m_s2: float = 0.03
     accel_bias_max_m_s2: float = 0.08
     gnss_pos_std_m: float = 1.5  # 1-σ horizontal error per axis (open sky)
@@ -179,6 +182,22 @@ LAYOUTS: dict[str, tuple[SourceSpec, ...]] = {
 _SKY = {"tunnel": "blocked", "bridge": "degraded", "viaduct": "degraded"}
 
 
+def _dipoles_field_nt(moments_am2: np.ndarray, positions_m: np.ndarray, points_m: np.ndarray,
+                      chunk: int = 4096) -> np.ndarray:
+    """Summed field of K point dipoles at N points, nT (maths.dipole_field_nt, broadcast over K).
+
+    B = μ0/4π · Σ_k (3 r̂_k (m_k·r̂_k) − m_k) / r_k³, r_k = point − position_k (≥ 5 cm)."""
+    out = np.empty_like(points_m)
+    for a in range(0, points_m.shape[0], chunk):
+        r = points_m[a:a + chunk, None, :] - positions_m[None, :, :]  # (n, K, 3)
+        d = np.maximum(np.sqrt(np.einsum("nki,nki->nk", r, r)), 0.05)
+        rh = r / d[..., None]
+        mr = np.einsum("nki,ki->nk", rh, moments_am2)
+        b = (3.0 * rh * mr[..., None] - moments_am2[None, :, :]) / (d**3)[..., None]
+        out[a:a + chunk] = b.sum(axis=1) * (maths.MU0_4PI * 1e9)
+    return out
+
+
 @dataclass
 class Source:
     """A physical interference source placed in the local ENU frame."""
@@ -195,17 +214,22 @@ class Source:
     radius_m: float = 60.0  # beyond this from its extent the field is neglected
     s_range_m: tuple[float, float] = (0.0, 0.0)  # along-route extent (static sources)
     sky: str = "open"  # GNSS sky view under it
+    dipole_radius_m: float = math.inf  # static dipoles: field neglected beyond this distance
 
     def field_nt(self, t_s: np.ndarray, points_m: np.ndarray) -> np.ndarray:
         """Field of the source at points (N×3) at times t_s (N,), ENU, nT."""
         out = np.zeros_like(points_m)
         moving = bool(np.any(self.velocity_enu_m_s))
-        for p, m in zip(self.dipole_pos_m, self.dipole_moment_am2, strict=True):
-            if moving:
+        if moving:
+            for p, m in zip(self.dipole_pos_m, self.dipole_moment_am2, strict=True):
                 pos = p[None, :] + (t_s - self.t_pass_s)[:, None] * self.velocity_enu_m_s[None, :]
-            else:
-                pos = p
-            out += maths.dipole_field_nt(m, pos, points_m)
+                out += maths.dipole_field_nt(m, pos, points_m)
+        elif math.isfinite(self.dipole_radius_m):
+            for p, m in zip(self.dipole_pos_m, self.dipole_moment_am2, strict=True):
+                near = np.flatnonzero(np.sum((points_m - p) ** 2, axis=1) < self.dipole_radius_m**2)
+                out[near] += maths.dipole_field_nt(m, p, points_m[near])
+        elif self.dipole_pos_m.size:
+            out += _dipoles_field_nt(self.dipole_moment_am2, self.dipole_pos_m, points_m)
         for seg in self.segments_m:
             out += maths.line_current_field_nt(self.current_a, seg[0], seg[1], points_m)
         return out
@@ -262,6 +286,7 @@ class CarTruth:
     active: np.ndarray  # (N, n_sources) bool
     disturbed: np.ndarray  # (N,) bool: either compass's true-field heading error > threshold
     gyro_bias_rad_s: np.ndarray  # (N_imu, 3) true gyro bias at the IMU times
+    hard_iron_change_nt: dict[str, np.ndarray] = field(default_factory=dict)  # car's switched loads, per sensor
 
     def active_names(self, i: int) -> list[str]:
         return [n for n, a in zip(self.source_names, self.active[i], strict=True) if a]
@@ -554,7 +579,9 @@ def _grid(frame, xs, ys, zs) -> list[np.ndarray]:
     The road surface follows the route's own altitude profile, so a girder 0.3 m under the road
     stays 0.3 m under the car wherever the road climbs."""
     centre, fwd, left, up, road_z = frame
-    return [centre + x * fwd + y * left + (road_z(x) - centre[2] + z) * up for x in xs for y in ys for z in zs]
+    dz = road_z(np.asarray(xs, float)) - centre[2]
+    return [centre + x * fwd + y * left + (dzx + z) * up for x, dzx in zip(xs, dz, strict=True) for y in ys
+            for z in zs]
 
 
 def _place_sources(s: CarSimSettings, specs, plan: _Plan, traj: _Trajectory, b_earth_enu) -> list[Source]:
@@ -582,7 +609,7 @@ def _place_sources(s: CarSimSettings, specs, plan: _Plan, traj: _Trajectory, b_e
         t_pass = 0.0
         half = sp.length_m / 2
         frame = (centre, fwd, left, up,
-                 lambda x, s_c=s_c: float(np.interp(s_c + x, traj.dist, traj.pos[:, 2])) - h)
+                 lambda x, s_c=s_c: np.interp(s_c + x, traj.dist, traj.pos[:, 2]) - h)
         if sp.kind == "bridge":
             # steel deck: cross-girders 0.3 m under the road every 1.5 m (3 dipoles across the
             # carriageway, one under the car's lane), truss walls at ±5 m from 0.5 to 5 m high
@@ -638,8 +665,63 @@ def _relevant(src: Source, t: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """Samples close enough to the source to evaluate its field."""
     if np.any(src.velocity_enu_m_s):
         return np.abs(t - src.t_pass_s) < 10.0
+    if src.kind == "clutter":
+        return np.ones(t.size, bool)
     d = np.linalg.norm(pos[:, :2] - src.centre_enu_m[None, :2], axis=1)
     return d < src.radius_m
+
+
+def _place_clutter(s: CarSimSettings, plan: _Plan, traj: _Trajectory, b_earth_enu,
+                   sources: list[Source]) -> Source | None:
+    """Small street clutter along the street part of the route (not the calibration circle):
+    manhole covers / drain grates under the lane and parked cars at the kerb (right side)."""
+    if s.clutter_per_km <= 0 or not plan.straights:
+        return None
+    rng = np.random.default_rng([s.seed, 0xC1])
+    s0 = traj.dist[plan.straights[0][0]]
+    s1 = traj.dist[-1]
+    n = int(rng.poisson(s.clutter_per_km * (s1 - s0) / 1000.0))
+    if n == 0:
+        return None
+    where = np.sort(rng.uniform(s0, s1, size=n))
+    for src in sources:  # none inside the big zones (their own steel dominates there)
+        if src.kind in ("bridge", "viaduct", "tunnel", "cable"):
+            where = where[(where < src.s_range_m[0] - 20.0) | (where > src.s_range_m[1] + 20.0)]
+    n = where.size
+    if n == 0:
+        return None
+    i = np.minimum(np.searchsorted(traj.dist, where), traj.dist.size - 1)
+    psi = traj.heading[i]
+    fwd = np.stack([np.sin(psi), np.cos(psi), np.zeros(n)], axis=1)
+    left = np.stack([-np.cos(psi), np.sin(psi), np.zeros(n)], axis=1)
+    road = traj.pos[i] - np.array([0.0, 0.0, s.mount_height_m])
+    parked = rng.random(n) < 0.5
+    lateral = np.where(parked, -rng.uniform(2.5, 3.5, n), rng.uniform(-1.5, 1.5, n))
+    height = np.where(parked, 0.5, -0.1)
+    pos = road + lateral[:, None] * left + height[:, None] * np.array([0.0, 0.0, 1.0]) + 0.0 * fwd
+    size = np.where(parked, rng.uniform(80.0, 250.0, n), rng.uniform(2.0, 10.0, n))
+    mom = (_unit(b_earth_enu)[None, :] * 0.7 + _unit(rng.normal(size=(n, 3))) * 0.7) * size[:, None]
+    return Source(name="clutter", kind="clutter", centre_enu_m=pos.mean(axis=0), dipole_pos_m=pos,
+                  dipole_moment_am2=mom, segments_m=np.zeros((0, 2, 3)), radius_m=math.inf,
+                  s_range_m=(float(s0), float(s1)), dipole_radius_m=25.0)
+
+
+def _electrical_offsets(s: CarSimSettings, t: np.ndarray) -> dict[str, np.ndarray]:
+    """The car's own switched loads (fans, wipers, compressor clutch, lights): hard-iron steps that
+    come and go, seen differently by the two sensors (different distances to the wiring)."""
+    out = {sid: np.zeros((t.size, 3)) for sid in SENSORS}
+    if s.electrical_step_nt <= 0 or s.electrical_events_per_min <= 0:
+        return out
+    rng = np.random.default_rng([s.seed, 0xE1])
+    n = int(rng.poisson(s.electrical_events_per_min * s.duration_s / 60.0))
+    for _ in range(n):
+        t_on = rng.uniform(0.0, s.duration_s)
+        t_off = t_on + rng.uniform(5.0, 60.0)
+        v = _unit(rng.normal(size=3)) * s.electrical_step_nt * rng.uniform(0.5, 1.5)
+        on = (t >= t_on) & (t < t_off)
+        for sid in SENSORS:
+            out[sid][on] += v * rng.uniform(0.6, 1.4)
+    return out
 
 
 # ---- sensors ----------------------------------------------------------------------------------
@@ -736,6 +818,9 @@ def simulate(settings: CarSimSettings | None = None, **overrides: Any) -> CarDri
     plan = _plan_route(s, specs, rng)
     traj = _integrate(s, plan, rng)
     sources = _place_sources(s, specs, plan, traj, b_earth)
+    clutter = _place_clutter(s, plan, traj, b_earth, sources) if s.layout != "clean" else None
+    if clutter is not None:
+        sources.append(clutter)
 
     # magnetometer epochs
     t_mag = np.arange(0.0, s.duration_s + 1e-9, 1.0 / s.mag_rate_hz)
@@ -764,6 +849,7 @@ def simulate(settings: CarSimSettings | None = None, **overrides: Any) -> CarDri
             if sid == "1":
                 active[idx, j] = np.linalg.norm(f, axis=1) > s.active_field_nt
     params = true_mag_params(s, radius)
+    electrical = _electrical_offsets(s, t_mag)
     mag_b: dict[str, np.ndarray] = {}
     herr: dict[str, np.ndarray] = {}
     # levelling: Ry(−θ) Rx(φ) = _rotations with yaw 0, i.e. heading π/2 (maths.tilt_compensated_heading)
@@ -772,7 +858,8 @@ def simulate(settings: CarSimSettings | None = None, **overrides: Any) -> CarDri
         h = np.einsum("nji,nj->ni", R, b_earth[None, :] + b_src_enu[sid])
         b_true[sid] = h
         S = np.linalg.inv(params[sid].matrix)
-        mag_b[sid] = h @ S.T + params[sid].offset_nt + rng.normal(size=(n, 3)) * s.mag_noise_nt
+        mag_b[sid] = (h @ S.T + params[sid].offset_nt + electrical[sid]
+                      + rng.normal(size=(n, 3)) * s.mag_noise_nt)
         lev = np.einsum("nij,nj->ni", Rlevel, h)
         h_mag = maths.mag_heading_flu(lev[:, 0], lev[:, 1], decl)
         herr[sid] = maths.angle_diff(h_mag, heading)
@@ -800,7 +887,7 @@ def simulate(settings: CarSimSettings | None = None, **overrides: Any) -> CarDri
         heading_rad=heading, pitch_rad=pitch, roll_rad=roll, pos_enu_m=pos, vel_enu_m_s=vel,
         b_earth_body_nt=b_earth_body, b_sensor_nt=b_true, heading_error_rad=herr,
         source_names=tuple(src.name for src in sources), active=active, disturbed=disturbed,
-        gyro_bias_rad_s=gyro_bias,
+        gyro_bias_rad_s=gyro_bias, hard_iron_change_nt=electrical,
     )
     return CarDrive(
         settings=s, t_mag_s=t_mag, mag_b_nt=mag_b, t_imu_s=t_imu, gyro_rad_s=gyro, accel_m_s2=accel,
