@@ -92,6 +92,12 @@ class Calibration(Service):
         self.saved = self._load_saved()
         self.log.info("loaded %d saved parameter set(s) from %s", sum(len(v) for v in self.saved.values()),
                       self._dir())
+        import zenoh
+
+        served = zenoh.KeyExpr(keys.cal_params(self.vehicle_pattern, "*"))
+        for vehicle in self.saved:
+            if served.intersects(zenoh.KeyExpr(keys.cal_params(vehicle, "*"))):
+                self.state_for(vehicle)  # publishes the saved sets now: a late joiner need not wait for data
 
     def on_stop(self) -> None:
         self._persist()
