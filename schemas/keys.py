@@ -23,7 +23,7 @@ _PATTERN_RE = re.compile(r"^(\*|\*\*|[A-Za-z0-9_.\-$*]{1,64})$")
 
 #: per-vehicle stream kinds and how many further chunks they take
 KINDS = {
-    "raw": None,  # raw/mag/{sensor}, raw/imu, raw/gnss, raw/ins, raw/route
+    "raw": None,  # raw/mag/{sensor}, raw/imu, raw/gnss, raw/ins, raw/route, raw/attitude
     "clean": None,  # same sub-keys as raw, after ingest
     "rejects": 0,
     "cal": None,  # cal/mag/{sensor}, cal/params/{sensor}
@@ -36,7 +36,7 @@ KINDS = {
 }
 
 #: sub-streams of raw/ and clean/
-RAW_STREAMS = ("mag", "imu", "gnss", "ins", "route")
+RAW_STREAMS = ("mag", "imu", "gnss", "ins", "route", "attitude")
 
 
 class KeyError_(ValueError):
@@ -94,6 +94,11 @@ def raw_route(vehicle: str) -> str:
     return f"{ROOT}/{_v(vehicle)}/raw/route"
 
 
+def raw_attitude(vehicle: str) -> str:
+    """The vehicle's own attitude estimate (e.g. a flight controller's), with its magnetometer heading."""
+    return f"{ROOT}/{_v(vehicle)}/raw/attitude"
+
+
 def raw_all(vehicle: str = "*") -> str:
     return f"{ROOT}/{_v(vehicle)}/raw/**"
 
@@ -116,6 +121,10 @@ def clean_ins(vehicle: str) -> str:
 
 def clean_route(vehicle: str) -> str:
     return f"{ROOT}/{_v(vehicle)}/clean/route"
+
+
+def clean_attitude(vehicle: str) -> str:
+    return f"{ROOT}/{_v(vehicle)}/clean/attitude"
 
 
 def clean_all(vehicle: str = "*") -> str:

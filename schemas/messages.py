@@ -161,6 +161,23 @@ ROUTE = _register(
     )
 )
 
+ATTITUDE = _register(
+    MessageType(
+        "attitude",
+        1,
+        "the vehicle's own attitude estimate (flight controller), with the magnetometer heading it fuses",
+        ("magmesh/{vehicle}/raw/attitude", "magmesh/{vehicle}/clean/attitude"),
+        (
+            _F("heading_rad", "float", "estimated heading, clockwise from true north, rad, [0, 2π)"),
+            _F("pitch_rad", "float", "estimated pitch, nose up positive, rad"),
+            _F("roll_rad", "float", "estimated roll, right side down positive, rad"),
+            _F("mag_heading_rad", "float", "tilt-compensated magnetometer heading (+ declination) the estimator "
+               "corrects towards, rad; null when the magnetometer is not used", nullable=True),
+            _F("estimator", "str", "estimator kind (complementary, ekf, ...)", required=False),
+        ),
+    )
+)
+
 REJECT = _register(
     MessageType(
         "reject",
@@ -308,6 +325,15 @@ TRACK = _register(
             _F("innovation_sigma_rad", "float", "σ of the innovation on undisturbed flight, rad", nullable=True),
             _F("track_alarm", "bool", "cross-track detector raised"),
             _F("innovation_alarm", "bool", "heading-innovation detector raised"),
+            _F("anomaly_alarm", "bool", "combined magnetic-anomaly verdict raised", required=False),
+            _F("anomaly_source", "str", "detector that raised the combined verdict", required=False, nullable=True),
+            _F("cross_track_signed_m", "float", "signed cross-track distance, + left of A → B, m", required=False),
+            _F("cross_track_rate_m_s", "float", "rate of the signed cross-track distance, m/s", required=False),
+            _F("track_armed", "bool", "the route leg was acquired and the track detector is testing", required=False),
+            _F("innovation_learning", "bool", "σ of the innovation is still being learned", required=False),
+            _F("innovation_test_ratio", "float", "heading-innovation test statistic / its threshold", required=False,
+               nullable=True),
+            _F("route_id", "str", "route the deviation refers to", required=False),
         ),
     )
 )
@@ -495,7 +521,8 @@ def make(msg_type: str, vehicle: str, t_s: float, seq: int, **fields: Any) -> di
 def type_for_key(key: str) -> str:
     info = _keys.parse(key)
     if info.kind in ("raw", "clean"):
-        return {"mag": "mag", "imu": "imu", "gnss": "gnss", "ins": "ins", "route": "route"}[info.rest[0]]
+        return {"mag": "mag", "imu": "imu", "gnss": "gnss", "ins": "ins", "route": "route",
+                "attitude": "attitude"}[info.rest[0]]
     if info.kind == "cal":
         return "mag" if info.rest[0] == "mag" else "cal_params"
     return {
