@@ -144,6 +144,9 @@ def test_single_compass_heading_error_in_and_out_of_zones(drive, drive_b):
         assert np.percentile(err[outside], 99) < 1.0
         for j, src in enumerate(d.sources):
             m = d.truth.active[:, j]
+            if src.kind == "clutter":  # manholes and parked cars: brief, a few degrees
+                assert m.any() and np.percentile(err[m], 90) < 5.0
+                continue
             if src.kind == "cable":
                 continue  # a weak buried cable: a few degrees at most
             assert m.any(), src.name
