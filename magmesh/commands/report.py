@@ -1,0 +1,112 @@
+"""``magmesh report``: an HTML page with PNG plots and a summary table from a recording or a live run.
+
+    magmesh report run.mcap -o report/                 # then open report/index.html
+    magmesh report --live --duration 60 -o report/     # record the live mesh for 60 s, then report
+
+Geomagnetic fixes are drawn on the vehicle's anomaly map: ``--map`` or the ``map`` entry of the vehicle's
+table in the manifest (``deploy/mesh.toml`` by default).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import threading
+import tomllib
+from collections import Counter
+from pathlib import Path
+
+from .. import zconf
+from ..paths import DEPLOY_DIR
+from ..recording import load_liveliness, load_messages, summarize
+
+log = logging.getLogger("magmesh.report")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("report", help="HTML report with plots from a recording or a live run",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_arguments(p)
+    p.set_defaults(func=run)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("input", nargs="?", help="MCAP recording (omit with --live)")
+    p.add_argument("-o", "--output", default="report", help="output directory (default report/)")
+    p.add_argument("--live", action="store_true", help="record the live mesh first (see --duration, --keys)")
+    p.add_argument("--duration", type=float, default=30.0, help="--live: seconds to record (default 30)")
+    p.add_argument("--keys", nargs="+", default=None, metavar="KEYEXPR", help="only these keys")
+    p.add_argument("--vehicles", nargs="+", default=None, help="only these vehicles")
+    p.add_argument("--title", default=None)
+    p.add_argument("--map", default=None, help="anomaly map for geomagnetic plots (file under data/ or synthetic:N)")
+    p.add_argument("--manifest", default=str(DEPLOY_DIR / "mesh.toml"),
+                   help="manifest whose vehicle tables name each vehicle's map")
+    p.add_argument("--no-progress", action="store_true")
+    zconf.add_zenoh_args(p)
+
+
+def vehicle_maps(manifest: str | None, override: str | None, vehicles) -> dict:
+    """vehicle → GridMap, from --map (all vehicles) or each vehicle's ``map`` in the manifest."""
+    from ..geomap import load_map
+
+    specs: dict[str, str] = {}
+    if manifest and Path(manifest).exists():
+        with open(manifest, "rb") as f:
+            for v, table in tomllib.load(f).get("vehicles", {}).items():
+                if isinstance(table, dict) and table.get("map"):
+                    specs[v] = str(table["map"])
+    cache: dict[str, object] = {}
+    out = {}
+    for v in vehicles:
+        spec = override or specs.get(v)
+        if not spec:
+            continue
+        try:
+            if spec not in cache:
+                cache[spec] = load_map(spec)
+            out[v] = cache[spec]
+        except (OSError, ValueError) as e:
+            log.warning("map %s for %s not loaded: %s", spec, v, e)
+    return out
+
+
+def make_report(path: str | Path, out_dir: str | Path, key_exprs=None, vehicles=None, title=None, map_spec=None,
+                manifest=None, progress: bool = False) -> Path:
+    from ..report import build_report
+
+    bad: Counter = Counter()
+    msgs = load_messages(path, key_exprs, counts=bad)
+    summ = summarize(path)
+    found = sorted({k.split("/")[1] for k, _ in msgs})
+    notes = [f"Recording {Path(path).name}: {summ['messages']} samples over {summ['duration_s']:.1f} s "
+             f"(receive time) on {len(summ['keys'])} keys."]
+    if bad:
+        notes.append(f"{sum(bad.values())} recorded payloads did not decode as magmesh messages and are not plotted.")
+    grids = vehicle_maps(manifest, map_spec, found)
+    return build_report(msgs, out_dir, title=title or f"magmesh run {Path(path).stem}", source=str(path),
+                        liveliness=load_liveliness(path), grids=grids, vehicles=vehicles, progress=progress,
+                        notes=notes)
+
+
+def run(args: argparse.Namespace) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    out = Path(args.output)
+    if args.live:
+        from .record import format_counts, record
+
+        out.mkdir(parents=True, exist_ok=True)
+        path = out / "run.mcap"
+        print(f"recording the live mesh for {args.duration:g} s to {path} …", file=sys.stderr)
+        counts = record(zconf.config_from_args(args), path, args.keys or (), args.duration, stop=threading.Event())
+        print(format_counts(counts, path), file=sys.stderr)
+    else:
+        if not args.input:
+            raise SystemExit("magmesh report: give a recording (run.mcap) or --live")
+        path = Path(args.input)
+        if not path.exists():
+            raise SystemExit(f"magmesh report: {path} does not exist")
+    index = make_report(path, out, args.keys, args.vehicles, args.title, args.map, args.manifest,
+                        progress=not args.no_progress and sys.stderr.isatty())
+    print(f"report written: {index.resolve()}")
+    return 0
