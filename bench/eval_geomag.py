@@ -194,9 +194,11 @@ def speed(grid: GridMap, seed: int, settings: MatchSettings, scipy_candidates: i
             t0 = time.perf_counter()
             rp = match_sequence(grid, h, ins_m, st)
             tp.append(time.perf_counter() - t0)
-        t0 = time.perf_counter()
-        rx = match_exhaustive(grid, h, ins_m, st)
-        te = time.perf_counter() - t0
+        te = math.inf
+        for _ in range(2):
+            t0 = time.perf_counter()
+            rx = match_exhaustive(grid, h, ins_m, st)
+            te = min(te, time.perf_counter() - t0)
         out[label] = {
             "pipeline_s": float(min(tp)), "exhaustive_s": float(te), "speedup": float(te / min(tp)),
             "same_answer": bool(np.allclose(rp.start_ij, rx.start_ij)),
