@@ -76,6 +76,13 @@ def test_survey_vehicle_fixes_correct_the_drifting_ins():
             for p in procs[:2]:
                 assert p.poll() is None, p.stderr.read().decode()[-2000:]
             time.sleep(0.2)
+        # the status queryable reports the matcher's internal states
+        import msgpack
+
+        replies = list(router.get(keys.svc_status("geomag_matcher", "geomag-t"), timeout=5.0))
+        status = msgpack.unpackb(replies[0].ok.payload.to_bytes(), raw=False)
+        assert status["matchers"]["survey-t"]["n_accepted"] >= 8
+        assert "survey-t" in status["vehicles"]
     finally:
         for p in procs:
             if p.poll() is None:

@@ -203,4 +203,4 @@ class GeomagMatcherService(Service):
             s = st.matcher.internal_states
             out[v] = {**{k: (None if isinstance(x, float) and not math.isfinite(x) else x) for k, x in s.items()},
                       **st.matcher.flags, "alarm": st.alarm_raised}
-        return {"vehicles": out}
+        return {"matchers": out}
