@@ -50,6 +50,7 @@ class Settings:
     alt_m: float = 300.0
     ins_buffer: int = 200  # INS samples kept for time interpolation
     max_ins_gap_s: float = 30.0  # a field sample farther than this from any INS sample is dropped
+    restart_jump_s: float = 60.0  # INS time going back more than this: a new run, the vehicle's matcher restarts
 
 
 class VehicleMatch:
@@ -61,6 +62,13 @@ class VehicleMatch:
         self.ins_p: deque = deque(maxlen=buffer)
         self.pending: deque = deque(maxlen=buffer)  # (t_s, f_nt)
         self.alarm_raised = False
+
+    def reset(self) -> None:
+        self.ins_t.clear()
+        self.ins_p.clear()
+        self.pending.clear()
+        if self.matcher is not None:
+            self.matcher.reset()
 
     def ins_at(self, t_s: float, max_gap_s: float) -> np.ndarray | None:
         """INS position at t_s by linear interpolation (None if t_s is not covered)."""
@@ -130,7 +138,12 @@ class GeomagMatcherService(Service):
     def on_message(self, info, msg, state: VehicleMatch) -> None:
         if info.kind == "clean" and info.stream == "ins":
             t = msg["t_s"]
-            if state.ins_t and t <= state.ins_t[-1]:
+            if state.ins_t and t < state.ins_t[-1] - self.settings.restart_jump_s:
+                # the vehicle's clock went far back: a new run (e.g. a restarted source); start over
+                self.log.warning("%s: INS time went back from %.1f s to %.1f s: matcher reset",
+                                 info.vehicle, state.ins_t[-1], t)
+                state.reset()
+            elif state.ins_t and t <= state.ins_t[-1]:
                 self.count_drop(info.key, "ins_out_of_order")
                 return
             state.ins_t.append(t)
