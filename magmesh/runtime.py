@@ -641,7 +641,9 @@ def run(svc: Service, conf: Any, ready: threading.Event | None = None) -> None:
         svc.log.info("signal %d: stopping", signum)
         runner.stop()
         # a hard deadline: never hang on exit
-        threading.Timer(STOP_GRACE_S, lambda: os._exit(0)).start()
+        timer = threading.Timer(STOP_GRACE_S, lambda: os._exit(0))
+        timer.daemon = True
+        timer.start()
 
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, _on_signal)
