@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from services.track_monitor.core import TrackMonitor, TrackMonitorSettings
+from services.track_monitor.core import TrackMonitor, TrackMonitorSettings, learn_sigmas
 from sim_publishers.multirotor.core import Flight, MultirotorSettings, simulate
 
 #: the paper's flight tests (Tables 1 and 2): onset, threshold alarm, track ("behaviour") alarm, s
@@ -52,6 +52,18 @@ def replay(flight: Flight, monitor: TrackMonitor) -> list:
             gi += 1
         events += monitor.update_attitude(float(t[k]), float(att[k]), float(magh[k]))
     return events
+
+
+def train_sigmas(flights: list[Flight], settings: TrackMonitorSettings) -> dict:
+    """σ of the heading innovation pooled over undisturbed training flights (the paper's "σ estimated from
+    undisturbed flight"), learned exactly as the service learns it online."""
+    samples = []
+    learner = settings.replace(learn_s=1e9, innovation_sigma_rad=0.0, median_sigma_rad=0.0, block_sigma_rad=0.0)
+    for f in flights:
+        m = TrackMonitor(learner)
+        replay(f, m)
+        samples += m.innovation.learning_samples
+    return learn_sigmas(samples, learner)
 
 
 def _first_raise(events: list, source: str, after_s: float) -> float | None:
@@ -93,6 +105,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--after-onset", type=float, default=60.0,
                         help="disturbed flights continue this long after the onset, s (default 60)")
     parser.add_argument("--flights", type=int, default=5, help="disturbed flights per table (default 5, max 5)")
+    parser.add_argument("--train", type=int, default=5,
+                        help="undisturbed training flights σ is learned from (default 5; 0: learn online per flight)")
     parser.add_argument("--seed", type=int, default=7, help="base seed of every flight")
 
 
@@ -107,6 +121,20 @@ def run(args) -> dict:
     robust = TrackMonitorSettings()
     paper = TrackMonitorSettings(innovation_test="paper")
     base = MultirotorSettings()
+    learned = {}
+    if args.train > 0:
+        train = [simulate(base.replace(seed=args.seed * 1000 + 900 + i, duration_s=args.undisturbed_duration))
+                 for i in range(int(args.train))]
+        for name in ("robust", "paper"):
+            st = robust if name == "robust" else paper
+            sig = train_sigmas(train, st)
+            learned[name] = {(k[:-4] + "_deg" if k.endswith("_rad") else k): (
+                round(math.degrees(v), 4) if k.endswith("_rad") else v) for k, v in sig.items()}
+            st = st.replace(**{k: v for k, v in sig.items() if k.endswith("_rad")})
+            if name == "robust":
+                robust = st
+            else:
+                paper = st
     n = max(1, min(5, int(args.flights)))
     tables = {}
     for kind, paper_table, offset in (("fast", PAPER_FAST, 100), ("slow", PAPER_SLOW, 200)):
@@ -145,6 +173,8 @@ def run(args) -> dict:
                         "paper_false_alarms": {"threshold": 3, "track": 0}},
         "tables": tables,
         "goals": GOALS,
+        "learned_sigma_deg": learned,
+        "train_flights": int(args.train),
         "goals_met": bool(goals_met),
         "settings": {"monitor": {k: v for k, v in robust.__dict__.items()},
                      "paper_monitor_innovation_test": paper.innovation_test,
@@ -180,6 +210,10 @@ def format_text(r: dict) -> str:
     lines.append(f"Combined worst delay: fast {_fmt(c['fast']).strip()} s (goal ≤ {r['goals']['fast_s']:g}), "
                  f"slow {_fmt(c['slow']).strip()} s (goal ≤ {r['goals']['slow_s']:g}); "
                  f"combined false alarms {r['false_alarms']} (goal 0) → goals met: {r['goals_met']}")
+    for name, sig in r.get("learned_sigma_deg", {}).items():
+        lines.append(f"σ learned on {r['train_flights']} undisturbed flights ({name} test): innovation "
+                     f"{sig['innovation_sigma_deg']:.3f}°, median {sig['median_sigma_deg']:.3f}°, "
+                     f"block {sig['block_sigma_deg']:.3f}°")
     lines.append(f"({r['elapsed_s']:.1f} s)")
     return "\n".join(lines)
 

@@ -30,9 +30,10 @@ transitions (:class:`AlarmEvent`) they caused.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import deque
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -46,7 +47,8 @@ class TrackMonitorSettings:
     track_clear_m: float = 0.5  # clear when d stays below this ...
     clear_hold_s: float = 2.0  # ... for this long (every detector's hysteresis hold)
     track_persist_s: float = 0.15  # d must exceed the threshold this long (≥ 2 GNSS epochs at 10 Hz)
-    arm_within_m: float = 1.0  # the track detector arms once d has been below this on a route
+    arm_within_m: float = 1.0  # the track detector arms once d has stayed below this on a route ...
+    arm_hold_s: float = 5.0  # ... for this long (the leg has been acquired)
     gnss_fix_types: tuple = ("rtk_fixed",)  # fix types good enough to trust d
     gnss_min_sats: int = 6
     gnss_max_pdop: float = 3.0
@@ -58,14 +60,14 @@ class TrackMonitorSettings:
     innovation_sigma_rad: float = 0.0  # σ of e on undisturbed flight; 0: learn it
     median_sigma_rad: float = 0.0  # σ of the running median of e; 0: learn it
     block_sigma_rad: float = 0.0  # σ of block means of clipped e; 0: learn it
-    learn_skip_s: float = 5.0  # ignore the first seconds of the attitude stream (take-off transients)
+    warmup_s: float = 15.0  # the first seconds of the attitude stream (take-off transients) are not tested
     learn_s: float = 30.0  # then learn σ over this much (assumed undisturbed) flight
     sigma_floor_rad: float = 0.001  # lower bound for learned σ
     median_window_s: float = 0.6
     block_s: float = 0.5  # CUSUM block length
     clip_sigma: float = 3.0  # Huber clip of e before block averaging, in σ
-    cusum_drift: float = 2.0  # ν, in block σ
-    cusum_threshold: float = 12.0  # h, in block σ
+    cusum_drift: float = 3.0  # ν, in block σ
+    cusum_threshold: float = 15.0  # h, in block σ
     innovation_clear_sigma: float = 2.5  # clear when the median |e| and block means stay below this, in σ
     burst_sigma: float = 8.0  # a sample this far (in σ) from the running median is a burst ...
     burst_min_rad: float = 0.035  # ... and at least this far (2°; the only gate while σ is learned)
@@ -87,15 +89,13 @@ class TrackMonitorSettings:
             raise ValueError(f"track_clear_m must be in [0, track_threshold_m), got {self.track_clear_m}")
         if not (0 < self.innovation_clear_sigma <= self.innovation_k_sigma):
             raise ValueError("innovation_clear_sigma must be in (0, innovation_k_sigma]")
-        for name in ("clear_hold_s", "track_persist_s", "anomaly_clear_hold_s", "learn_skip_s",
+        for name in ("clear_hold_s", "track_persist_s", "anomaly_clear_hold_s", "warmup_s",
                      "innovation_sigma_rad", "median_sigma_rad", "block_sigma_rad", "cusum_drift", "route_margin_m"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be ≥ 0, got {getattr(self, name)!r}")
 
     def replace(self, **changes) -> TrackMonitorSettings:
-        vals = {f.name: getattr(self, f.name) for f in fields(self)}
-        vals.update(changes)
-        return TrackMonitorSettings(**vals)
+        return dataclasses.replace(self, **changes)
 
 
 @dataclass(frozen=True)
@@ -174,9 +174,11 @@ class TrackDetector:
 
     def reset(self) -> None:
         self.armed = False
+        self.arm_since_s: float | None = None
         self.state = _Hysteresis()
         self.above_since_s: float | None = None
         self.cross_track_m: float | None = None
+        self.cross_track_signed_m: float | None = None
         self.along_track_m: float | None = None
         self.cross_track_rate_m_s: float | None = None
         self.gnss_ok = False
@@ -201,14 +203,18 @@ class TrackDetector:
         d = abs(d_signed)
         ux = (route.b_enu_m[0] - route.a_enu_m[0]) / route.length_m
         uy = (route.b_enu_m[1] - route.a_enu_m[1]) / route.length_m
-        self.cross_track_m, self.along_track_m = d, along
+        self.cross_track_m, self.cross_track_signed_m, self.along_track_m = d, d_signed, along
         self.cross_track_rate_m_s = ux * vel_enu_m_s[1] - uy * vel_enu_m_s[0]
         self.gnss_ok, self.gnss_reason = gnss_ok, gnss_reason
         on_leg = -s.route_margin_m <= along <= route.length_m + s.route_margin_m
         events: list[AlarmEvent] = []
         if not self.armed:
             if gnss_ok and on_leg and d < s.arm_within_m:
-                self.armed = True
+                if self.arm_since_s is None:
+                    self.arm_since_s = t_s
+                self.armed = t_s - self.arm_since_s >= s.arm_hold_s
+            else:
+                self.arm_since_s = None
             return events
         if not self.state.raised:
             trusted = gnss_ok and on_leg
@@ -252,7 +258,7 @@ class InnovationDetector:
             s.innovation_test == "robust" and (self.block_sigma_rad is None or self.median_sigma_rad is None))
         if self.learning:  # all are learned from the same window
             self.sigma_rad = self.block_sigma_rad = self.median_sigma_rad = None
-        self._learn: list[float] = []
+        self.learning_samples: list[tuple[float, float, float]] = []
         self._t_first: float | None = None
         self._restart()
         self.state = _Hysteresis()
@@ -282,28 +288,20 @@ class InnovationDetector:
         if self._t_first is None:
             self._t_first = t_s
         age = t_s - self._t_first
-        if age < s.learn_skip_s:
+        if age < s.warmup_s:
             return
-        self._learn.append((e_raw if s.innovation_test == "paper" else e, med))
-        if age < s.learn_skip_s + s.learn_s:
+        self.learning_samples.append((t_s, e_raw if s.innovation_test == "paper" else e, med))
+        if age < s.warmup_s + s.learn_s:
             return
-        x = np.asarray([v[0] for v in self._learn])
-        meds = np.asarray([v[1] for v in self._learn])
-        if s.innovation_test == "paper":
-            sigma = float(np.std(x))  # the paper's σ: spread of the heading difference on undisturbed flight
-        else:
-            sigma = float(1.4826 * np.median(np.abs(x - np.median(x))))  # robust to bursts
-        sigma = max(sigma, s.sigma_floor_rad)
-        # the gated statistic is the running median: its own spread on undisturbed flight sets the gate
-        self.median_sigma_rad = max(float(np.std(meds)), s.sigma_floor_rad)
-        per_block = max(1, int(round(len(x) / (s.learn_s / s.block_s))))
-        clipped = np.clip(x, -s.clip_sigma * sigma, s.clip_sigma * sigma)
-        nb = len(clipped) // per_block
-        means = clipped[: nb * per_block].reshape(nb, per_block).mean(axis=1)
-        self.sigma_rad = sigma
-        self.block_sigma_rad = max(float(np.std(means)), s.sigma_floor_rad / 4) if nb >= 4 else sigma
+        self.apply_sigmas(learn_sigmas(self.learning_samples, s))
+        self.learning_samples = []
+
+    def apply_sigmas(self, sig: dict) -> None:
+        """Use σ values (from :func:`learn_sigmas`, a previous flight or the settings) and start testing."""
+        self.sigma_rad = sig["innovation_sigma_rad"]
+        self.median_sigma_rad = sig["median_sigma_rad"]
+        self.block_sigma_rad = sig["block_sigma_rad"]
         self.learning = False
-        self._learn = []
 
     # update ------------------------------------------------------------------------------------
     def update(self, t_s: float, heading_rad: float, mag_heading_rad: float) -> list[AlarmEvent]:
@@ -345,8 +343,12 @@ class InnovationDetector:
         med = float(np.median([v for _, v in self._window]))
         self.median_rad = med
         e = x
+        if self._t_first is None:
+            self._t_first = t_s
         if self.learning:
             self._learn_step(t_s, self.innovation_rad, e, med)
+            return []
+        if t_s - self._t_first < s.warmup_s:
             return []
         sigma, k = self.sigma_rad, s.innovation_k_sigma
         events: list[AlarmEvent] = []
@@ -410,6 +412,38 @@ class InnovationDetector:
         return events
 
 
+def learn_sigmas(samples: list, s: TrackMonitorSettings) -> dict:
+    """σ of the heading innovation on undisturbed flight, from ``(t_s, e, running median)`` samples.
+
+    ``innovation_sigma_rad``: spread of e (paper: standard deviation; robust test: 1.4826·MAD of the
+    burst-excised e); ``median_sigma_rad``: standard deviation of the running median (the gated statistic);
+    ``block_sigma_rad``: standard deviation of block means of e clipped at ±clip_sigma·σ. Samples may pool
+    several flights (time gaps between them only shift block boundaries).
+    """
+    if len(samples) < 20:
+        raise ValueError(f"need at least 20 innovation samples to learn σ, got {len(samples)}")
+    t = np.asarray([v[0] for v in samples])
+    x = np.asarray([v[1] for v in samples])
+    meds = np.asarray([v[2] for v in samples])
+    if s.innovation_test == "paper":
+        sigma = float(np.std(x))  # the paper's σ: spread of the heading difference on undisturbed flight
+    else:
+        sigma = float(1.4826 * np.median(np.abs(x - np.median(x))))  # robust to bursts
+    sigma = max(sigma, s.sigma_floor_rad)
+    steps = np.diff(t)
+    dt = float(np.median(steps[steps > 0])) if np.any(steps > 0) else s.block_s
+    per_block = max(1, int(round(s.block_s / dt)))
+    clipped = np.clip(x, -s.clip_sigma * sigma, s.clip_sigma * sigma)
+    nb = len(clipped) // per_block
+    means = clipped[: nb * per_block].reshape(nb, per_block).mean(axis=1)
+    return {
+        "innovation_sigma_rad": sigma,
+        "median_sigma_rad": max(float(np.std(meds)), s.sigma_floor_rad),
+        "block_sigma_rad": max(float(np.std(means)), s.sigma_floor_rad / 4) if nb >= 4 else sigma,
+        "n_samples": int(len(x)),
+    }
+
+
 # ---- the monitor ------------------------------------------------------------------------------
 
 
@@ -443,6 +477,7 @@ class TrackMonitor:
         if self.route != new:
             self.route = new
             self.track.armed = False
+            self.track.arm_since_s = None
 
     def update_gnss(self, t_s: float, pos_enu_m, vel_enu_m_s, fix_type: str, num_sats: int, pdop: float,
                     horiz_std_m: float | None = None) -> list[AlarmEvent]:

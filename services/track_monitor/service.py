@@ -1,0 +1,164 @@
+"""Track monitor: cross-track deviation, heading-innovation and combined magnetic-anomaly alarms.
+
+Consumes  magmesh/{vehicle}/clean/route      the planned line A → B
+          magmesh/{vehicle}/clean/gnss       RTK position (pos_enu_m), velocity and fix quality
+          magmesh/{vehicle}/clean/attitude   the vehicle's own heading and the magnetometer heading it fuses
+Produces  magmesh/{vehicle}/track                    d, along-track progress, detector states (per GNSS epoch)
+          magmesh/{vehicle}/alarm/track              d > 1 m on trusted GNSS
+          magmesh/{vehicle}/alarm/heading_innovation |ψ_mag − ψ_att| test (paper 5σ, or robust median + CUSUM)
+          magmesh/{vehicle}/alarm/mag_anomaly        the combined verdict, naming the detector that fired
+
+The logic lives in core.py. σ of the innovation is learned on the first undisturbed minute of each vehicle
+and kept under ``state_dir()/track_monitor/`` for the next flights (``persist_sigma``). A vehicle's manifest
+table may give ``attitude_mag_gain_per_s`` (the magnetometer gain of its attitude filter).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, replace
+
+from magmesh import paths
+from magmesh.runtime import Service
+from schemas import keys
+
+from .core import AlarmEvent, TrackMonitor, TrackMonitorSettings
+
+
+@dataclass(frozen=True)
+class Settings(TrackMonitorSettings):
+    tick_s: float = 2.0  # persistence of learned σ runs from the tick
+    persist_sigma: bool = True  # save learned σ per vehicle and reuse it on the next start
+    state_subdir: str = "track_monitor"
+
+
+class TrackMonitorService(Service):
+    role = "track_monitor"
+    impl = "track_monitor"
+    Settings = Settings
+    CONSUMES = ("clean/route", "clean/gnss", "clean/attitude")
+    PRODUCES = ("track", "alarm/track", "alarm/heading_innovation", "alarm/mag_anomaly")
+
+    def subscriptions(self) -> list[str]:
+        p = self.vehicle_pattern
+        return [keys.clean_route(p), keys.clean_gnss(p), keys.clean_attitude(p)]
+
+    # ---- per-vehicle state --------------------------------------------------------------------
+    def _sigma_path(self, vehicle: str):
+        return paths.state_dir() / self.settings.state_subdir / f"{vehicle}.json"
+
+    def new_vehicle(self, vehicle: str) -> TrackMonitor:
+        s = self.settings
+        gain = (self.vehicles_config.get(vehicle) or {}).get("attitude_mag_gain_per_s")
+        if gain is not None:
+            s = replace(s, fc_mag_gain_per_s=float(gain))
+        mon = TrackMonitor(s)
+        mon.saved_sigma = False
+        if s.persist_sigma and mon.innovation.learning:
+            path = self._sigma_path(vehicle)
+            try:
+                saved = json.loads(path.read_text())
+                if saved.get("innovation_test") == s.innovation_test:
+                    mon.innovation.apply_sigmas(saved)
+                    mon.saved_sigma = True
+                    self.log.info("%s: innovation σ %.3f° loaded from %s", vehicle,
+                                  math.degrees(saved["innovation_sigma_rad"]), path)
+            except FileNotFoundError:
+                pass
+            except (ValueError, KeyError, TypeError) as e:
+                self.log.warning("%s: ignoring unreadable %s (%s); learning σ again", vehicle, path, e)
+        return mon
+
+    # ---- inputs -------------------------------------------------------------------------------
+    def on_message(self, info, msg: dict, mon: TrackMonitor) -> None:
+        stream = info.stream
+        if stream == "route":
+            mon.set_route(msg["a_enu_m"], msg["b_enu_m"], msg["route_id"])
+            self.log.info("%s: route %s %s → %s", info.vehicle, msg["route_id"], msg["a_enu_m"], msg["b_enu_m"])
+        elif stream == "gnss":
+            if "pos_enu_m" not in msg:
+                self.count_drop(info.key, "no pos_enu_m")
+                return
+            events = mon.update_gnss(msg["t_s"], msg["pos_enu_m"], msg["vel_enu_m_s"], msg["fix_type"],
+                                     msg["num_sats"], msg["pdop"], msg.get("horiz_std_m"))
+            self._emit(info.vehicle, events)
+            if mon.route is None:
+                self.count_drop(info.key, "no route yet")
+            else:
+                self._publish_track(info.vehicle, msg["t_s"], mon)
+        elif stream == "attitude":
+            was_learning = mon.innovation.learning
+            self._emit(info.vehicle, mon.update_attitude(msg["t_s"], msg["heading_rad"], msg["mag_heading_rad"]))
+            if was_learning and not mon.innovation.learning:
+                self.log.info("%s: innovation σ learned: %.3f° (median %.3f°, block %.3f°)", info.vehicle,
+                              math.degrees(mon.innovation.sigma_rad), math.degrees(mon.innovation.median_sigma_rad),
+                              math.degrees(mon.innovation.block_sigma_rad))
+        else:
+            self.count_drop(info.key, "unexpected stream")
+
+    def _emit(self, vehicle: str, events: list[AlarmEvent]) -> None:
+        for ev in events:
+            extra = {} if ev.raised_t_s is None else {"raised_t_s": ev.raised_t_s}
+            self.alarm(vehicle, ev.source, ev.state, ev.severity, ev.reason, ev.value, ev.threshold, ev.t_s,
+                       unit=ev.unit, **extra)
+
+    def _publish_track(self, vehicle: str, t_s: float, mon: TrackMonitor) -> None:
+        st, fl = mon.internal_states, mon.flags
+        if st["cross_track_m"] is None:
+            return
+        fields = dict(
+            cross_track_m=st["cross_track_m"], along_track_m=st["along_track_m"],
+            progress_frac=st["progress_frac"], gnss_ok=fl["gnss_ok"],
+            heading_innovation_rad=st["heading_innovation_rad"], innovation_sigma_rad=st["innovation_sigma_rad"],
+            track_alarm=fl["track_alarm"], innovation_alarm=fl["innovation_alarm"],
+            anomaly_alarm=fl["anomaly_alarm"], anomaly_source=mon.anomaly_source,
+            cross_track_rate_m_s=st["cross_track_rate_m_s"], track_armed=fl["track_armed"],
+            innovation_learning=fl["learning"], innovation_test_ratio=st["innovation_test_ratio"],
+            route_id=mon.route.route_id,
+        )
+        if mon.track.cross_track_signed_m is not None:
+            fields["cross_track_signed_m"] = mon.track.cross_track_signed_m
+        self.publish(keys.track(vehicle), "track", vehicle, t_s, **fields)
+
+    # ---- periodic work and status -------------------------------------------------------------
+    def on_tick(self) -> None:
+        if self.settings.persist_sigma:
+            for vehicle, mon in list(self.vehicle_states.items()):
+                self._save_sigma(vehicle, mon)
+
+    def on_stop(self) -> None:
+        self.on_tick()
+
+    def _save_sigma(self, vehicle: str, mon: TrackMonitor) -> None:
+        inn = mon.innovation
+        if mon is None or inn.learning or getattr(mon, "saved_sigma", True):
+            return
+        path = self._sigma_path(vehicle)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps({"innovation_test": self.settings.innovation_test,
+                                   "innovation_sigma_rad": inn.sigma_rad, "median_sigma_rad": inn.median_sigma_rad,
+                                   "block_sigma_rad": inn.block_sigma_rad}))
+        os.replace(tmp, path)
+        mon.saved_sigma = True
+        self.log.info("%s: innovation σ saved to %s", vehicle, path)
+
+    def status_extra(self) -> dict:
+        out = {}
+        for vehicle, mon in list(self.vehicle_states.items()):
+            if mon is None:
+                continue
+            st = mon.internal_states
+            out[vehicle] = {
+                "flags": mon.flags,
+                "route_id": mon.route.route_id if mon.route else None,
+                "cross_track_m": st["cross_track_m"],
+                "innovation_sigma_deg": None if st["innovation_sigma_rad"] is None
+                else math.degrees(st["innovation_sigma_rad"]),
+                "anomaly_source": mon.anomaly_source,
+                "gnss_untrusted": mon.n_gnss_untrusted,
+                "bursts": st["bursts"],
+            }
+        return {"vehicles": out}
