@@ -51,12 +51,14 @@ class CarPublisherSettings:
 
 
 def car_events(settings: CarPublisherSettings, vehicle: str, max_laps: int | None = None,
-               on_lap=None) -> Iterator[tuple[float, str, str, dict]]:
-    """The publisher's stream without Zenoh: one drive, or laps of drives with time running on."""
+               on_lap=None, first_drive: core.CarDrive | None = None) -> Iterator[tuple[float, str, str, dict]]:
+    """The publisher's stream without Zenoh: one drive, or laps of drives with time running on.
+
+    ``first_drive``: lap 0 already simulated (the publisher does it before the pacing clock starts)."""
     lap = 0
     offset = 0.0
     while True:
-        drive = core.simulate(settings.sim_settings(lap))
+        drive = first_drive if (lap == 0 and first_drive is not None) else core.simulate(settings.sim_settings(lap))
         if on_lap is not None:
             on_lap(lap, drive)
         yield from core.iter_messages(drive, vehicle, t_offset_s=offset, truth=settings.truth)
@@ -79,6 +81,11 @@ class CarPublisher(SimPublisher):
         super().__init__(*args, **kwargs)
         self._lap = -1
         self._zones: list[dict] = []
+        self._first: core.CarDrive | None = None
+
+    def on_start(self) -> None:
+        # simulate the first drive before publishing starts, so the stream is paced from its first sample
+        self._first = core.simulate(self.settings.sim_settings(0))
 
     def _on_lap(self, lap: int, drive: core.CarDrive) -> None:
         self._lap = lap
@@ -90,7 +97,8 @@ class CarPublisher(SimPublisher):
     def produce(self) -> Iterator[tuple[float, str, str, dict]]:
         self.log.info("car %s on layout %s at %s× real time%s", self.vehicle, self.settings.layout,
                       self.settings.speed or "max", ", looping" if self.settings.loop else "")
-        return car_events(self.settings, self.vehicle, on_lap=self._on_lap)
+        first, self._first = self._first, None
+        return car_events(self.settings, self.vehicle, on_lap=self._on_lap, first_drive=first)
 
     def status_extra(self) -> dict:
         return {"layout": self.settings.layout, "seed": self.settings.seed, "lap": self._lap, "sources": self._zones}
