@@ -114,6 +114,34 @@ def wdmam_table(runs: int, seed: int, settings: MatchSettings) -> dict:
             "note": "exact: error < 1 cell (4.3 km), sub: < 2 cells; search over the whole 47×34 grid"}
 
 
+def heading_error(grid: GridMap, runs: int, seed: int, settings: MatchSettings, n: int = 20, snr: float = 10.0,
+                  biases_deg=(0.0, 3.0, 6.0), search_deg: float = 8.0) -> dict:
+    """Table-1 protocol with an INS heading error (the track rotated): plain pipeline vs rotation search."""
+    offs = _steps_ij(grid, n, SPEED_M_S * PERIOD_S, COURSE_DEG)
+    out: dict = {}
+    grid.cubic(0.0, 0.0)  # build the 'true field' spline before timing
+    for bias in biases_deg:
+        b = math.radians(bias)
+        rot = np.array([[math.cos(b), math.sin(b)], [-math.sin(b), math.cos(b)]])  # clockwise by the bias
+        for label, hs in (("plain", 0.0), ("rotation_search", search_deg)):
+            s = MatchSettings(**{**settings.__dict__, "n_samples": n, "heading_search_deg": hs})
+            rng = np.random.default_rng([seed, n, int(snr), int(bias * 10)])
+            exact = sub = 0
+            rots = []
+            t0 = time.perf_counter()
+            for _ in range(runs):
+                h = _measure(grid, TRUE_START + offs, snr, rng)
+                r = match_sequence(grid, h, grid.to_metres(INS_START + offs @ rot.T), s)
+                e = float(np.hypot(*((r.start_ij - TRUE_START) * [grid.dx_m, grid.dy_m]))) if r.found else math.inf
+                exact += e < 100.0
+                sub += e < 200.0
+                rots.append(r.rotation_deg)
+            out[f"bias={bias:g}deg,{label}"] = {
+                "exact": int(exact), "sub": int(sub), "median_rotation_found_deg": float(np.median(rots)),
+                "ms_per_match": float((time.perf_counter() - t0) / runs * 1e3)}
+    return {"cells": out, "runs": runs, "n_samples": n, "snr": snr, "search_deg": search_deg}
+
+
 # ---- indoor walks -----------------------------------------------------------------------------
 
 
@@ -241,6 +269,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--exhaustive-check", type=int, default=3, help="runs per cell re-done exhaustively")
     parser.add_argument("--skip-paper-metric", action="store_true", help="do not rerun Table 1 with the set Hausdorff")
     parser.add_argument("--skip-walks", action="store_true")
+    parser.add_argument("--heading-runs", type=int, default=30, help="runs per INS heading-error case (0: skip)")
 
 
 def run(args) -> dict:
@@ -260,6 +289,8 @@ def run(args) -> dict:
         tp = table1(grid, args.runs, args.seed, MatchSettings(**{**base.__dict__, "window_samples": None}), 0)
         result["table1_paper_set_metric"] = {k: {"exact": v["exact"], "sub": v["sub"]} for k, v in tp["cells"].items()}
     result["wdmam"] = wdmam_table(args.wdmam_runs, args.seed, base)
+    if args.heading_runs > 0:
+        result["heading_error"] = heading_error(grid, args.heading_runs, args.seed, base)
     if not args.skip_walks:
         result["walks"] = {name: walk_matching(name) for name in ("eight", "square")}
     result["speed"] = speed(grid, args.seed, base)
@@ -303,6 +334,13 @@ def format_text(r: dict) -> str:
     w = r["wdmam"]
     lines += _tab(w["cells"], f"WDMAM excerpt (real, {w['cell_m']:.0f} m cells, std {w['map_std_nt']:.1f} nT), "
                   f"{w['runs']} runs per cell; {w['note']}")
+    if "heading_error" in r:
+        he = r["heading_error"]
+        lines.append(f"INS heading error (N={he['n_samples']}, SNR={he['snr']:g}, {he['runs']} runs; exact/sub, "
+                     f"rotation found; search ±{he['search_deg']:g}°):")
+        for k, c in he["cells"].items():
+            lines.append(f"  {k:<32} {c['exact']:>3} {c['sub']:>3}  {c['median_rotation_found_deg']:+.0f}°  "
+                         f"{c['ms_per_match']:.0f} ms/match")
     for name, wk in r.get("walks", {}).items():
         lines.append(f"indoor walk '{name}' (Kok & Solin): {wk['windows']} windows of N={wk['n_samples']}, lap "
                      f"{wk['lap_length_m']:.1f} m: median error {wk['median_error_m']:.2f} m, p90 "

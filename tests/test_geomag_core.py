@@ -100,6 +100,20 @@ def test_ssda_never_abandons_a_candidate_below_lambda(grid):
     assert r.hausdorff_nt < r.lambda_nt
 
 
+def test_rotation_search_undoes_an_ins_heading_error(grid):
+    rng = np.random.default_rng(8)
+    h, ins, true0 = _paper_case(grid, 20, 16, rng)
+    b = np.radians(6.0)
+    rot = np.array([[np.cos(b), np.sin(b)], [-np.sin(b), np.cos(b)]])  # INS track 6° clockwise
+    ins_rot = ins[0] + (ins - ins[0]) @ rot.T
+    plain = match_sequence(grid, h, ins_rot, MatchSettings())
+    searched = match_sequence(grid, h, ins_rot, MatchSettings(heading_search_deg=8.0, heading_step_deg=2.0))
+    assert searched.rotation_deg == pytest.approx(-6.0)
+    assert np.hypot(*(searched.start_ij - true0)) < 0.5
+    assert searched.hausdorff_nt < plain.hausdorff_nt
+    assert searched.margin_nt is not None and searched.margin_nt > 0
+
+
 def test_lambda_grows_when_nothing_is_feasible(grid):
     rng = np.random.default_rng(2)
     h, ins, _ = _paper_case(grid, 20, 2, rng)  # far noisier than λ allows

@@ -67,6 +67,8 @@ class MatchSettings:
     search_radius_m: float = 3000.0  # half-width of the square search area around the INS start; 0: whole map
     runner_up_exclusion_m: float = 200.0  # runner-up must start farther than this from the best, m
     demean: bool = False  # match sequences with their means removed (unknown constant bias)
+    heading_search_deg: float = 0.0  # also try the INS track rotated by up to ± this (INS heading error); 0: off
+    heading_step_deg: float = 1.0  # rotation step of that search
 
     def __post_init__(self):
         if self.n_samples < 2:
@@ -83,6 +85,8 @@ class MatchSettings:
             raise ValueError(f"subdivisions must be in 1..16 (paper: 2–4), got {self.subdivisions}")
         if self.search_radius_m < 0:
             raise ValueError(f"search_radius_m must be ≥ 0, got {self.search_radius_m}")
+        if not (0 <= self.heading_search_deg <= 45 and self.heading_step_deg > 0):
+            raise ValueError("heading_search_deg must be in 0..45 and heading_step_deg > 0")
 
 
 # ---- Hausdorff scoring ------------------------------------------------------------------------
@@ -147,6 +151,7 @@ class MatchResult:
     n_fine: int = 0  # fine candidates scored
     term_evaluations: int = 0  # Hausdorff terms computed (a cost figure)
     reason: str = ""
+    rotation_deg: float = 0.0  # rotation of the INS track (clockwise) that matched best
 
 
 def _search_box(m: GridMap, centre_ij: np.ndarray, radius_m: float, extent_ij: np.ndarray) -> tuple:
@@ -247,7 +252,52 @@ def match_sequence(m: GridMap, h_nt, ins_m, settings: MatchSettings, centre_m=No
 
     ``h_nt``: N anomaly values; ``ins_m``: N×2 (or N×3) INS positions in the map frame, m (their
     increments build the strip; the first one centres the search area unless ``centre_m`` is given).
+
+    With ``heading_search_deg`` > 0 the INS track is also rotated about its first point by every
+    step in ± that range (an INS heading error rotates the dead-reckoned increments — the paper's
+    stated weakness, §5) and the rotation with the smallest distance wins. The runner-up is then
+    the best distance at any rotation of a start farther than the exclusion radius.
     """
+    s = settings
+    if s.heading_search_deg <= 0:
+        return _match_once(m, h_nt, ins_m, s, centre_m)
+    ins = np.asarray(ins_m, float)[:, :2]
+    n_side = int(math.floor(s.heading_search_deg / s.heading_step_deg + 1e-9))
+    angles = np.concatenate([[0.0], np.arange(1, n_side + 1) * s.heading_step_deg,
+                             -np.arange(1, n_side + 1) * s.heading_step_deg])
+    results = []
+    for a in angles:
+        c, sn = math.cos(math.radians(a)), math.sin(math.radians(a))
+        rot = np.array([[c, sn], [-sn, c]])  # clockwise by a (headings grow clockwise)
+        r = _match_once(m, h_nt, ins[0] + (ins - ins[0]) @ rot.T, s, centre_m if centre_m is not None else ins[0])
+        r.rotation_deg = float(a)
+        results.append(r)
+    found = [r for r in results if r.found]
+    if not found:
+        return results[0]
+    best = min(found, key=lambda r: (r.hausdorff_nt, abs(r.rotation_deg)))
+    rivals = [best.runner_up_nt] if best.runner_up_nt is not None else []
+    for r in found:
+        if r is best:
+            continue
+        far = math.hypot(*((r.start_ij - best.start_ij) * [m.dx_m, m.dy_m])) > s.runner_up_exclusion_m
+        if far:
+            rivals.append(r.hausdorff_nt)
+        elif r.runner_up_nt is not None:
+            rivals.append(r.runner_up_nt)
+    if rivals:
+        best.runner_up_nt = float(min(rivals))
+        best.margin_nt = best.runner_up_nt - best.hausdorff_nt
+    for r in results:
+        if r is not best:
+            best.n_prematch += r.n_prematch
+            best.n_abandoned += r.n_abandoned
+            best.n_fine += r.n_fine
+            best.term_evaluations += r.term_evaluations
+    return best
+
+
+def _match_once(m: GridMap, h_nt, ins_m, settings: MatchSettings, centre_m=None) -> MatchResult:
     s = settings
     h = _prepare(h_nt, s)
     ins = np.asarray(ins_m, float)

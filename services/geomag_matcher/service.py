@@ -38,6 +38,8 @@ class Settings:
     subdivisions: int = 3  # fine-match subdivisions per cell (2–4)
     prematch_score: str = "centre"  # centre | corners
     search_radius_m: float = 3000.0  # half-width of the search square around the (corrected) INS start; 0: whole map
+    heading_search_deg: float = 0.0  # also try the INS track rotated by up to ± this (INS heading error)
+    heading_step_deg: float = 1.0
     match_every_samples: int = 5  # match each time this many new samples arrived
     m_agree: int = 2  # M of the M-of-N rule
     n_window: int = 3  # N of the M-of-N rule
@@ -117,7 +119,8 @@ class GeomagMatcherService(Service):
             match=MatchSettings(
                 n_samples=s.n_samples, window_samples=None if s.window_samples < 0 else s.window_samples,
                 rank_frac=s.rank_frac, lambda_nt=s.lambda_nt, subdivisions=s.subdivisions,
-                prematch_score=s.prematch_score, search_radius_m=s.search_radius_m),
+                prematch_score=s.prematch_score, search_radius_m=s.search_radius_m,
+                heading_search_deg=s.heading_search_deg, heading_step_deg=s.heading_step_deg),
             accept=AcceptSettings(m_agree=s.m_agree, n_window=s.n_window, agree_radius_m=s.agree_radius_m,
                                   min_margin_nt=s.min_margin_nt, max_hausdorff_nt=s.max_hausdorff_nt),
             match_every_samples=s.match_every_samples,

@@ -35,6 +35,7 @@ class SurveySettings:
     ins_error0_m: tuple = (1000.0, 500.0)  # initial INS position error E, N (paper: 10 × 5 cells)
     ins_drift_m_s: tuple = (0.25, -0.15)  # constant INS velocity error E, N
     ins_walk_m_sqrt_s: float = 0.5  # INS position random walk
+    ins_heading_bias_deg: float = 0.0  # INS heading error: dead-reckoned track rotated clockwise by this
     lat_deg: float = 45.4  # reference place of the map for the core field (IGRF)
     lon_deg: float = -75.7
     alt_m: float = 300.0
@@ -98,7 +99,10 @@ def simulate(s: SurveySettings, grid: GridMap | None = None) -> SurveyRun:
                        -np.sin(yaw) * b_enu[:, 0] + np.cos(yaw) * b_enu[:, 1], b_enu[:, 2]], axis=-1)
     dt = np.diff(t, prepend=t[0])
     walk = np.cumsum(rng.normal(0.0, 1.0, (t.size, 2)) * np.sqrt(dt)[:, None], axis=0) * s.ins_walk_m_sqrt_s
-    ins = pos + np.asarray(s.ins_error0_m, float) + np.outer(t - t[0], s.ins_drift_m_s) + walk
+    b = math.radians(s.ins_heading_bias_deg)
+    rot = np.array([[math.cos(b), math.sin(b)], [-math.sin(b), math.cos(b)]])  # clockwise by the bias
+    dead_reckoned = pos[0] + (pos - pos[0]) @ rot.T
+    ins = dead_reckoned + np.asarray(s.ins_error0_m, float) + np.outer(t - t[0], s.ins_drift_m_s) + walk
     return SurveyRun(t, pos, vel, heading, ins, anomaly, f, b_body, f_core, noise_nt)
 
 

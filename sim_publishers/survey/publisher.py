@@ -35,6 +35,7 @@ class SurveyPublisherSettings:
     ins_error0_n_m: float = 500.0
     ins_drift_e_m_s: float = 0.25
     ins_drift_n_m_s: float = -0.15
+    ins_heading_bias_deg: float = 0.0  # INS heading error (dead-reckoned track rotated clockwise)
     lat_deg: float = 45.4
     lon_deg: float = -75.7
     alt_m: float = 300.0
@@ -53,6 +54,7 @@ class SurveyPublisherSettings:
             laps=self.loop_laps if self.loop else self.laps,
             ins_error0_m=(self.ins_error0_e_m, self.ins_error0_n_m),
             ins_drift_m_s=(self.ins_drift_e_m_s, self.ins_drift_n_m_s),
+            ins_heading_bias_deg=self.ins_heading_bias_deg,
             lat_deg=self.lat_deg, lon_deg=self.lon_deg, alt_m=self.alt_m, seed=self.seed,
         )
 
