@@ -230,48 +230,50 @@ def eval_online(seeds: int, duration_s: float, layout: str = "urban_a") -> dict:
 
 
 def eval_service_logic(seed: int, duration_s: float, layout: str = "urban_a") -> dict:
-    """The service's per-vehicle logic fed a simulated drive's messages in time order (no mesh)."""
+    """The service's per-vehicle logic fed a simulated drive's messages in time order (no mesh),
+    with the online EKF and with static fits only."""
     from sim_publishers.car import core as car
 
     drive = car.simulate(seed=seed, layout=layout, duration_s=duration_s)
-    vc = VehicleCalibration("car", CalibrationSettings(), OnlineSettings())
-    t0 = time.perf_counter()
-    history: dict[str, list] = {"1": [], "2": []}  # (t, status, method, offset, M)
-    for t_s, key, _mtype, fields in car.iter_messages(drive, "car", truth=False):
-        if "/mag/" in key:
-            sid = fields["sensor"]
-            sc = vc.on_mag(sid, t_s, fields["b_nt"])
-            if sc.due(t_s):
-                sc.fit(t_s)
-            cur = sc.current
-            if cur is not None and (not history[sid] or history[sid][-1][1] != cur.param_id):
-                history[sid].append((t_s, cur.param_id, cur.status, cur.method, cur.params))
-        elif key.endswith("/imu"):
-            vc.on_imu(fields["gyro_rad_s"], fields["accel_m_s2"])
-        elif key.endswith("/gnss"):
-            vc.on_gnss(t_s, fields)
-    wall = time.perf_counter() - t0
-    out = {"seed": seed, "wall_s": wall, "sensors": {}}
-    for sid, hist in history.items():
-        ok = [h for h in hist if h[2] == "ok"]
-        if not ok:
-            out["sensors"][sid] = {"first_ok_s": None, "sets": len(hist)}
-            continue
-        t_first = ok[0][0]
-        errs = np.full(len(drive.t_mag_s), np.nan)
-        for j, h in enumerate(hist):
-            t_end = hist[j + 1][0] if j + 1 < len(hist) else np.inf
-            sel = (drive.t_mag_s >= h[0]) & (drive.t_mag_s < t_end)
-            if h[2] != "ok" or not sel.any():
+    out: dict = {"seed": seed, "layout": layout}
+    for mode in ("online", "static"):
+        vc = VehicleCalibration("car", CalibrationSettings(), OnlineSettings(enabled=mode == "online"))
+        t0 = time.perf_counter()
+        history: dict[str, list] = {"1": [], "2": []}  # (t, param_id, status, method, params)
+        for t_s, key, _mtype, fields in car.iter_messages(drive, "car", truth=False):
+            if "/mag/" in key:
+                sid = fields["sensor"]
+                sc = vc.on_mag(sid, t_s, fields["b_nt"])
+                if sc.due(t_s):
+                    sc.fit(t_s)
+                cur = sc.current
+                if cur is not None and (not history[sid] or history[sid][-1][1] != cur.param_id):
+                    history[sid].append((t_s, cur.param_id, cur.status, cur.method, cur.params))
+            elif key.endswith("/imu"):
+                vc.on_imu(fields["gyro_rad_s"], fields["accel_m_s2"])
+            elif key.endswith("/gnss"):
+                vc.on_gnss(t_s, fields)
+        res: dict = {"wall_s": time.perf_counter() - t0, "sensors": {}}
+        for sid, hist in history.items():
+            ok = [h for h in hist if h[2] == "ok"]
+            if not ok:
+                res["sensors"][sid] = {"first_ok_s": None, "sets": len(hist)}
                 continue
-            errs[sel] = _heading_err_subset(drive, sid, sel, h[4])
-        use = ~np.isnan(errs) & ~drive.truth.disturbed
-        out["sensors"][sid] = {
-            "first_ok_s": float(t_first), "calib_turn_end_s": float(drive.calib_turn_t_s[1]),
-            "sets": len(hist), "methods": sorted({h[3] for h in hist}),
-            "final_offset_err_xy_nt": float(np.linalg.norm(hist[-1][4].offset[:2] - drive.true_params[sid].offset_nt[:2])),
-            "heading_rms_deg": float(np.sqrt(np.mean(errs[use] ** 2))) if use.any() else math.inf,
-        }
+            errs = np.full(len(drive.t_mag_s), np.nan)
+            for j, h in enumerate(hist):
+                t_end = hist[j + 1][0] if j + 1 < len(hist) else np.inf
+                sel = (drive.t_mag_s >= h[0]) & (drive.t_mag_s < t_end)
+                if h[2] == "ok" and sel.any():
+                    errs[sel] = _heading_err_subset(drive, sid, sel, h[4])
+            use = ~np.isnan(errs) & ~drive.truth.disturbed
+            res["sensors"][sid] = {
+                "first_ok_s": float(ok[0][0]), "calib_turn_end_s": float(drive.calib_turn_t_s[1]),
+                "sets": len(hist), "ok_sets": len(ok), "methods": sorted({h[3] for h in ok}),
+                "final_offset_err_xy_nt": float(np.linalg.norm(hist[-1][4].offset[:2]
+                                                               - drive.true_params[sid].offset_nt[:2])),
+                "heading_rms_deg": float(np.sqrt(np.mean(errs[use] ** 2))) if use.any() else math.inf,
+            }
+        out[mode] = res
     return out
 
 
@@ -296,6 +298,7 @@ def _level_heading_err(drive, h: np.ndarray, sel: np.ndarray) -> np.ndarray:
 
 
 def eval_timing(repeats: int = 7) -> dict:
+    """Time one fit of 10,000 samples (3-D, 20% gross errors), in this process."""
     cloud = synthetic.make_cloud(synthetic.CloudSettings(n_samples=10_000, gross_frac=0.2, seed=99))
     out = {}
     for name, fit in (("ls", two_step.fit_ls), ("arls", arls.fit_arls)):
@@ -303,6 +306,25 @@ def eval_timing(repeats: int = 7) -> dict:
         out[f"{name}_fit_10k_ms_median"] = float(np.median(ts))
         out[f"{name}_fit_10k_ms_min"] = float(np.min(ts))
     return out
+
+
+def eval_timing_single_thread(repeats: int = 7) -> dict:
+    """The same timing in a fresh process with single-threaded BLAS, as the service runs
+    (services/calibration/__main__.py): on a shared 2-core machine BLAS threads only spin."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    code = f"import json; from bench.eval_calibration import eval_timing; print(json.dumps(eval_timing({repeats})))"
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
+           "PYTHONPATH": str(paths.REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    try:
+        r = subprocess.run([sys.executable, "-c", code], env=env, cwd=paths.REPO, capture_output=True, text=True,
+                           timeout=120, check=True)
+        return json.loads(r.stdout.strip().splitlines()[-1])
+    except (subprocess.SubprocessError, ValueError, IndexError) as e:
+        return {"error": f"{type(e).__name__}: {e}"}
 
 
 # ---- entry points -----------------------------------------------------------------------------
@@ -314,6 +336,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--car-seeds", type=int, default=3, help="simulated car drives for the online EKF")
     parser.add_argument("--car-duration", type=float, default=300.0, help="simulated drive length, s")
     parser.add_argument("--no-service", action="store_true", help="skip the service-logic replay")
+    parser.add_argument("--timing-repeats", type=int, default=7, help="fits timed per method")
 
 
 def run(args) -> dict:
@@ -322,7 +345,9 @@ def run(args) -> dict:
     real = eval_real()
     online = eval_online(args.car_seeds, args.car_duration)
     service = None if getattr(args, "no_service", False) else eval_service_logic(1, args.car_duration)
-    timing = eval_timing()
+    reps = getattr(args, "timing_repeats", 7)
+    timing = eval_timing(reps)
+    timing_1t = eval_timing_single_thread(reps)
     h = sim["3d_gross20"]
     result = {
         "arls_offset_err_pct": h["arls"]["offset_err_pct_worst"],
@@ -340,6 +365,7 @@ def run(args) -> dict:
         "online_offset_err_xy_nt": online["offset_err_xy_nt_worst"],
         "online_goal_met": bool(online["heading_rms_deg_worst"] <= GOAL_HEADING_DEG),
         **timing,
+        "timing_single_thread_blas": timing_1t,
         "sim": sim,
         "real": real,
         "online": online,
@@ -386,12 +412,18 @@ def format_text(r: dict) -> str:
                  f"(goal ≤ {GOAL_HEADING_DEG}°: {'met' if r['online_goal_met'] else 'NOT met'})")
     s = r.get("service_logic")
     if s:
-        lines += ["", f"Service logic on drive seed {s['seed']} ({s['wall_s']:.1f} s wall):"]
-        for sid, v in s["sensors"].items():
-            lines.append(f"  sensor {sid}: first fit at {_f(v.get('first_ok_s'), 1)} s (circle ends "
-                         f"{_f(v.get('calib_turn_end_s'), 1)} s), {v.get('sets')} sets {v.get('methods', '')}, "
-                         f"heading RMS {_f(v.get('heading_rms_deg'), 2)}°, offset err "
-                         f"{_f(v.get('final_offset_err_xy_nt'), 0)} nT")
+        lines += ["", f"Service logic on drive seed {s['seed']} ({s['layout']}), heading RMS outside zones "
+                  "from the first fitted set on:"]
+        for mode in ("online", "static"):
+            for sid, v in s[mode]["sensors"].items():
+                lines.append(f"  {mode:<7} sensor {sid}: first fit {_f(v.get('first_ok_s'), 1)} s (circle ends "
+                             f"{_f(v.get('calib_turn_end_s'), 1)} s), {v.get('ok_sets')} sets "
+                             f"{'/'.join(v.get('methods', []))}, heading RMS {_f(v.get('heading_rms_deg'), 2)}°, "
+                             f"final offset err {_f(v.get('final_offset_err_xy_nt'), 0)} nT")
     lines += ["", f"10,000-sample fit: LS {r['ls_fit_10k_ms_median']:.1f} ms, ARLS {r['arls_fit_10k_ms_median']:.1f} ms "
-              f"(median; min {r['arls_fit_10k_ms_min']:.1f} ms)"]
+              f"(median; min {r['arls_fit_10k_ms_min']:.1f} ms), this process"]
+    t1 = r.get("timing_single_thread_blas", {})
+    if "arls_fit_10k_ms_median" in t1:
+        lines.append(f"  single-threaded BLAS (as the service runs): LS {t1['ls_fit_10k_ms_median']:.1f} ms, "
+                     f"ARLS {t1['arls_fit_10k_ms_median']:.1f} ms (median; min {t1['arls_fit_10k_ms_min']:.1f} ms)")
     return "\n".join(lines)

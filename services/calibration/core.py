@@ -252,7 +252,9 @@ class SensorCalibrator:
 class OnlineSettings:
     enabled: bool = True
     gnss_window: int = 150  # fused epochs kept to judge a converged EKF estimate
-    min_change_nt: float = 100.0  # an EKF offset closer than this to the set in use is not published
+    min_change_nt: float = 500.0  # an EKF offset closer than this (and than 4σ) to the set in use is not published
+    improve_ratio: float = 0.8  # an EKF set must cut the GNSS heading residual of the set in use to this
+    min_interval_s: float = 30.0  # at most one EKF "ok" set per sensor in this time
     converging_publish_s: float = 5.0  # publish "converging" sets at most this often
     ekf: online_ekf.EkfSettings = field(default_factory=online_ekf.EkfSettings)
 
@@ -274,6 +276,7 @@ class SensorOnline:
         self.st = st
         self.epochs: deque[_Epoch] = deque(maxlen=st.gnss_window)
         self.last_converging_t = -math.inf
+        self.last_ok_t = -math.inf
         self.rebase(base)
 
     def rebase(self, base: ParamRecord | None):
@@ -393,15 +396,23 @@ class VehicleCalibration:
             sc.current = rec
             onl.base_id = rec.param_id
             return rec
-        if np.linalg.norm(offset - base.offset) < self.online.min_change_nt and sc.current is not None \
-                and sc.current.status == "ok":
-            return None
+        in_use_ok = sc.current is not None and sc.current.status == "ok"
+        if in_use_ok:
+            # a fitted set is replaced only on clear evidence of a changed hard iron: a shift beyond
+            # min_change_nt and 4σ of the estimate, that explains the GNSS course clearly better
+            shift = offset - base.offset
+            sig = float(np.linalg.norm(ekf.std_nt[np.array(obs)])) if any(obs) else math.inf
+            if np.linalg.norm(shift) < max(self.online.min_change_nt, 4.0 * sig):
+                return None
+            if t_s - onl.last_ok_t < self.online.min_interval_s:
+                return None
         if len(onl.epochs) < min(30, self.online.gnss_window):
             return None
         rms_new = onl.heading_rms(offset, base.M)
         rms_old = onl.heading_rms(base.offset, base.M) if sc.current is not None else math.inf
-        if sc.current is not None and sc.current.status == "ok" and not rms_new < self.settings.improve_ratio * rms_old:
+        if in_use_ok and not rms_new < self.online.improve_ratio * rms_old:
             return None
+        onl.last_ok_t = t_s
         rec = ParamRecord(params, new_param_id(sid, "ekf", t_s), "ok", "ekf", None, 1.0, ekf.n_fused, ekf.n_rejected,
                           t_s, 0.0, f"GNSS heading residual {math.degrees(rms_new):.2f}° (was "
                           f"{math.degrees(rms_old):.2f}°); vertical offset "
@@ -410,4 +421,10 @@ class VehicleCalibration:
         onl.base_id = rec.param_id
         # continue from the new set: same matrix, the estimate becomes the prior
         onl.ekf.prior = offset.copy()
+        if in_use_ok:
+            # the hard iron changed: the window's older samples describe the old one, so the next
+            # static fit must come from fresh coverage (else it would restore the old offset)
+            last_fit = sc.last_fit_t
+            sc.reset_window()
+            sc.last_fit_t = last_fit
         return rec
