@@ -243,6 +243,34 @@ def test_manifest_compensation_is_close_to_the_truth():
         assert m["field_radius_nt"] == pytest.approx(p.field_radius_nt, rel=1e-3)
 
 
+def test_manifest_compensation_gives_a_clean_compass_pair():
+    with open(DEPLOY_DIR / "mesh.toml", "rb") as f:
+        car = tomllib.load(f)["vehicles"]["car-1"]
+    d = core.simulate(core.CarSimSettings(layout="clean", seed=6, duration_s=120.0))
+    h = {}
+    for sid in core.SENSORS:
+        m = car["mag_params"][sid]
+        p = core.MagParams(np.asarray(m["offset_nt"]), np.asarray(m["matrix"]).reshape(3, 3), m["field_radius_nt"])
+        h[sid] = p.apply(d.mag_b_nt[sid])
+    hd = {sid: maths.mag_heading_flu(h[sid][:, 0], h[sid][:, 1]) for sid in h}
+    assert np.percentile(np.degrees(np.abs(maths.angle_diff(hd["1"], hd["2"]))), 99) < 0.4
+    err = np.degrees(np.abs(maths.angle_diff(levelled_heading(d, h["1"]), d.truth.heading_rad)))
+    assert np.percentile(err, 99) < 0.6  # the paper: < 1.2° after static compensation
+    dm = np.linalg.norm(h["1"], axis=1) - car["mag_params"]["1"]["field_radius_nt"]
+    assert np.percentile(np.abs(dm), 99) < 250.0
+
+
+def test_mountings_are_small_rotations():
+    s = core.CarSimSettings()
+    mounts = core.mount_rotations(s)
+    yaws = []
+    for C in mounts.values():
+        np.testing.assert_allclose(C @ C.T, np.eye(3), atol=1e-12)
+        yaws.append(math.atan2(C[1, 0], C[0, 0]))
+        assert abs(yaws[-1]) <= s.mount_misalignment_max_rad
+    assert abs(yaws[0] - yaws[1]) > math.radians(0.1)  # a static heading offset Δh_r between the compasses
+
+
 def test_publisher_loops_with_time_running_on():
     s = CarPublisherSettings(duration_s=10.0, loop=True, truth=False, speed=0.0)
     last: dict[str, float] = {}

@@ -98,6 +98,7 @@ class CarSimSettings:
     mag_noise_nt: float = 30.0  # 1-σ white noise per axis
     hard_iron_max_nt: float = 3000.0  # |offset| components drawn up to this
     soft_iron_max: float = 0.10  # off-identity entries of S drawn up to ±this
+    mount_misalignment_max_rad: float = math.radians(1.0)  # mounting yaw of each sensor up to ±this
     gyro_noise_rad_s: float = 0.0017  # 1-σ white noise per sample (≈ 0.1 °/s at 100 Hz)
     gyro_bias_max_rad_s: float = 0.01  # initial bias components drawn up to ±this
     gyro_bias_walk_rad_s_sqrt_s: float = 2e-4  # bias random walk
@@ -727,16 +728,33 @@ def _electrical_offsets(s: CarSimSettings, t: np.ndarray) -> dict[str, np.ndarra
 # ---- sensors ----------------------------------------------------------------------------------
 
 
+def mount_rotations(s: CarSimSettings) -> dict[str, np.ndarray]:
+    """Sensor → body rotation C_k of each magnetometer's mounting (yaw up to ±``mount_misalignment_max_rad``,
+    pitch and roll up to half that), drawn from ``vehicle_seed``."""
+    rng = np.random.default_rng([s.vehicle_seed, 0xA1])
+    out = {}
+    for sid in SENSORS:
+        yaw, pitch, roll = rng.uniform(-1, 1, size=3) * s.mount_misalignment_max_rad * np.array([1.0, 0.5, 0.5])
+        out[sid] = maths.rot_z(yaw) @ maths.rot_y(pitch) @ maths.rot_x(roll)
+    return out
+
+
 def true_mag_params(s: CarSimSettings, field_radius_nt: float) -> dict[str, MagParams]:
-    """The true compensation of each magnetometer for ``vehicle_seed`` (h = M (m − offset))."""
+    """The true compensation of each magnetometer for ``vehicle_seed`` (h = M (m − offset)).
+
+    Sensor model ``m = S_k C_kᵀ h + o_k``: C_k the mounting rotation (:func:`mount_rotations`), S_k the
+    soft iron (scale, non-orthogonality, induced vehicle field), o_k the hard iron. So M = C_k S_k⁻¹:
+    the body-frame field. A symmetric (ellipse/ellipsoid) fit cannot see C_k; what remains of it is the
+    static heading offset between the compasses (the paper's Δh_r)."""
     rng = np.random.default_rng([s.vehicle_seed, 0xCA11])
     vehicle_hard = rng.uniform(-1, 1, size=3) * s.hard_iron_max_nt * 0.7
+    mounts = mount_rotations(s)
     out = {}
     for sid in SENSORS:
         offset = vehicle_hard + rng.uniform(-1, 1, size=3) * s.hard_iron_max_nt * 0.3
         S = np.eye(3) + rng.uniform(-1, 1, size=(3, 3)) * s.soft_iron_max * np.array(
             [[1.0, 0.3, 0.3], [0.3, 1.0, 0.3], [0.3, 0.3, 1.0]])
-        out[sid] = MagParams(offset_nt=offset, matrix=np.linalg.inv(S), field_radius_nt=field_radius_nt)
+        out[sid] = MagParams(offset_nt=offset, matrix=mounts[sid] @ np.linalg.inv(S), field_radius_nt=field_radius_nt)
     return out
 
 
