@@ -2,6 +2,10 @@
 
     magmesh report run.mcap -o report/                 # then open report/index.html
     magmesh report --live --duration 60 -o report/     # record the live mesh for 60 s, then report
+    magmesh report drive.mcap rerun.mcap --exclude 'magmesh/*/dmc' -o cmp/   # several recordings merged
+
+With several recordings, the messages of all are merged (``--exclude`` drops keys from every input but
+the last, e.g. the old detector's output when the last file holds a re-run through a new one).
 
 Geomagnetic fixes are drawn on the vehicle's anomaly map: ``--map`` or the ``map`` entry of the vehicle's
 table in the manifest (``deploy/mesh.toml`` by default).
@@ -19,7 +23,7 @@ from pathlib import Path
 
 from .. import zconf
 from ..paths import DEPLOY_DIR
-from ..recording import load_liveliness, load_messages, summarize
+from ..recording import load_liveliness, load_messages, matches_any, summarize
 
 log = logging.getLogger("magmesh.report")
 
@@ -32,11 +36,13 @@ def register(subparsers) -> None:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("input", nargs="?", help="MCAP recording (omit with --live)")
+    p.add_argument("inputs", nargs="*", metavar="RECORDING", help="MCAP recording(s) (omit with --live)")
     p.add_argument("-o", "--output", default="report", help="output directory (default report/)")
     p.add_argument("--live", action="store_true", help="record the live mesh first (see --duration, --keys)")
     p.add_argument("--duration", type=float, default=30.0, help="--live: seconds to record (default 30)")
     p.add_argument("--keys", nargs="+", default=None, metavar="KEYEXPR", help="only these keys")
+    p.add_argument("--exclude", nargs="+", default=(), metavar="KEYEXPR",
+                   help="with several recordings: leave these keys out of all but the last")
     p.add_argument("--vehicles", nargs="+", default=None, help="only these vehicles")
     p.add_argument("--title", default=None)
     p.add_argument("--map", default=None, help="anomaly map for geomagnetic plots (file under data/ or synthetic:N)")
@@ -71,21 +77,32 @@ def vehicle_maps(manifest: str | None, override: str | None, vehicles) -> dict:
     return out
 
 
-def make_report(path: str | Path, out_dir: str | Path, key_exprs=None, vehicles=None, title=None, map_spec=None,
-                manifest=None, progress: bool = False) -> Path:
+def make_report(paths, out_dir: str | Path, key_exprs=None, vehicles=None, title=None, map_spec=None,
+                manifest=None, progress: bool = False, exclude=()) -> Path:
+    """Report on one recording or several merged (``exclude`` drops keys from all but the last)."""
     from ..report import build_report
 
+    paths = [Path(p) for p in ([paths] if isinstance(paths, (str, Path)) else paths)]
     bad: Counter = Counter()
-    msgs = load_messages(path, key_exprs, counts=bad)
-    summ = summarize(path)
+    msgs: list = []
+    liveliness: list = []
+    notes = []
+    for i, path in enumerate(paths):
+        got = load_messages(path, key_exprs, counts=bad)
+        if exclude and i < len(paths) - 1:
+            got = [(k, m) for k, m in got if not matches_any(exclude, k)]
+        msgs += got
+        liveliness += load_liveliness(path)
+        summ = summarize(path)
+        notes.append(f"Recording {path.name}: {summ['messages']} samples over {summ['duration_s']:.1f} s "
+                     f"(receive time) on {len(summ['keys'])} keys; {len(got)} messages used.")
     found = sorted({k.split("/")[1] for k, _ in msgs})
-    notes = [f"Recording {Path(path).name}: {summ['messages']} samples over {summ['duration_s']:.1f} s "
-             f"(receive time) on {len(summ['keys'])} keys."]
+    path = paths[-1]
     if bad:
         notes.append(f"{sum(bad.values())} recorded payloads did not decode as magmesh messages and are not plotted.")
     grids = vehicle_maps(manifest, map_spec, found)
-    return build_report(msgs, out_dir, title=title or f"magmesh run {Path(path).stem}", source=str(path),
-                        liveliness=load_liveliness(path), grids=grids, vehicles=vehicles, progress=progress,
+    return build_report(msgs, out_dir, title=title or f"magmesh run {path.stem}",
+                        source=", ".join(str(p) for p in paths), liveliness=sorted(liveliness), grids=grids, vehicles=vehicles, progress=progress,
                         notes=notes)
 
 
@@ -97,16 +114,18 @@ def run(args: argparse.Namespace) -> int:
 
         out.mkdir(parents=True, exist_ok=True)
         path = out / "run.mcap"
+        paths = [path]
         print(f"recording the live mesh for {args.duration:g} s to {path} …", file=sys.stderr)
         counts = record(zconf.config_from_args(args), path, args.keys or (), args.duration, stop=threading.Event())
         print(format_counts(counts, path), file=sys.stderr)
     else:
-        if not args.input:
+        if not args.inputs:
             raise SystemExit("magmesh report: give a recording (run.mcap) or --live")
-        path = Path(args.input)
-        if not path.exists():
-            raise SystemExit(f"magmesh report: {path} does not exist")
-    index = make_report(path, out, args.keys, args.vehicles, args.title, args.map, args.manifest,
-                        progress=not args.no_progress and sys.stderr.isatty())
+        paths = [Path(p) for p in args.inputs]
+        for p in paths:
+            if not p.exists():
+                raise SystemExit(f"magmesh report: {p} does not exist")
+    index = make_report(paths, out, args.keys, args.vehicles, args.title, args.map, args.manifest,
+                        progress=not args.no_progress and sys.stderr.isatty(), exclude=args.exclude)
     print(f"report written: {index.resolve()}")
     return 0

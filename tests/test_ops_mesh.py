@@ -1,0 +1,197 @@
+"""Mesh tests of the operator tools on a loopback router: record a live run, replay it through a swapped
+detector, report on it; replay a BROAD trial through ingest and a detector."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import pytest
+
+from magmesh import recording as rc
+from schemas import keys
+
+REPO = Path(__file__).resolve().parent.parent
+MANIFEST = REPO / "deploy" / "mesh.toml"
+pytestmark = pytest.mark.mesh
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _spawn(module: str, endpoint: str, *args: str) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    return subprocess.Popen([sys.executable, "-m", module, "--connect", endpoint, *args], cwd=REPO, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+
+def _stop(procs) -> None:
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+    for p in procs:
+        try:
+            p.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            p.kill()
+
+
+class _Recorder:
+    """magmesh record running in a thread of the test process."""
+
+    def __init__(self, endpoint: str, path: Path, key_exprs=()):
+        from magmesh.commands.record import record
+        from magmesh.zconf import build_config
+
+        self.stop = threading.Event()
+        self.ready = threading.Event()
+        self.progress: dict = {}
+        self.counts: dict | None = None
+        conf = build_config(connect=[endpoint])
+
+        def target():
+            self.counts = record(conf, path, key_exprs, stop=self.stop, ready=self.ready,
+                                 on_progress=self.progress.update)
+
+        self.thread = threading.Thread(target=target, daemon=True)
+        self.thread.start()
+        assert self.ready.wait(10), "recorder did not start"
+
+    def finish(self) -> dict:
+        self.stop.set()
+        self.thread.join(15)
+        assert self.counts is not None, "recorder did not finish"
+        return self.counts
+
+
+def _wait_for(cond, timeout_s: float, procs=()) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        for p in procs:
+            assert p.poll() is None, p.stderr.read().decode()[-3000:]
+        time.sleep(0.2)
+    return False
+
+
+def _contiguous_seq(path: Path) -> dict[str, tuple[int, int]]:
+    """key → (messages, gaps in seq): a reliable recording of one publisher run has no gaps."""
+    seqs = defaultdict(list)
+    for key, m in rc.load_messages(path):
+        seqs[key].append(m["seq"])
+    out = {}
+    for k, s in seqs.items():
+        s.sort()
+        out[k] = (len(s), sum(1 for a, b in zip(s, s[1:]) if b != a + 1))
+    return out
+
+
+def test_record_replay_through_a_swapped_detector_and_report(tmp_path):
+    zenoh = pytest.importorskip("zenoh")
+    from magmesh.commands.replay import replay_to_mesh
+    from magmesh.commands.report import make_report
+    from magmesh.zconf import build_config
+
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    router = zenoh.open(build_config(mode="router", listen=[endpoint]))
+    drive, rerun = tmp_path / "drive.mcap", tmp_path / "rerun.mcap"
+    manifest = ["--manifest", str(MANIFEST)]
+    procs = [_spawn("services.ingest", endpoint, "--instance", "ingest-t"),
+             _spawn("services.dmc_detector", endpoint, "--impl", "threshold", "--instance", "dmc-threshold",
+                    *manifest)]
+    try:
+        time.sleep(2.0)
+        rec = _Recorder(endpoint, drive)
+        sim = _spawn("sim_publishers.car", endpoint, "--vehicle", "car-1", "--instance", "sim-t",
+                     "--set", "speed=8", "--set", "duration_s=30", *manifest)
+        procs.append(sim)
+        # the 30 s drive at 8× real time (50 Hz compasses), through ingest and the detector
+        n_dmc = lambda: rec.progress.get("per_key", {}).get(keys.dmc("car-1"), 0)  # noqa: E731
+        assert _wait_for(lambda: n_dmc() >= 1450, 60, procs), f"{n_dmc()} dmc epochs"
+        time.sleep(1.5)
+        counts = rec.finish()
+        _stop([sim])
+        procs.remove(sim)
+        # -- the recording holds everything the mesh said, nothing lost ----------------------------
+        per_key = counts["per_key"]
+        assert counts["unvalidated"] == 0 and counts["skipped"] == 0
+        assert per_key.get(keys.clean_mag("car-1", "1"), 0) >= 1500
+        assert counts["liveliness"] >= 3  # ingest, detector, simulator
+        seq = _contiguous_seq(drive)
+        assert all(gaps == 0 for _, gaps in seq.values()), {k: v for k, v in seq.items() if v[1]}
+        assert seq[keys.clean_mag("car-1", "1")][0] == seq[keys.raw_mag("car-1", "1")][0]
+        # -- swap the detector: the threshold one goes, the single-compass one comes ----------------
+        old = procs.pop(1)
+        _stop([old])
+        procs.append(_spawn("services.dmc_detector", endpoint, "--impl", "single", "--instance", "dmc-single",
+                            *manifest))
+        time.sleep(2.0)
+        rec2 = _Recorder(endpoint, rerun, [keys.dmc("car-1"), keys.alarms_all("car-1")])
+        stats = replay_to_mesh(build_config(connect=[endpoint]), drive, rate=0.0,
+                               key_exprs=[keys.clean_all("car-1")], wait_subscribers_s=5.0)
+        n_clean = sum(n for k, n in per_key.items() if rc.keyexpr_matches(keys.clean_all("car-1"), k))
+        assert stats.as_dict()["published"] == n_clean
+        assert _wait_for(lambda: rec2.progress.get("written", 0) >= 0.95 * per_key[keys.clean_mag("car-1", "1")],
+                         30, procs)
+        time.sleep(1.0)
+        counts2 = rec2.finish()
+    finally:
+        _stop(procs)
+        router.close()
+    rerun_dmc = [m for k, m in rc.load_messages(rerun) if k == keys.dmc("car-1")]
+    assert {m["impl"] for m in rerun_dmc} == {"single"}
+    # one epoch per compass-1 sample of the original drive
+    assert len(rerun_dmc) == pytest.approx(per_key[keys.clean_mag("car-1", "1")], rel=0.05)
+    assert counts2["skipped"] == 0
+    # -- a report of the drive with the new detector's output -----------------------------------------
+    index = make_report([drive, rerun], tmp_path / "report", exclude=[keys.dmc("*"), keys.alarms_all("*")])
+    page = index.read_text()
+    for name in ("car-1_field.png", "car-1_dmc.png"):
+        assert name in page and (tmp_path / "report" / name).stat().st_size > 10_000
+    assert "dmc-single" in page  # the swap is visible in the services table
+
+
+def test_broad_trial_through_ingest_and_a_detector(tmp_path):
+    zenoh = pytest.importorskip("zenoh")
+    from magmesh.zconf import build_config
+
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    router = zenoh.open(build_config(mode="router", listen=[endpoint]))
+    path = tmp_path / "broad.mcap"
+    procs = [_spawn("services.ingest", endpoint, "--instance", "ingest-b"),
+             _spawn("services.dmc_detector", endpoint, "--impl", "quasistatic", "--instance", "dmc-qs",
+                    "--manifest", str(MANIFEST))]
+    try:
+        time.sleep(2.0)
+        rec = _Recorder(endpoint, path)
+        # the 1 cm magnet trial, 40 s around the start of the attached-magnet block, 8× real time
+        sim = _spawn("sim_publishers.replay", endpoint, "--vehicle", "broad-1", "--instance", "replay-b",
+                     "--set", "dataset=broad:32_disturbed_attached_magnet_1cm", "--set", "speed=8",
+                     "--set", "start_s=40", "--set", "duration_s=40")
+        procs.append(sim)
+        n_mag = lambda: rec.progress.get("per_key", {}).get(keys.clean_mag("broad-1", "1"), 0)  # noqa: E731
+        assert _wait_for(lambda: n_mag() >= 3700, 60, procs[:2]), f"{n_mag()} clean mag samples"
+        time.sleep(1.5)
+        counts = rec.finish()
+    finally:
+        _stop(procs)
+        router.close()
+    per_key = counts["per_key"]
+    assert per_key.get(keys.clean_mag("broad-1", "1"), 0) >= 3700
+    assert per_key.get(keys.truth("broad-1", "sources"), 0) > 300
+    msgs = rc.load_messages(path)
+    dmc = [m for k, m in msgs if k == keys.dmc("broad-1")]
+    alarms = [m for k, m in msgs if k == keys.alarm("broad-1", "dmc")]
+    assert len(dmc) > 100, "the detector produced nothing for the replayed trial"
+    assert any(a["state"] == "raised" for a in alarms), "no alarm on the attached magnet"
