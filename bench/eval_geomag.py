@@ -142,6 +142,40 @@ def heading_error(grid: GridMap, runs: int, seed: int, settings: MatchSettings, 
     return {"cells": out, "runs": runs, "n_samples": n, "snr": snr, "search_deg": search_deg}
 
 
+def survey_runs(seeds=(1, 2, 3), snrs=(6.0, 10.0), laps: int = 2) -> dict:
+    """The streaming matcher on the survey simulator: accepted-fix, filtered and INS position errors."""
+    from services.geomag_matcher.core import GeomagMatcher, MatcherSettings
+    from sim_publishers.survey.core import SurveySettings, simulate
+
+    out: dict = {}
+    for snr in snrs:
+        fix_e, filt_e, ins_e = [], [], []
+        n_match = n_acc = 0
+        for seed in seeds:
+            ss = SurveySettings(seed=seed, snr=snr, laps=laps)
+            grid = load_map(ss.map)
+            run = simulate(ss, grid)
+            m = GeomagMatcher(grid, MatcherSettings(main_field_nt=run.core_field_nt))
+            for i in range(run.t_s.size):
+                f = m.update(run.t_s[i], run.f_nt[i], run.ins_pos_m[i])
+                if m.filter.x is not None:
+                    c = m.corrected_position(run.ins_pos_m[i], run.t_s[i])
+                    filt_e.append(float(np.hypot(*(c - run.pos_m[i]))))
+                    ins_e.append(float(np.hypot(*(run.ins_pos_m[i] - run.pos_m[i]))))
+                if f is not None and f.accepted:
+                    fix_e.append(float(np.hypot(*(f.result.end_m - run.pos_m[i]))))
+            n_match += m.n_matches
+            n_acc += m.n_accepted
+        out[f"SNR={snr:g}"] = {
+            "matches": n_match, "accepted": n_acc,
+            "fix_error_median_m": float(np.median(fix_e)), "fix_error_p95_m": float(np.percentile(fix_e, 95)),
+            "filtered_error_median_m": float(np.median(filt_e)),
+            "filtered_error_p95_m": float(np.percentile(filt_e, 95)),
+            "ins_error_median_m": float(np.median(ins_e)),
+        }
+    return {"cells": out, "seeds": list(seeds), "laps": laps}
+
+
 # ---- indoor walks -----------------------------------------------------------------------------
 
 
@@ -269,6 +303,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--exhaustive-check", type=int, default=3, help="runs per cell re-done exhaustively")
     parser.add_argument("--skip-paper-metric", action="store_true", help="do not rerun Table 1 with the set Hausdorff")
     parser.add_argument("--skip-walks", action="store_true")
+    parser.add_argument("--skip-survey", action="store_true", help="skip the streaming survey-vehicle runs")
     parser.add_argument("--heading-runs", type=int, default=30, help="runs per INS heading-error case (0: skip)")
 
 
@@ -289,6 +324,8 @@ def run(args) -> dict:
         tp = table1(grid, args.runs, args.seed, MatchSettings(**{**base.__dict__, "window_samples": None}), 0)
         result["table1_paper_set_metric"] = {k: {"exact": v["exact"], "sub": v["sub"]} for k, v in tp["cells"].items()}
     result["wdmam"] = wdmam_table(args.wdmam_runs, args.seed, base)
+    if not args.skip_survey:
+        result["survey"] = survey_runs()
     if args.heading_runs > 0:
         result["heading_error"] = heading_error(grid, args.heading_runs, args.seed, base)
     if not args.skip_walks:
@@ -334,6 +371,14 @@ def format_text(r: dict) -> str:
     w = r["wdmam"]
     lines += _tab(w["cells"], f"WDMAM excerpt (real, {w['cell_m']:.0f} m cells, std {w['map_std_nt']:.1f} nT), "
                   f"{w['runs']} runs per cell; {w['note']}")
+    if "survey" in r:
+        sv = r["survey"]
+        lines.append(f"survey vehicle (streaming matcher, seeds {sv['seeds']}, {sv['laps']} laps each; "
+                     "errors at every sample after the first accepted fix):")
+        for k, c in sv["cells"].items():
+            lines.append(f"  {k}: {c['accepted']}/{c['matches']} accepted; fix error median {c['fix_error_median_m']:.0f}"
+                         f" m, p95 {c['fix_error_p95_m']:.0f} m; filtered INS median {c['filtered_error_median_m']:.0f}"
+                         f" m, p95 {c['filtered_error_p95_m']:.0f} m; raw INS median {c['ins_error_median_m']:.0f} m")
     if "heading_error" in r:
         he = r["heading_error"]
         lines.append(f"INS heading error (N={he['n_samples']}, SNR={he['snr']:g}, {he['runs']} runs; exact/sub, "

@@ -306,6 +306,10 @@ GEOMAG_FIX = _register(
             _F("lambda_nt", "float", "feasibility / SSDA threshold λ finally used, nT", required=False, lo=0),
             _F("feasible_cells", "int", "cells kept by the pre-match (the feasible set U)", required=False, lo=0),
             _F("match_ms", "float", "compute time of the match, ms", required=False, lo=0),
+            _F("filtered_correction_enu_m", "vec3", "INS correction of the Kalman filter fed by accepted fixes, at "
+               "t_s (add it to the INS position), m", required=False),
+            _F("innovation_test_ratio", "float", "filter innovation² / (gate² · variance) of an accepted fix; > 1: "
+               "not fused", required=False, nullable=True, lo=0),
         ),
     )
 )

@@ -164,3 +164,25 @@ def test_streaming_matcher_corrects_the_simulated_ins():
     assert m.flags["diverged"]
     corrected = m.corrected_position(run.ins_pos_m[-1])
     assert np.hypot(*(corrected - run.pos_m[-1])) < 200.0
+
+
+def test_ins_error_filter_tracks_a_drifting_correction_and_gates_outliers():
+    from services.geomag_matcher.core import FilterSettings, InsErrorFilter
+
+    kf = InsErrorFilter(FilterSettings(fix_std_m=30.0, gate_sigma=5.0, reset_after_rejections=3))
+    rng = np.random.default_rng(4)
+    drift = np.array([0.3, -0.2])  # m/s
+    c0 = np.array([-1000.0, -500.0])
+    for k in range(60):
+        t = 25.0 * k
+        assert kf.update(t, c0 + drift * t + rng.normal(0, 30.0, 2))
+    t = 25.0 * 60
+    est = kf.correction_at(t)
+    assert np.hypot(*(est - (c0 + drift * t))) < 30.0
+    assert np.allclose(kf.x[2:], drift, atol=0.1)
+    # a fix 2 km off is gated, three in a row restart the filter there
+    far = c0 + drift * t + [2000.0, 0.0]
+    assert not kf.update(t, far) and kf.test_ratio > 1.0
+    assert not kf.update(t + 25, far) and not kf.update(t + 50, far)
+    assert kf.update(t + 75, far)
+    assert np.allclose(kf.correction_at(t + 75), far)

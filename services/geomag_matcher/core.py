@@ -450,9 +450,86 @@ class MofNAcceptor:
 
 
 @dataclass(frozen=True)
+class FilterSettings:
+    fix_std_m: float = 50.0  # 1-σ per axis of an accepted fix
+    drift_rate_noise_m_s2: float = 0.005  # √q of the random walk of the INS drift rate, m/s^1.5
+    init_drift_std_m_s: float = 1.0  # 1-σ of the drift rate at the first fix
+    gate_sigma: float = 5.0  # innovation gate, standard deviations
+    reset_after_rejections: int = 3  # consecutive gated fixes that restart the filter at the new fix
+
+    def __post_init__(self):
+        if not (self.fix_std_m > 0 and self.drift_rate_noise_m_s2 >= 0 and self.gate_sigma > 0):
+            raise ValueError("fix_std_m and gate_sigma must be > 0, drift_rate_noise_m_s2 ≥ 0")
+
+
+class InsErrorFilter:
+    """Kalman filter of the INS correction c = truth − INS and its rate (the paper's §5 alternative).
+
+    State x = [c_E, c_N, ċ_E, ċ_N]; c(t + Δt) = c + ċ Δt, ċ a random walk (q = drift_rate_noise²);
+    measurement z = the correction an accepted fix implies, R = fix_std² I. Innovations are gated
+    PX4 style: test_ratio = νᵀ S⁻¹ ν / gate²; a fix with test_ratio > 1 is not fused, and after
+    ``reset_after_rejections`` of them in a row the filter restarts at the new fix (the INS jumped).
+    """
+
+    def __init__(self, settings: FilterSettings = FilterSettings()):
+        self.settings = settings
+        self.reset()
+
+    def reset(self):
+        self.x: np.ndarray | None = None
+        self.P = np.zeros((4, 4))
+        self.t_s: float | None = None
+        self.test_ratio: float | None = None
+        self.rejections = 0
+
+    def _predict_to(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        dt = max(0.0, t_s - self.t_s) if self.t_s is not None else 0.0
+        F = np.eye(4)
+        F[0, 2] = F[1, 3] = dt
+        q = self.settings.drift_rate_noise_m_s2 ** 2
+        Q1 = q * np.array([[dt ** 3 / 3, dt ** 2 / 2], [dt ** 2 / 2, dt]])  # integrated random walk
+        Q = np.zeros((4, 4))
+        Q[np.ix_([0, 2], [0, 2])] = Q1
+        Q[np.ix_([1, 3], [1, 3])] = Q1
+        return F @ self.x, F @ self.P @ F.T + Q
+
+    def correction_at(self, t_s: float) -> np.ndarray | None:
+        if self.x is None:
+            return None
+        return self._predict_to(t_s)[0][:2]
+
+    def update(self, t_s: float, correction_m) -> bool:
+        """Fuse one accepted fix's correction; return whether it was fused."""
+        s = self.settings
+        z = np.asarray(correction_m, float)[:2]
+        r2 = s.fix_std_m ** 2
+        if self.x is None or self.rejections >= s.reset_after_rejections:
+            self.x = np.array([z[0], z[1], 0.0, 0.0])
+            self.P = np.diag([r2, r2, s.init_drift_std_m_s ** 2, s.init_drift_std_m_s ** 2])
+            self.t_s, self.test_ratio, self.rejections = float(t_s), 0.0, 0
+            return True
+        x, P = self._predict_to(t_s)
+        H = np.hstack([np.eye(2), np.zeros((2, 2))])
+        nu = z - H @ x
+        S = H @ P @ H.T + r2 * np.eye(2)
+        self.test_ratio = float(nu @ np.linalg.solve(S, nu)) / s.gate_sigma ** 2
+        self.x, self.P, self.t_s = x, P, float(t_s)
+        if self.test_ratio > 1.0:
+            self.rejections += 1
+            return False
+        K = P @ H.T @ np.linalg.inv(S)
+        self.x = x + K @ nu
+        self.P = (np.eye(4) - K @ H) @ P
+        self.P = 0.5 * (self.P + self.P.T)
+        self.rejections = 0
+        return True
+
+
+@dataclass(frozen=True)
 class MatcherSettings:
     match: MatchSettings = field(default_factory=MatchSettings)
     accept: AcceptSettings = field(default_factory=AcceptSettings)
+    filter: FilterSettings = field(default_factory=FilterSettings)
     match_every_samples: int = 5  # run a match each time this many new samples arrived
     divergence_alarm_m: float = 500.0  # raise when an accepted fix is this far from the INS
     main_field_nt: float = 0.0  # subtracted from the measured total field to get the anomaly
@@ -469,6 +546,9 @@ class Fix:
     ins_end_m: np.ndarray
     correction_m: np.ndarray  # matched − INS at the last sample (NaN if no match)
     divergence_m: float
+    filtered_correction_m: np.ndarray | None = None  # INS-error filter's correction after this fix
+    test_ratio: float | None = None  # filter innovation test ratio of an accepted fix (> 1: not fused)
+    fused: bool = False
 
 
 class GeomagMatcher:
@@ -478,6 +558,7 @@ class GeomagMatcher:
         self.map = grid
         self.settings = settings
         self.acceptor = MofNAcceptor(settings.accept)
+        self.filter = InsErrorFilter(settings.filter)
         self.reset()
 
     def reset(self):
@@ -487,6 +568,7 @@ class GeomagMatcher:
         self._p: deque = deque(maxlen=n)
         self._new = 0
         self.acceptor.reset()
+        self.filter.reset()
         self.last_fix: Fix | None = None
         self.last_accepted: Fix | None = None
         self.divergence_m = 0.0
@@ -519,18 +601,22 @@ class GeomagMatcher:
         fix = Fix(float(t_s), status, status == "accepted", res, ins[-1], corr, div)
         self.n_matches += 1
         if fix.accepted:
+            fix.fused = self.filter.update(fix.t_s, corr)
+            fix.test_ratio = self.filter.test_ratio
             self.n_accepted += 1
             self.last_accepted = fix
             self.divergence_m = div
             self.diverged = div > s.divergence_alarm_m
+        fix.filtered_correction_m = self.filter.correction_at(fix.t_s)
         self.last_fix = fix
         return fix
 
-    def corrected_position(self, ins_pos_m) -> np.ndarray | None:
-        """INS position corrected by the last accepted fix (None before the first)."""
-        if self.last_accepted is None:
+    def corrected_position(self, ins_pos_m, t_s: float | None = None) -> np.ndarray | None:
+        """INS position corrected by the INS-error filter at t_s (None before the first accepted fix)."""
+        if self.filter.x is None:
             return None
-        return np.asarray(ins_pos_m, float)[:2] + self.last_accepted.correction_m
+        t = self.filter.t_s if t_s is None else t_s
+        return np.asarray(ins_pos_m, float)[:2] + self.filter.correction_at(t)
 
     @property
     def internal_states(self) -> dict:

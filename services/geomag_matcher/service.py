@@ -25,7 +25,7 @@ from magmesh.geomap import GridMap, core_field_enu_nt, load_map
 from magmesh.runtime import Service
 from schemas import keys
 
-from .core import AcceptSettings, GeomagMatcher, MatcherSettings, MatchSettings
+from .core import AcceptSettings, FilterSettings, GeomagMatcher, MatcherSettings, MatchSettings
 
 
 @dataclass(frozen=True)
@@ -47,6 +47,8 @@ class Settings:
     min_margin_nt: float = 0.3  # runner-up margin below this: ambiguous
     max_hausdorff_nt: float = 30.0  # best distance above this: rejected
     divergence_alarm_m: float = 1000.0  # raise alarm/match when |accepted fix − INS| exceeds this, m
+    fix_std_m: float = 50.0  # INS-error filter: 1-σ of an accepted fix per axis
+    gate_sigma: float = 5.0  # INS-error filter: innovation gate
     lat_deg: float = 45.4  # default reference place of the map (IGRF core field)
     lon_deg: float = -75.7
     alt_m: float = 300.0
@@ -123,6 +125,7 @@ class GeomagMatcherService(Service):
                 heading_search_deg=s.heading_search_deg, heading_step_deg=s.heading_step_deg),
             accept=AcceptSettings(m_agree=s.m_agree, n_window=s.n_window, agree_radius_m=s.agree_radius_m,
                                   min_margin_nt=s.min_margin_nt, max_hausdorff_nt=s.max_hausdorff_nt),
+            filter=FilterSettings(fix_std_m=s.fix_std_m, gate_sigma=s.gate_sigma),
             match_every_samples=s.match_every_samples,
             divergence_alarm_m=s.divergence_alarm_m,
             main_field_nt=float(vcfg.get("main_field_nt", np.linalg.norm(core))),
@@ -195,6 +198,11 @@ class GeomagMatcherService(Service):
         )
         if r.found:
             fields["correction_enu_m"] = [pos3[0] - ins3[0], pos3[1] - ins3[1], 0.0]
+        if fix.filtered_correction_m is not None:
+            fields["filtered_correction_enu_m"] = [float(fix.filtered_correction_m[0]),
+                                                   float(fix.filtered_correction_m[1]), 0.0]
+        if fix.accepted:
+            fields["innovation_test_ratio"] = fix.test_ratio
         self.publish(keys.fix_geomag(vehicle), "geomag_fix", vehicle, fix.t_s, **fields)
         if fix.status != "accepted":
             self.log.debug("%s: match %s (d_H %.2f nT, margin %s)", vehicle, fix.status, r.hausdorff_nt, r.margin_nt)
