@@ -149,8 +149,8 @@ def run(args) -> dict:
             "delay_s": {d: _stats([r["delay_s"][d] for r in rows]) for d in DETECTORS},
             "false_alarms_before_onset": {d: sum(r["false_alarms"][d] for r in rows) for d in DETECTORS},
             "paper_delay_s": {
-                "threshold": [round(a - o, 2) for a, o in zip(paper_table["threshold_s"], paper_table["onset_s"])],
-                "track": [round(a - o, 2) for a, o in zip(paper_table["track_s"], paper_table["onset_s"])]},
+                "threshold": [round(a - o, 2) for a, o in zip(paper_table["threshold_s"], paper_table["onset_s"], strict=True)],
+                "track": [round(a - o, 2) for a, o in zip(paper_table["track_s"], paper_table["onset_s"], strict=True)]},
         }
     und = []
     for i in range(int(args.undisturbed)):
