@@ -11,6 +11,13 @@ iterated until max |μ^(r+1) − μ^(r)| < ε (the paper: c = 5, m' = 2, ε = 0.
 vectorised over samples and clusters and works with squared distances throughout: for m' = 2 the
 membership is μ_ik ∝ 1/d_ik², no square root or power is needed.
 
+The paper leaves open how "error size" is measured. Without a reference heading in the training data
+the clusters are ordered by the distance of their centre from the origin (no disturbance) and the two
+smallest make up K_c. When the training drive has a reference heading (simulation, or a recording with
+a reference), :func:`train` orders the clusters by the heading error of their members and lets every
+cluster whose error is small make up K_c: the improvement that holds up under calibration errors,
+which spread the undisturbed features over several clusters.
+
 Online, trained centres are reused (the paper's Table 4): memberships of each new sample follow from
 the membership update alone. Clusters are ordered by error size (distance of the centre from the
 origin, i.e. from "no disturbance"); the credibility of compass k is the summed membership of the two
@@ -218,22 +225,44 @@ def order_by_error(centres: np.ndarray) -> np.ndarray:
 
 def train(features: list[Features], feature_set: str = "extended", loose: Thresholds | None = None, c: int = 5,
           m: float = 2.0, tol: float = 0.01, seed: int = 0, kc_min: float = 0.8,
-          training_info: dict | None = None, feature_settings: core.FeatureSettings | None = None) -> FcmModel:
-    """Fit centres on the stage-1 survivors (loose thresholds) of the given drives (§1 stage 2)."""
+          training_info: dict | None = None, feature_settings: core.FeatureSettings | None = None,
+          heading_err_deg: list[np.ndarray] | None = None, good_cluster_deg: float = 2.0) -> FcmModel:
+    """Fit centres on the stage-1 survivors (loose thresholds) of the given drives (§1 stage 2).
+
+    Without ``heading_err_deg`` the clusters are ordered by the size of their centre (distance from
+    "no disturbance") and K_c sums the two smallest, as in the paper. With the training drives' heading
+    errors (a reference heading was recorded) the clusters are ordered by the membership-weighted mean
+    heading error of their samples, and K_c sums every cluster whose error is below ``good_cluster_deg``
+    (at least one): which clusters mean "trustworthy" is learned rather than assumed.
+    """
     loose = loose or LOOSE
     probe = FcmModel(np.zeros((c, len(FEATURE_SETS[feature_set]))), feature_set, loose, m, kc_min)
-    xs = []
-    for f in features:
+    xs, es = [], []
+    for i, f in enumerate(features):
         keep = core.threshold_test(f, loose) & f.rates_ready
         x1, x2 = probe.compass_features(f)
         xs += [x1[keep], x2[keep]]
+        if heading_err_deg is not None:
+            e = np.asarray(heading_err_deg[i], float)[keep]
+            es += [e, e]
     X = np.concatenate(xs)
     res = fcm_fit(X, c=c, m=m, tol=tol, seed=seed)
     info = dict(training_info or {})
     info.update(n_samples=int(len(X)), n_iter=res.n_iter, converged=res.converged,
                 objective=round(res.objective[-1], 6), c=c, tol=tol, seed=seed)
-    return FcmModel(order_by_error(res.centres), feature_set, loose, m, kc_min, 2, info,
-                    feature_settings or core.FeatureSettings())
+    if heading_err_deg is None:
+        centres, n_good = order_by_error(res.centres), 2
+        info["cluster_order"] = "centre_norm"
+    else:
+        E = np.concatenate(es)
+        w = res.u**m
+        cluster_err = (w * E[None, :]).sum(1) / w.sum(1)  # membership-weighted mean |heading error|
+        order = np.argsort(cluster_err, kind="stable")
+        centres = res.centres[order]
+        n_good = int(np.clip((cluster_err < good_cluster_deg).sum(), 1, c - 1))
+        info.update(cluster_order="heading_error", cluster_err_deg=[round(float(x), 4) for x in cluster_err[order]],
+                    good_cluster_deg=good_cluster_deg)
+    return FcmModel(centres, feature_set, loose, m, kc_min, n_good, info, feature_settings or core.FeatureSettings())
 
 
 # ---- the streaming detector -------------------------------------------------------------------

@@ -93,6 +93,9 @@ class SingleDmcDetector(DmcDetectorService):
             s.thresholds(), s.feature_settings(), s.hysteresis()))
 
     def on_message(self, info, msg: dict, state: VehicleState) -> None:
+        if info.sensor != self.settings.sensor_a:
+            self.count_drop(info.key, "sensor_not_used")
+            return
         if info.kind == "cal":
             self._on_params(info, msg, state)
             return
@@ -151,14 +154,18 @@ class QuasiStaticDmcDetector(DmcDetectorService):
         return [keys.clean_mag(p, a), keys.clean_imu(p), keys.cal_params(p, a)]
 
     def new_vehicle(self, vehicle: str) -> VehicleState:
-        st = super().new_vehicle(vehicle)
-        st.pairer = None
+        cfg = self.vehicles_config.get(vehicle, {}) or {}
+        st = VehicleState(None, self.make_detector(vehicle, 0.0), declination_rad=float(cfg.get("declination_rad", 0.0)))
+        self._load_manifest_params(vehicle, cfg, st)
         return st
 
     def make_detector(self, vehicle: str, dh_ref_rad: float):
         return quasistatic.QuasiStaticDetector(self.settings.core())
 
     def on_message(self, info, msg: dict, state: VehicleState) -> None:
+        if info.stream != "imu" and info.sensor != self.settings.sensor:
+            self.count_drop(info.key, "sensor_not_used")
+            return
         if info.kind == "cal":
             self._on_params(info, msg, state)
             return

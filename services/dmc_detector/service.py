@@ -105,6 +105,10 @@ class DmcDetectorService(Service):
         dh_ref = float(cfg.get("dh_ref_rad", 0.0))
         st = VehicleState(Pairer(self.sensors, self.settings.pair_tolerance_s), self.make_detector(vehicle, dh_ref),
                           declination_rad=float(cfg.get("declination_rad", 0.0)))
+        self._load_manifest_params(vehicle, cfg, st)
+        return st
+
+    def _load_manifest_params(self, vehicle: str, cfg: dict, st: VehicleState) -> None:
         for sensor, table in (cfg.get("mag_params") or {}).items():
             sensor = str(sensor)
             if sensor in self.required_sensors:
@@ -113,9 +117,11 @@ class DmcDetectorService(Service):
                     st.param_origin[sensor] = "manifest"
                 except (KeyError, ValueError, TypeError) as e:
                     self.log.error("vehicle %s: manifest mag_params.%s unusable: %s", vehicle, sensor, e)
-        return st
 
     def on_message(self, info, msg: dict, state: VehicleState) -> None:
+        if info.sensor not in self.sensors:
+            self.count_drop(info.key, "sensor_not_used")
+            return
         if info.kind == "cal":
             self._on_params(info, msg, state)
             return

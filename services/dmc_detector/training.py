@@ -34,33 +34,60 @@ class DriveData:
     heading_err_deg: np.ndarray  # |published heading − true heading|
     t_s: np.ndarray
     disturbed: np.ndarray  # truth: a source disturbs either compass noticeably
+    source_active: np.ndarray | None = None  # truth: some source's field at the car exceeds the sim's level
     gyro_t_s: np.ndarray | None = None
     gyro_rad_s: np.ndarray | None = None
     accel_m_s2: np.ndarray | None = None
     mag1_nt: np.ndarray | None = None
     params1: CompassParams | None = None
+    declination_rad: float = 0.0
+    true_heading_rad: np.ndarray | None = None
 
     @property
     def good(self) -> np.ndarray:
         return self.heading_err_deg < GOOD_DEG
 
 
-def params_from_sim(mp) -> CompassParams:
-    return CompassParams(tuple(float(x) for x in mp.offset_nt), tuple(float(x) for x in np.ravel(mp.matrix)),
-                         float(mp.field_radius_nt), "3d", "sim-true")
+#: typical error of a static calibration: offset (nT) and matrix entries (fraction), 1-σ
+CAL_OFFSET_ERR_NT = 50.0
+CAL_MATRIX_ERR = 0.003
+
+
+def params_from_sim(mp, rng: np.random.Generator | None = None, offset_err_nt: float = CAL_OFFSET_ERR_NT,
+                    matrix_err: float = CAL_MATRIX_ERR) -> CompassParams:
+    """The simulator's true compensation, or (with ``rng``) a calibration of it with typical errors."""
+    off = np.asarray(mp.offset_nt, float)
+    M = np.asarray(mp.matrix, float)
+    pid = "sim-true"
+    if rng is not None:
+        off = off + rng.normal(0.0, offset_err_nt, 3)
+        M = M @ (np.eye(3) + rng.normal(0.0, matrix_err, (3, 3)))
+        pid = "sim-calibrated"
+    return CompassParams(tuple(float(x) for x in off), tuple(float(x) for x in M.ravel()),
+                         float(mp.field_radius_nt), "3d", pid)
 
 
 def simulate_drive(layout: str, seed: int, duration_s: float = 300.0,
-                   settings: core.FeatureSettings | None = None) -> DriveData:
-    """Simulate a car drive and compute its DMC features with the true static compensation."""
+                   settings: core.FeatureSettings | None = None, calibration_error: bool = True,
+                   cal_seed: int = 0) -> DriveData:
+    """Simulate a car drive and compute its DMC features.
+
+    The static compensation is the simulator's truth plus a calibration's typical error unless
+    ``calibration_error`` is False. ``cal_seed`` picks the calibration: the same car keeps the same
+    calibration from drive to drive (cal_seed fixed); another cal_seed is a recalibrated car.
+    """
     from sim_publishers.car.core import simulate
 
     d = simulate(seed=seed, layout=layout, duration_s=duration_s)
-    p1, p2 = params_from_sim(d.true_params["1"]), params_from_sim(d.true_params["2"])
+    rng = np.random.default_rng([cal_seed, 0xDC]) if calibration_error else None
+    p1, p2 = params_from_sim(d.true_params["1"], rng), params_from_sim(d.true_params["2"], rng)
     f = core.features_batch(d.t_mag_s, d.mag_b_nt["1"], d.mag_b_nt["2"], p1, p2, d.declination_rad, settings)
     err = np.degrees(np.abs(maths.angle_diff(f.heading_rad, d.truth.heading_rad)))
-    return DriveData(f"{layout}/seed{seed}", layout, seed, f, err, d.t_mag_s, np.asarray(d.truth.disturbed, bool),
-                     d.t_imu_s, d.gyro_rad_s, d.accel_m_s2, d.mag_b_nt["1"], p1)
+    name = f"{layout}/seed{seed}" + (f"/cal{cal_seed}" if calibration_error and cal_seed else "")
+    return DriveData(name, layout, seed, f, err, d.t_mag_s, np.asarray(d.truth.disturbed, bool),
+                     np.asarray(d.truth.active, bool).any(axis=1) if d.truth.active.size else np.zeros(len(err), bool),
+                     d.t_imu_s, d.gyro_rad_s, d.accel_m_s2, d.mag_b_nt["1"], p1, float(d.declination_rad),
+                     np.asarray(d.truth.heading_rad))
 
 
 @dataclass
@@ -106,8 +133,8 @@ def alarm_timing(t_s: np.ndarray, bad: np.ndarray, alarm: np.ndarray, disturbed:
     Zones: runs of bad samples merged across gaps < ``merge_s``, ignoring zones shorter than
     ``min_len_s``. Returns (onset delays, zones missed, false alarms). The onset delay of a zone is the
     time from its first bad sample to the alarm; it is negative when the alarm was already raised (by
-    the approach to the source) and counts from that raise. A false alarm is an alarm run with no bad
-    or truth-disturbed sample within ``merge_s`` of it.
+    the approach to the source) and counts from that raise. A false alarm is an alarm run with no bad,
+    truth-disturbed or source-active sample within ``merge_s`` of it.
     """
     t_s = np.asarray(t_s, float)
     alarm = np.asarray(alarm, bool)
@@ -140,9 +167,12 @@ def alarm_timing(t_s: np.ndarray, bad: np.ndarray, alarm: np.ndarray, disturbed:
     return delays, missed, false
 
 
-def evaluate(valid: np.ndarray, drives: list[DriveData], hysteresis: core.HysteresisSettings | None = None) -> Metrics:
-    """Metrics over several drives (valid: concatenated per-epoch decisions in the drives' order)."""
-    err = np.concatenate([d.heading_err_deg for d in drives])
+def evaluate(valid: np.ndarray, drives: list[DriveData], hysteresis: core.HysteresisSettings | None = None,
+             err_deg: np.ndarray | None = None) -> Metrics:
+    """Metrics over several drives (valid: concatenated per-epoch decisions in the drives' order).
+
+    ``err_deg`` replaces the drives' heading errors (a detector publishing another heading)."""
+    err = np.concatenate([d.heading_err_deg for d in drives]) if err_deg is None else np.asarray(err_deg)
     m = metrics(valid, err)
     delays, missed, false = [], 0, 0
     i = 0
@@ -151,7 +181,9 @@ def evaluate(valid: np.ndarray, drives: list[DriveData], hysteresis: core.Hyster
         v = np.asarray(valid[i:i + n], bool)
         i += n
         alarm = core.latch_batch(d.t_s, v, hysteresis)
-        dl, ms, fa = alarm_timing(d.t_s, ~d.good, alarm, d.disturbed)
+        bad = err[i - n:i] >= GOOD_DEG
+        explained = d.disturbed if d.source_active is None else (d.disturbed | d.source_active)
+        dl, ms, fa = alarm_timing(d.t_s, bad, alarm, explained)
         delays += dl
         missed += ms
         false += fa
@@ -173,6 +205,46 @@ def fcm_valid(drives: list[DriveData], model: fcm.FcmModel) -> np.ndarray:
     return np.concatenate([model.classify(d.features)[0] for d in drives])
 
 
-def train_fcm(drives: list[DriveData], feature_set: str = "extended", seed: int = 0, **kw) -> fcm.FcmModel:
+def train_fcm(drives: list[DriveData], feature_set: str = "extended", seed: int = 0, use_reference: bool = True,
+              **kw) -> fcm.FcmModel:
+    """Train FCM centres on drives; ``use_reference`` orders clusters by the drives' true heading error."""
     info = {"drives": [d.name for d in drives], "source": "sim_publishers.car"}
-    return fcm.train([d.features for d in drives], feature_set=feature_set, seed=seed, training_info=info, **kw)
+    errs = [d.heading_err_deg for d in drives] if use_reference else None
+    return fcm.train([d.features for d in drives], feature_set=feature_set, seed=seed, training_info=info,
+                     heading_err_deg=errs, **kw)
+
+
+def quasistatic_run(drive: DriveData, settings=None) -> tuple[np.ndarray, np.ndarray]:
+    """Run the one-magnetometer quasi-static detector (§2) over a drive in time order.
+
+    Returns (valid, heading error in degrees) per magnetometer epoch (compass 1).
+    """
+    from .quasistatic import QuasiStaticDetector
+
+    if drive.gyro_t_s is None or drive.mag1_nt is None or drive.params1 is None:
+        raise ValueError(f"drive {drive.name} has no IMU/magnetometer streams for the quasi-static detector")
+    det = QuasiStaticDetector(settings)
+    t_mag, t_imu = drive.t_s, drive.gyro_t_s
+    decisions = []
+    i = j = 0
+    decl = drive.declination_rad
+    while i < len(t_mag):
+        if j < len(t_imu) and t_imu[j] <= t_mag[i]:
+            decisions += det.add_imu(float(t_imu[j]), drive.gyro_rad_s[j], drive.accel_m_s2[j])
+            j += 1
+        else:
+            decisions += det.add_mag(float(t_mag[i]), drive.mag1_nt[i], drive.params1, decl)
+            i += 1
+    while j < len(t_imu):
+        decisions += det.add_imu(float(t_imu[j]), drive.gyro_rad_s[j], drive.accel_m_s2[j])
+        j += 1
+    valid = np.array([d.valid for d in decisions], bool)
+    heading = np.array([d.heading_rad for d in decisions])
+    err = np.degrees(np.abs(maths.angle_diff(heading, drive.true_heading_rad[:len(heading)])))
+    return valid, err
+
+
+#: the recipe of the committed model (``magmesh train dmc`` defaults; ``magmesh eval dmc`` re-trains with it)
+DEFAULT_TRAIN_DRIVES = (("urban_a", 1),)
+DEFAULT_FEATURE_SET = "paper"
+DEFAULT_USE_REFERENCE = True
