@@ -28,9 +28,10 @@ def drive_b():
 
 
 def test_simulate_is_fast():
-    t0 = time.perf_counter()
+    # CPU time of this process: other jobs on the shared machine do not count
+    t0 = time.process_time()
     core.simulate(core.CarSimSettings(layout="urban_c", seed=5, duration_s=300.0))
-    assert time.perf_counter() - t0 < 2.0
+    assert time.process_time() - t0 < 2.0
 
 
 def test_deterministic_for_a_seed():
