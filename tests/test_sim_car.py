@@ -210,7 +210,13 @@ def test_gnss_noise_statistics():
         vel_errs.append(g.vel_enu_m_s[:, 0] - ve)
         assert np.all((g.num_sats >= 8) & (g.pdop < 3.0))
         course_err = maths.angle_diff(g.course_rad, np.arctan2(g.vel_enu_m_s[:, 0], g.vel_enu_m_s[:, 1]))
-        assert np.max(np.abs(course_err)) < 1e-9
+        moving = g.speed_m_s >= 0.5
+        assert np.max(np.abs(course_err[moving])) < 1e-9
+        stopped = np.flatnonzero(~moving[1:] & moving[:-1]) + 1  # the course is held when stopping
+        assert stopped.size and np.all(g.course_rad[stopped] == g.course_rad[stopped - 1])
+        fast = np.interp(g.t_s, d.t_mag_s, np.hypot(d.truth.vel_enu_m_s[:, 0], d.truth.vel_enu_m_s[:, 1])) > 5
+        hd = np.interp(g.t_s, d.t_mag_s, np.unwrap(d.truth.heading_rad))
+        assert np.percentile(np.degrees(np.abs(maths.angle_diff(g.course_rad[fast], hd[fast]))), 95) < 2.0
     e = np.concatenate(errs)
     s = core.CarSimSettings()
     assert 0.75 * s.gnss_pos_std_m < np.std(e) < 1.25 * s.gnss_pos_std_m

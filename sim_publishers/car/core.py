@@ -814,6 +814,10 @@ def _gnss(s: CarSimSettings, traj: _Trajectory, sources: list[Source], rng) -> G
         horiz_std = np.where(blocked, 100.0, horiz_std)
     speed = np.hypot(vel_meas[:, 0], vel_meas[:, 1])
     course = maths.wrap_2pi(np.arctan2(vel_meas[:, 0], vel_meas[:, 1]))
+    # like a receiver's heading-of-motion hold: below 0.5 m/s the last course is kept (0 before any motion)
+    moving = speed >= 0.5
+    last = np.maximum.accumulate(np.where(moving, np.arange(n), -1))
+    course = np.where(last >= 0, course[np.maximum(last, 0)], 0.0)
     lat, lon, alt = enu_to_geodetic(pos_meas, s.origin_lat_deg, s.origin_lon_deg, s.origin_alt_m)
     return GnssEpochs(t, lat, lon, alt, pos_meas, vel_meas, course, speed, fix.astype(str),
                       num_sats.astype(int), pdop, horiz_std, pos)
