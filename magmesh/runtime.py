@@ -255,6 +255,15 @@ class Runner:
         self.threads: list[threading.Thread] = []
         self.token = None
         self.extra_qables: dict[str, Callable] = {}
+        # live hand-over (see magmesh/swap.py): active | standby | retiring | retired
+        self.mode = "active"
+        self.cut: dict[str, float] = {}
+        self.held: list[tuple[str, str, str, float, dict]] = []
+        self.passed_cut: set[str] = set()
+        self.alarm_published: dict[str, str] = {}  # alarm key -> last state published ("raised"/"cleared")
+        self.suppressed = 0
+        self.first_in_t: dict[str, float] = {}
+        self.last_in_t: dict[str, float] = {}
         service._rt = self
 
     # ---- output ---------------------------------------------------------------------------
@@ -268,17 +277,46 @@ class Runner:
             self.publishers[key] = pub
         return pub
 
-    def publish(self, key: str, msg_type: str, vehicle: str, t_s: float, fields: dict) -> dict:
+    def publish(self, key: str, msg_type: str, vehicle: str, t_s: float, fields: dict) -> dict | None:
+        if self.mode != "active" and msg_type != "reject":
+            cut = self.cut.get(vehicle)
+            if self.mode == "standby":
+                if cut is not None and t_s >= cut:
+                    self.held.append((key, msg_type, vehicle, t_s, fields))
+                else:
+                    self.suppressed += 1
+                return None
+            if self.mode == "retiring":
+                if cut is None or t_s >= cut:
+                    self.passed_cut.add(vehicle)
+                    self.held.append((key, msg_type, vehicle, t_s, fields))
+                    return None
+            elif self.mode == "retired":
+                self.suppressed += 1
+                return None
+        if msg_type == "alarm":
+            state = fields.get("state")
+            if self.alarm_published.get(key, "cleared") == state:
+                self.count_drop(key, "alarm_state_unchanged")
+                return None
+        return self._send(key, msg_type, vehicle, t_s, fields)
+
+    def _send(self, key: str, msg_type: str, vehicle: str, t_s: float, fields: dict) -> dict:
         seq = self.seq.get(key, -1) + 1
         msg = messages.make(msg_type, vehicle, t_s, seq, **_plain(fields))
         payload = messages.encode(msg)  # validates: a service never emits what the contract forbids
         self._publisher(key).put(payload)
         self.seq[key] = seq
         self.count_out[key].n += 1
+        if msg_type == "alarm":
+            self._alarm_sent(key, msg)
         return msg
 
-    def publish_alarm(self, key: str, vehicle: str, t_s: float, fields: dict) -> dict:
-        msg = self.publish(key, "alarm", vehicle, t_s, fields)
+    def publish_alarm(self, key: str, vehicle: str, t_s: float, fields: dict) -> dict | None:
+        return self.publish(key, "alarm", vehicle, t_s, fields)
+
+    def _alarm_sent(self, key: str, msg: dict) -> None:
+        self.alarm_published[key] = msg["state"]
         with self.lock:
             if msg["state"] == "raised":
                 self.raised[key] = msg
@@ -366,6 +404,11 @@ class Runner:
                             f"but the key names vehicle {info.vehicle!r}", "vehicle", len(payload),
                             info.vehicle, msg["t_s"], msg["type"])
                 return
+            t = msg["t_s"]
+            if info.vehicle not in self.first_in_t:
+                self.first_in_t[info.vehicle] = t
+            if t > self.last_in_t.get(info.vehicle, float("-inf")):
+                self.last_in_t[info.vehicle] = t
         else:
             msg = payload
         state = self.state_for(info.vehicle)
@@ -413,6 +456,9 @@ class Runner:
                 "last_error": self.last_error,
                 "settings": _plain(self.svc.settings) if self.svc.settings is not None else {},
                 "alarms_raised": sorted(self.raised),
+                "mode": self.mode,
+                "holds_role": self.mode in ("active", "retiring"),
+                "suppressed": self.suppressed,
             }
         try:
             st.update(_plain(self.svc.status_extra()))
@@ -444,7 +490,64 @@ class Runner:
         finally:
             query.drop()
 
+    def control(self, req: dict) -> dict:
+        """Hand-over control, run in the main loop so it is ordered with message handling."""
+        op = req.get("op")
+        if op == "state":
+            pass
+        elif op == "arm":  # new instance: hold outputs at or after the cut
+            self.cut = {k: float(v) for k, v in req["cut"].items()}
+        elif op == "retire":  # old instance: publish only before the cut, hold the rest
+            self.cut = {k: float(v) for k, v in req["cut"].items()}
+            self.passed_cut = set()
+            self.mode = "retiring"
+        elif op == "takeover":  # new instance: continue the old one's seq and alarm state, then publish
+            for k, v in req.get("seqs", {}).items():
+                self.seq[k] = max(int(v), self.seq.get(k, -1))
+            self.alarm_published = dict(req.get("alarms", {}))
+            with self.lock:
+                self.raised = {k: m for k, m in req.get("raised", {}).items()}
+            self.mode = "active"
+            held, self.held = self.held, []
+            for item in held:
+                self.publish(*item)
+            self.cut = {}
+            self.svc.log.info("took over the role: %d held outputs published", len(held))
+        elif op == "release":  # old instance: the new one has taken over; publish nothing more
+            self.mode = "retired"
+            self.held = []
+        elif op == "resume":  # old instance: the hand-over failed; publish what was held and carry on
+            self.mode = "active"
+            held, self.held = self.held, []
+            for item in held:
+                self.publish(*item)
+            self.cut = {}
+            self.svc.log.warning("hand-over aborted: resumed with %d held outputs", len(held))
+        else:
+            return {"ok": False, "error": f"unknown control op {op!r}"}
+        with self.lock:
+            raised = dict(self.raised)
+        return {"ok": True, "mode": self.mode, "instance": self.svc.instance, "impl": self.svc.impl,
+                "seqs": dict(self.seq), "alarms": dict(self.alarm_published), "raised": raised,
+                "first_in_t": dict(self.first_in_t), "last_in_t": dict(self.last_in_t),
+                "held": len(self.held), "passed_cut": sorted(self.passed_cut),
+                "ready": self.mode == "retiring" and set(self.cut) <= self.passed_cut}
+
+    def _handle_control(self, query: Any) -> None:
+        try:
+            req = msgpack.unpackb(query.payload.to_bytes()) if query.payload is not None else {}
+            result = self.control(req)
+        except Exception as e:
+            result = {"ok": False, "error": f"{type(e).__name__}: {e}"}
+        try:
+            query.reply(keys.svc_control(self.svc.role, self.svc.instance), msgpack.packb(result, use_bin_type=True))
+        finally:
+            query.drop()
+
     def handle_query(self, name: str, query: Any) -> None:
+        if name == "__control__":
+            self._handle_control(query)
+            return
         fn = self.extra_qables[name]
         try:
             params = dict(query.parameters) if query.parameters is not None else {}
@@ -471,6 +574,9 @@ class Runner:
         qs = self.session.declare_queryable(keys.svc_status(svc.role, svc.instance), zenoh.handlers.FifoChannel(64))
         self.qables.append(qs)
         self._spawn(self._reader, qs, "status")
+        qc = self.session.declare_queryable(keys.svc_control(svc.role, svc.instance), zenoh.handlers.FifoChannel(16))
+        self.qables.append(qc)
+        self._spawn(self._reader, qc, "__control__")
         qa = self.session.declare_queryable(keys.alarms_all(svc.vehicle_pattern), zenoh.handlers.FifoChannel(64))
         self.qables.append(qa)
         self._spawn(self._reader, qa, "alarms")
@@ -595,6 +701,8 @@ def make_parser(cls: type[Service]) -> argparse.ArgumentParser:
     else:
         g.add_argument("--vehicles", default="*", metavar="PATTERN",
                        help="serve only vehicles matching this key-chunk pattern (sharding), default *")
+    g.add_argument("--standby", action="store_true",
+                   help="start warm but silent, waiting to take the role over (used by magmesh swap)")
     g.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="a setting (repeatable)")
     g.add_argument("--settings-json", default=None, help="settings as one JSON object")
     g.add_argument("--manifest", default=None, help="mesh manifest (TOML) to read vehicle tables from")
@@ -630,12 +738,14 @@ def service_from_args(cls: type[Service], args: argparse.Namespace) -> Service:
     return svc
 
 
-def run(svc: Service, conf: Any, ready: threading.Event | None = None) -> None:
+def run(svc: Service, conf: Any, ready: threading.Event | None = None, standby: bool = False) -> None:
     """Open a session, run ``svc`` until stopped (SIGINT/SIGTERM or its source ends), close."""
     import zenoh
 
     session = zenoh.open(conf)
     runner = Runner(svc, session)
+    if standby:
+        runner.mode = "standby"
 
     def _on_signal(signum: int, frame: Any) -> None:
         svc.log.info("signal %d: stopping", signum)
@@ -678,4 +788,4 @@ def main(cls: type[Service], argv: list[str] | None = None) -> None:
         conf = zconf.config_from_args(args)
     except Exception as e:
         raise SystemExit(f"{cls.impl}: bad Zenoh configuration: {e}") from None
-    run(svc, conf)
+    run(svc, conf, standby=args.standby)

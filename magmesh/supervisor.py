@@ -215,7 +215,7 @@ class Supervisor:
             except Exception:
                 return
             try:
-                params = dict(q.parameters) if q.parameters is not None else {}
+                params = msgpack.unpackb(q.payload.to_bytes()) if q.payload is not None else {}
                 result = self.control(params)
                 q.reply(keys.svc_control("supervisor", self.name), msgpack.packb(result, use_bin_type=True))
             except Exception as e:

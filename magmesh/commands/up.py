@@ -16,6 +16,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("--endpoint", default=None, help="Zenoh endpoint to host (default: the manifest's)")
     p.add_argument("--log-dir", default=None, help="where process logs go (default .magmesh/logs/<time>)")
+    p.add_argument("--only", default=None, metavar="NAMES",
+                   help="comma-separated process names: start only these (enabled or not)")
+    p.add_argument("--set", action="append", default=[], metavar="PROCESS.NAME=VALUE",
+                   help="override one process setting (repeatable), e.g. sim-car-1.speed=0")
     p.add_argument("--quiet", action="store_true", help="no status line")
     p.add_argument("--log-level", default="INFO")
     p.set_defaults(func=run)
@@ -27,5 +31,20 @@ def run(args: argparse.Namespace) -> int:
 
     setup_logging(args.log_level)
     m = load_manifest(args.manifest)
+    if args.only:
+        wanted = [n.strip() for n in args.only.split(",") if n.strip()]
+        known = {p.name for p in m.processes}
+        missing = [n for n in wanted if n not in known]
+        if missing:
+            raise SystemExit(f"--only: no process named {', '.join(missing)} in {args.manifest}")
+        for p in m.processes:
+            p.enabled = p.name in wanted
+    for item in args.set:
+        target, sep, value = item.partition("=")
+        name, dot, key = target.partition(".")
+        procs = [p for p in m.processes if p.name == name]
+        if not (sep and dot and procs):
+            raise SystemExit(f"--set {item!r}: expected PROCESS.NAME=VALUE with a process of the manifest")
+        procs[0].settings[key] = value
     sup = Supervisor(m, endpoint=args.endpoint, log_dir=Path(args.log_dir) if args.log_dir else None, quiet=args.quiet)
     return sup.run(args.duration)

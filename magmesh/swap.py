@@ -1,0 +1,146 @@
+"""Live swap of a role's implementation, run by the supervisor.
+
+Protocol (each step a query to the instance's control queryable, handled in its main loop, so it is
+ordered with the messages it processes):
+
+1. start the new implementation with ``--standby``: it subscribes, warms its windows on live input and
+   publishes nothing;
+2. wait until it has seen ``warmup_s`` of sample time of every vehicle the old instance serves;
+3. ask the old instance where it is (last input time per vehicle) and choose a cut-over time per
+   vehicle a little ahead of it (``lead_s``);
+4. ``arm`` the new one (hold outputs at or after the cut) and ``retire`` the old one (publish only
+   outputs before the cut, hold the rest);
+5. when the old instance has passed the cut for every vehicle, read its last ``seq`` per key and its
+   alarm states; ``takeover`` hands them to the new one, which continues the sequence numbers, adopts
+   the alarm states (so nothing is raised or cleared twice) and publishes what it held;
+6. ``release`` the old one and stop it.
+
+Outputs are split by sample time, so subscribers see every epoch exactly once, with seq continuing.
+If the new instance dies or never gets warm, it is stopped and the old one ``resume``s (publishing what
+it held): the role is never left without an owner.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import time
+from typing import Any
+
+import msgpack
+
+from schemas import keys
+
+log = logging.getLogger("magmesh.swap")
+
+
+class SwapError(RuntimeError):
+    pass
+
+
+class Swapper:
+    def __init__(self, sup: Any, warmup_s: float = 3.0, lead_s: float = 0.5):
+        self.sup = sup
+        self.warmup_s = warmup_s
+        self.lead_s = lead_s
+
+    def _control(self, role: str, instance: str, req: dict, timeout: float = 3.0) -> dict:
+        payload = msgpack.packb(req, use_bin_type=True)
+        for rep in self.sup.session.get(keys.svc_control(role, instance), payload=payload, timeout=timeout):
+            if rep.ok is not None:
+                res = msgpack.unpackb(rep.ok.payload.to_bytes())
+                if not res.get("ok"):
+                    raise SwapError(f"{instance} refused {req.get('op')}: {res.get('error')}")
+                return res
+        raise SwapError(f"{instance} did not answer {req.get('op')} within {timeout:g} s")
+
+    def _holder(self, role: str) -> tuple[str, Any]:
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline:
+            for inst, ch in list(self.sup.children.items()):
+                if not ch.alive:
+                    continue
+                try:
+                    st = self._control(role, inst, {"op": "state"}, timeout=1.0)
+                except SwapError:
+                    continue
+                if st.get("mode") == "active":
+                    return inst, ch
+            time.sleep(0.2)
+        raise SwapError(f"no running instance holds the role {role!r}")
+
+    def swap(self, role: str, impl: str, timeout_s: float = 20.0) -> dict:
+        t0 = time.monotonic()
+        try:
+            old_inst, old_child = self._holder(role)
+        except SwapError as e:
+            return {"ok": False, "error": str(e)}
+        base = old_child.spec.name
+        new_inst = f"{base}-{impl}"
+        n = 2
+        while new_inst in self.sup.children:
+            new_inst = f"{base}-{impl}-{n}"
+            n += 1
+        self.sup.event(f"swap {role}: starting {impl} as {new_inst} in standby beside {old_inst}")
+        spec = old_child.spec
+        new_child = self.sup.add_child(spec, impl_override=impl, instance=new_inst, start=False)
+        new_child.cmd.append("--standby")
+        new_child.start()
+        retired = False
+        try:
+            # 1-2: wait for the new instance to answer and to be warm on every vehicle the old one serves
+            old_state = self._control(role, old_inst, {"op": "state"})
+            vehicles = set(old_state.get("last_in_t", {}))
+            while True:
+                if not new_child.alive:
+                    raise SwapError(f"{new_inst} exited with code {new_child.proc.returncode} before it was ready "
+                                    f"(log: {new_child.log_path})")
+                if time.monotonic() - t0 > timeout_s:
+                    raise SwapError(f"{new_inst} was not warm within {timeout_s:g} s")
+                try:
+                    st = self._control(role, new_inst, {"op": "state"}, timeout=1.0)
+                except SwapError:
+                    time.sleep(0.2)
+                    continue
+                if st.get("mode") != "standby":
+                    raise SwapError(f"{new_inst} is in mode {st.get('mode')!r}, not standby")
+                span = {v: st["last_in_t"].get(v, 0) - st["first_in_t"].get(v, 0) for v in st.get("last_in_t", {})}
+                if all(span.get(v, -1) >= self.warmup_s for v in vehicles):
+                    break
+                time.sleep(0.2)
+            # 3-4: agree a cut-over time per vehicle
+            old_state = self._control(role, old_inst, {"op": "state"})
+            cut = {v: t + self.lead_s for v, t in old_state.get("last_in_t", {}).items()}
+            self._control(role, new_inst, {"op": "arm", "cut": cut})
+            self._control(role, old_inst, {"op": "retire", "cut": cut})
+            retired = True
+            # 5: wait for the old one to pass the cut everywhere (or for a vehicle's stream to stop)
+            hand = None
+            stalled_after = time.monotonic() + max(3.0, 4 * self.lead_s)
+            while True:
+                if not new_child.alive:
+                    raise SwapError(f"{new_inst} exited with code {new_child.proc.returncode} during the hand-over")
+                hand = self._control(role, old_inst, {"op": "state"})
+                if hand.get("ready") or time.monotonic() > stalled_after:
+                    break
+                time.sleep(0.05)
+            res = self._control(role, new_inst, {"op": "takeover", "seqs": hand["seqs"], "alarms": hand["alarms"],
+                                                 "raised": hand.get("raised", {})})
+            self._control(role, old_inst, {"op": "release"})
+        except Exception as e:
+            reason = str(e)
+            self.sup.event(f"swap {role} to {impl} failed: {reason}; {old_inst} stays in charge")
+            self.sup.remove_child(new_inst, sig=signal.SIGKILL)
+            if retired:
+                try:
+                    self._control(role, old_inst, {"op": "resume"})
+                except SwapError as e2:
+                    reason += f"; resume failed too: {e2}"
+            return {"ok": False, "error": reason, "holder": old_inst}
+        # 6: the new one holds the role; a later restart of it must not come back in standby
+        new_child.cmd.remove("--standby")
+        self.sup.remove_child(old_inst)
+        took = time.monotonic() - t0
+        self.sup.event(f"swap {role}: {new_inst} ({impl}) took over from {old_inst} in {took:.1f} s")
+        return {"ok": True, "role": role, "old": old_inst, "new": new_inst, "impl": impl, "cut": cut,
+                "seqs": hand["seqs"], "held_published": res.get("held", 0), "took_s": round(took, 2)}
