@@ -127,6 +127,18 @@ def test_sufficiency_refuses_an_arc_and_a_flat_cloud():
     assert not v3.ok and "attitude" in v3.reason
 
 
+def test_a_tumbled_cloud_is_refused_as_a_2d_fit():
+    c = _cloud(model="3d", seed=2)
+    res = arls.fit_arls(c.m_nt, "2d")
+    v = sufficiency.check_fit(c.m_nt, res.params, sufficiency.SufficiencySettings(), res.weights) if res.ok else None
+    assert v is None or (not v.ok and ("tilts" in v.reason or "do not lie" in v.reason))
+    sc = SensorCalibrator("1", CalibrationSettings(model="auto", sample_interval_s=0.0))
+    for i, m in enumerate(c.m_nt):
+        sc.update(0.05 * i, m)
+    a = sc.fit(0.05 * len(c.m_nt))
+    assert a.accepted and sc.current.params.model == "3d"  # auto picks the ellipsoid
+
+
 def test_balanced_subset_caps_samples_per_direction():
     c = _cloud(model="2d", seed=3)
     parked = np.repeat(c.m_nt[:1], 5000, axis=0)

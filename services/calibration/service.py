@@ -53,6 +53,11 @@ class Settings:
     state_subdir: str = "calibration"
 
 
+def _gist(reason: str) -> str:
+    """A refusal reason without its numbers: "only 12 samples" and "only 13 samples" say the same."""
+    return re.sub(r"[0-9.]+", "#", reason)
+
+
 def _safe(s: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.\-]", "_", s)
 
@@ -148,7 +153,7 @@ class Calibration(Service):
             elif had is None or had.status not in USABLE:
                 # nothing usable yet: say why on cal/params (once per distinct reason)
                 last = self.last_msgs.get(keys.cal_params(info.vehicle, sid))
-                if attempt.record is not None and (last is None or last.get("reason") != attempt.reason):
+                if attempt.record is not None and (last is None or _gist(last.get("reason", "")) != _gist(attempt.reason)):
                     self.log.info("vehicle %s sensor %s: fit refused: %s", info.vehicle, sid, attempt.reason)
                     self._publish_params(info.vehicle, sid, attempt.record, msg["t_s"], persist=False)
         cur = sc.current

@@ -32,6 +32,8 @@ class SufficiencySettings:
     max_per_bin: int = 40  # balanced subset: at most this many samples per bin/cell
     max_axis_ratio: float = 3.0  # largest/smallest singular value of the fitted matrix
     radius_range_nt: tuple[float, float] = (5_000.0, 120_000.0)  # plausible fitted field strength
+    max_residual_rel: float = 0.12  # robust spread of |h|/R − 1 beyond this: not an ellipse/ellipsoid
+    max_vertical_ratio: float = 0.6  # 2-D: 5–95% range of m_z over the circle's diameter beyond this: tilting
 
     def __post_init__(self):
         if not (0 < self.min_coverage_2d <= 1 and 0 < self.min_coverage_3d <= 1):
@@ -136,4 +138,16 @@ def check_fit(m_nt: np.ndarray, params: magcal.MagParams, st: SufficiencySetting
     lo, hi = st.radius_range_nt
     if not (lo <= params.field_radius_nt <= hi):
         return Verdict(False, cov, f"fitted field strength {params.field_radius_nt:.0f} nT is outside {lo:.0f}–{hi:.0f} nT")
+    if model == "2d":
+        z_range = float(np.percentile(m[:, 2], 95) - np.percentile(m[:, 2], 5))
+        ratio = z_range / (2 * params.field_radius_nt)
+        if ratio > st.max_vertical_ratio:
+            return Verdict(False, cov, f"the sensor tilts: its vertical field varies by {100 * ratio:.0f}% of the "
+                                       "horizontal circle, too much for a level (2-D) fit; tumble it for a 3-D fit")
+    r = magcal.field_strength_residual(m, params) / params.field_radius_nt
+    spread = float(1.4826 * np.median(np.abs(r - np.median(r))))
+    if spread > st.max_residual_rel:
+        return Verdict(False, cov, f"samples do not lie on an {'ellipse' if model == '2d' else 'ellipsoid'} "
+                                   f"(robust residual {100 * spread:.1f}% > {100 * st.max_residual_rel:.0f}%): "
+                                   "the field is disturbed or the sensor moves out of the fitted model")
     return Verdict(True, cov)
