@@ -165,7 +165,7 @@ LAYOUTS: dict[str, tuple[SourceSpec, ...]] = {
         SourceSpec("viaduct_1", "viaduct", straight=5, frac=0.5, length_m=90.0),
     ),
     "urban_b": (
-        SourceSpec("viaduct_1", "viaduct", straight=0, frac=0.55, length_m=110.0, strength=1.2, stop_s=8.0),
+        SourceSpec("viaduct_1", "viaduct", straight=0, frac=0.55, length_m=110.0, strength=1.0, stop_s=8.0),
         SourceSpec("truck_1", "truck", straight=2, frac=0.5, speed_m_s=15.0, same_direction=True),
         SourceSpec("bridge_1", "bridge", straight=3, frac=0.4, length_m=60.0, strength=0.8),
         SourceSpec("cable_1", "cable", straight=4, frac=0.5, strength=1.0),
