@@ -291,3 +291,29 @@ def test_publisher_loops_with_time_running_on():
     assert laps == [1, 2, 3]
     assert last[keys.raw_mag("car-7", "1")] == pytest.approx(3 * 10.0 + 2 * 0.02)
     assert n == 3 * (2 * 501 + 1001 + 51)
+
+
+@pytest.mark.slow
+def test_evaluation_goals_over_layouts_and_seeds():
+    import argparse
+
+    from bench import eval_sim_car
+
+    p = argparse.ArgumentParser()
+    eval_sim_car.add_arguments(p)
+    r = eval_sim_car.run(p.parse_args(["--seeds", "3"]))
+    for layout, v in r["layouts"].items():
+        assert v["zones"]["outside"]["err_deg_p50_p99_max"][1] < 1.0, layout
+        if layout == "clean":
+            assert v["disturbed_frac"] == 0.0
+            continue
+        assert 0.05 < v["disturbed_frac"] < 0.3, layout
+        for kind, z in v["zones"].items():
+            if kind in ("outside", "clutter", "cable"):
+                continue
+            p50, p90, worst = z["err_deg_p50_p90_max"]
+            assert p90 >= 8.0 and 20.0 <= worst <= 45.0, (layout, kind, z)
+    f = r["features"]
+    assert f["inside"]["dm_nt"][0] > 10 * f["outside"]["dm_nt"][1]  # median inside ≫ p95 outside
+    assert f["inside"]["dh_deg"][1] > 5 * f["outside"]["dh_deg"][2]
+    assert 1.2 < r["gnss"]["pos_err_std_m"] < 1.8
