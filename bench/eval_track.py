@@ -50,6 +50,7 @@ def replay(flight: Flight, monitor: TrackMonitor) -> list:
             events += monitor.update_gnss(float(t[k]), flight.gnss_pos_enu_m[gi], flight.gnss_vel_enu_m_s[gi],
                                           "rtk_fixed", 18, 1.3, s.gnss_noise_m)
             gi += 1
+        events += monitor.update_mag(float(t[k]), flight.mag_nt[k])
         events += monitor.update_attitude(float(t[k]), float(att[k]), float(magh[k]))
     return events
 

@@ -338,6 +338,7 @@ TRACK = _register(
             _F("innovation_test_ratio", "float", "heading-innovation test statistic / its threshold", required=False,
                nullable=True),
             _F("route_id", "str", "route the deviation refers to", required=False),
+            _F("field_deviation_nt", "float", "field strength minus its undisturbed reference, nT", required=False),
         ),
     )
 )

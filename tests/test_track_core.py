@@ -118,6 +118,35 @@ def test_robust_innovation_test_ignores_a_short_burst_that_the_paper_test_report
     assert res["paper"] and not res["robust"]
 
 
+def test_combined_verdict_is_held_while_the_field_strength_is_off():
+    rng = np.random.default_rng(8)
+    s = TrackMonitorSettings(warmup_s=2.0, learn_s=20.0, fc_mag_gain_per_s=0.0, anomaly_clear_hold_s=5.0)
+    mon = TrackMonitor(s)
+    dt = 0.02
+    ev = []
+
+    def run(t0, n, e_deg, field_nt):
+        out = []
+        for i in range(n):
+            t = t0 + i * dt
+            b = np.array([field_nt * 0.6, 0.0, -field_nt * 0.8]) + rng.normal(0, 20, 3)
+            out += mon.update_mag(t, b)
+            out += mon.update_attitude(t, 1.0, 1.0 + math.radians(e_deg + rng.normal(0, 0.3)))
+        return out
+
+    ev += run(0.0, 1500, 0.0, 60000.0)  # 30 s undisturbed: σ and |B| reference learned
+    assert not mon.flags["learning"] and not mon.flags["field_learning"]
+    ev += run(30.0, 100, 4.0, 61500.0)  # 2 s: heading jumps, field off by 1500 nT
+    assert mon.flags["anomaly_alarm"]
+    ev += run(32.0, 1000, 0.0, 61500.0)  # 20 s: the filter followed (innovation quiet), field still off
+    assert not mon.flags["innovation_alarm"] and mon.flags["field_deviating"]
+    assert mon.flags["anomaly_alarm"]
+    ev += run(52.0, 500, 0.0, 60000.0)  # 10 s: field back
+    cleared = [e for e in ev if e.source == "mag_anomaly" and e.state == "cleared"]
+    assert len(cleared) == 1 and 52.0 + 5.0 <= cleared[0].t_s <= 52.0 + 7.0
+    assert "field strength back" in cleared[0].reason
+
+
 def test_learn_sigmas_needs_samples_and_pools_them():
     s = TrackMonitorSettings()
     with pytest.raises(ValueError):

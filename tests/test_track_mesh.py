@@ -96,6 +96,7 @@ def test_slow_ramp_raises_mag_anomaly_within_the_goal(tmp_path):
         assert 0.0 <= last["cross_track_m"] < 5.0 and last["along_track_m"] > 100.0
         assert last["innovation_sigma_rad"] is not None and not last["innovation_learning"]
         assert any(t["anomaly_alarm"] for t in tr)
+        assert "field_deviation_nt" in last  # the magnetometer stream reached the field-strength monitor
     finally:
         for p in procs:
             _stop(p)

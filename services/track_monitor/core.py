@@ -74,6 +74,13 @@ class TrackMonitorSettings:
     burst_max_s: float = 0.5  # a burst lasting this long is a step disturbance
     fc_mag_gain_per_s: float = 1.0  # magnetometer gain k of the flight controller's heading filter (0: unknown)
     max_attitude_gap_s: float = 1.0  # a longer gap restarts the median window and the CUSUM
+    # ---- field strength (holds the combined verdict; never raises it: motors modulate |B|, paper §0) ----
+    field_k_sigma: float = 5.0  # |B| deviates when its running median is this many σ from the reference ...
+    field_min_dev_nt: float = 400.0  # ... and at least this far (≈ 0.7 % of a 0.6 G field; turns move |B| by the
+    # residual hard iron, a few hundred nT)
+    field_window_s: float = 1.0  # running-median window of |B|
+    field_ref_nt: float = 0.0  # undisturbed |B| at the magnetometer; 0: learn it (same windows as σ)
+    field_sigma_nt: float = 0.0  # σ of the running median of |B| on undisturbed flight; 0: learn it
     # ---- combined verdict ----
     anomaly_clear_hold_s: float = 10.0
 
@@ -82,6 +89,7 @@ class TrackMonitorSettings:
             raise ValueError(f"innovation_test must be one of {', '.join(INNOVATION_TESTS)}, "
                              f"got {self.innovation_test!r}")
         for name in ("track_threshold_m", "innovation_k_sigma", "learn_s", "median_window_s", "block_s",
+                     "field_k_sigma", "field_window_s",
                      "clip_sigma", "cusum_threshold", "sigma_floor_rad"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
@@ -90,7 +98,8 @@ class TrackMonitorSettings:
         if not (0 < self.innovation_clear_sigma <= self.innovation_k_sigma):
             raise ValueError("innovation_clear_sigma must be in (0, innovation_k_sigma]")
         for name in ("clear_hold_s", "track_persist_s", "anomaly_clear_hold_s", "warmup_s",
-                     "innovation_sigma_rad", "median_sigma_rad", "block_sigma_rad", "cusum_drift", "route_margin_m"):
+                     "innovation_sigma_rad", "median_sigma_rad", "block_sigma_rad",
+                     "field_ref_nt", "field_sigma_nt", "field_min_dev_nt", "cusum_drift", "route_margin_m"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be ≥ 0, got {getattr(self, name)!r}")
 
@@ -412,6 +421,66 @@ class InnovationDetector:
         return events
 
 
+class FieldStrengthMonitor:
+    """|B| at the magnetometer against its undisturbed reference (the field-strength error Δm of §1).
+
+    The paper leaves field strength out of its alarms because the motors modulate |B| on a multirotor; here
+    it only decides when a disturbance is over: the combined verdict is held while the running median of
+    |B| is more than max(k·σ, ``field_min_dev_nt``) from the reference learned on undisturbed flight.
+    """
+
+    def __init__(self, s: TrackMonitorSettings):
+        self.s = s
+        self.reset()
+
+    def reset(self) -> None:
+        s = self.s
+        self.ref_nt: float | None = s.field_ref_nt or None
+        self.sigma_nt: float | None = s.field_sigma_nt or None
+        self.learning = self.ref_nt is None or self.sigma_nt is None
+        if self.learning:
+            self.ref_nt = self.sigma_nt = None
+        self.learning_samples: list[float] = []
+        self._t_first: float | None = None
+        self._window: deque[tuple[float, float]] = deque()
+        self.field_nt: float | None = None
+        self.median_nt: float | None = None
+        self.deviation_nt: float | None = None
+        self.deviating = False
+
+    def apply(self, ref_nt: float, sigma_nt: float) -> None:
+        self.ref_nt, self.sigma_nt, self.learning = float(ref_nt), max(float(sigma_nt), 1.0), False
+
+    @property
+    def gate_nt(self) -> float | None:
+        return None if self.sigma_nt is None else max(self.s.field_k_sigma * self.sigma_nt, self.s.field_min_dev_nt)
+
+    def update(self, t_s: float, b_nt) -> None:
+        s = self.s
+        f = math.sqrt(b_nt[0] ** 2 + b_nt[1] ** 2 + b_nt[2] ** 2)
+        self.field_nt = f
+        if self._window and t_s - self._window[-1][0] > s.max_attitude_gap_s:
+            self._window.clear()
+        self._window.append((t_s, f))
+        while self._window and t_s - self._window[0][0] > s.field_window_s:
+            self._window.popleft()
+        med = float(np.median([v for _, v in self._window]))
+        self.median_nt = med
+        if self._t_first is None:
+            self._t_first = t_s
+        age = t_s - self._t_first
+        if self.learning:
+            if age >= s.warmup_s:
+                self.learning_samples.append(med)
+            if age >= s.warmup_s + s.learn_s and len(self.learning_samples) >= 20:
+                x = np.asarray(self.learning_samples)
+                self.apply(float(np.median(x)), float(np.std(x)))
+                self.learning_samples = []
+            return
+        self.deviation_nt = med - self.ref_nt
+        self.deviating = abs(self.deviation_nt) > self.gate_nt
+
+
 def learn_sigmas(samples: list, s: TrackMonitorSettings) -> dict:
     """σ of the heading innovation on undisturbed flight, from ``(t_s, e, running median)`` samples.
 
@@ -456,18 +525,21 @@ class TrackMonitor:
     def __post_init__(self) -> None:
         self.track = TrackDetector(self.settings)
         self.innovation = InnovationDetector(self.settings)
+        self.field = FieldStrengthMonitor(self.settings)
         self.reset()
 
     def reset(self) -> None:
         self.route: Route | None = None
         self.track.reset()
         self.innovation.reset()
+        self.field.reset()
         self.anomaly = _Hysteresis()
         self.anomaly_source: str | None = None
         self.t_s: float | None = None
         self.n_gnss = 0
         self.n_attitude = 0
         self.n_gnss_untrusted = 0
+        self.n_mag = 0
 
     def set_route(self, a_enu_m, b_enu_m, route_id: str) -> None:
         """A new planned line: the track detector re-arms (alarms already raised stay until cleared)."""
@@ -499,8 +571,15 @@ class TrackMonitor:
             return self._combine([], t_s)
         return self._combine(self.innovation.update(t_s, heading_rad, mag_heading_rad), t_s)
 
+    def update_mag(self, t_s: float, b_nt) -> list[AlarmEvent]:
+        """A magnetometer sample (body frame, nT): field strength, used to hold the combined verdict."""
+        self.n_mag += 1
+        self.field.update(t_s, b_nt)
+        return self._combine([], t_s) if self.anomaly.raised else []
+
     def _combine(self, events: list[AlarmEvent], t_s: float) -> list[AlarmEvent]:
-        """The combined verdict: raised by the first detector that raises; held until both are quiet."""
+        """The combined verdict: raised by the first detector that raises; held until both are quiet and
+        the field strength (when known) is back at its undisturbed reference."""
         s = self.settings
         out = list(events)
         if not self.anomaly.raised:
@@ -514,10 +593,12 @@ class TrackMonitor:
                                           ev.value, ev.threshold, ev.unit, "critical", t_s))
                     break
         else:
-            quiet = not self.track.state.raised and not self.innovation.state.raised
+            quiet = (not self.track.state.raised and not self.innovation.state.raised
+                     and not self.field.deviating)
             if self.anomaly.clear_step(quiet, t_s, s.anomaly_clear_hold_s):
+                fs = "" if self.field.learning else ", field strength back at its reference"
                 out.append(AlarmEvent("mag_anomaly", "cleared", t_s,
-                                      f"magnetic anomaly cleared: track and heading innovation quiet for "
+                                      f"magnetic anomaly cleared: track and heading innovation quiet{fs} for "
                                       f"{s.anomaly_clear_hold_s:g} s (raised by {self.anomaly_source})",
                                       None, None, "", "critical", self.anomaly.raised_t_s))
                 self.anomaly = _Hysteresis()
@@ -544,6 +625,9 @@ class TrackMonitor:
             "bursts": inn.n_bursts,
             "innovation_test_ratio": inn.test_ratio,
             "gnss_reason": tr.gnss_reason,
+            "field_nt": self.field.median_nt,
+            "field_ref_nt": self.field.ref_nt,
+            "field_deviation_nt": self.field.deviation_nt,
         }
 
     @property
@@ -556,4 +640,6 @@ class TrackMonitor:
             "track_alarm": self.track.state.raised,
             "innovation_alarm": self.innovation.state.raised,
             "anomaly_alarm": self.anomaly.raised,
+            "field_learning": self.field.learning,
+            "field_deviating": self.field.deviating,
         }

@@ -3,6 +3,7 @@
 Consumes  magmesh/{vehicle}/clean/route      the planned line A → B
           magmesh/{vehicle}/clean/gnss       RTK position (pos_enu_m), velocity and fix quality
           magmesh/{vehicle}/clean/attitude   the vehicle's own heading and the magnetometer heading it fuses
+          magmesh/{vehicle}/clean/mag/{sensor} field strength: the combined verdict is held while |B| is off
 Produces  magmesh/{vehicle}/track                    d, along-track progress, detector states (per GNSS epoch)
           magmesh/{vehicle}/alarm/track              d > 1 m on trusted GNSS
           magmesh/{vehicle}/alarm/heading_innovation |ψ_mag − ψ_att| test (paper 5σ, or robust median + CUSUM)
@@ -32,18 +33,22 @@ class Settings(TrackMonitorSettings):
     tick_s: float = 2.0  # persistence of learned σ runs from the tick
     persist_sigma: bool = True  # save learned σ per vehicle and reuse it on the next start
     state_subdir: str = "track_monitor"
+    mag_sensor: str = "1"  # magnetometer whose field strength holds the combined verdict ("" to ignore)
 
 
 class TrackMonitorService(Service):
     role = "track_monitor"
     impl = "track_monitor"
     Settings = Settings
-    CONSUMES = ("clean/route", "clean/gnss", "clean/attitude")
+    CONSUMES = ("clean/route", "clean/gnss", "clean/attitude", "clean/mag/{sensor}")
     PRODUCES = ("track", "alarm/track", "alarm/heading_innovation", "alarm/mag_anomaly")
 
     def subscriptions(self) -> list[str]:
         p = self.vehicle_pattern
-        return [keys.clean_route(p), keys.clean_gnss(p), keys.clean_attitude(p)]
+        subs = [keys.clean_route(p), keys.clean_gnss(p), keys.clean_attitude(p)]
+        if self.settings.mag_sensor:
+            subs.append(keys.clean_mag(p, self.settings.mag_sensor))
+        return subs
 
     # ---- per-vehicle state --------------------------------------------------------------------
     def _sigma_path(self, vehicle: str):
@@ -63,6 +68,8 @@ class TrackMonitorService(Service):
                 if saved.get("innovation_test") == s.innovation_test:
                     mon.innovation.apply_sigmas(saved)
                     mon.saved_sigma = True
+                    if mon.field.learning and saved.get("field_ref_nt") and saved.get("field_sigma_nt"):
+                        mon.field.apply(saved["field_ref_nt"], saved["field_sigma_nt"])
                     self.log.info("%s: innovation σ %.3f° loaded from %s", vehicle,
                                   math.degrees(saved["innovation_sigma_rad"]), path)
             except FileNotFoundError:
@@ -88,6 +95,8 @@ class TrackMonitorService(Service):
                 self.count_drop(info.key, "no route yet")
             else:
                 self._publish_track(info.vehicle, msg["t_s"], mon)
+        elif stream == "mag":
+            self._emit(info.vehicle, mon.update_mag(msg["t_s"], msg["b_nt"]))
         elif stream == "attitude":
             was_learning = mon.innovation.learning
             self._emit(info.vehicle, mon.update_attitude(msg["t_s"], msg["heading_rad"], msg["mag_heading_rad"]))
@@ -118,6 +127,8 @@ class TrackMonitorService(Service):
             innovation_learning=fl["learning"], innovation_test_ratio=st["innovation_test_ratio"],
             route_id=mon.route.route_id,
         )
+        if st["field_deviation_nt"] is not None:
+            fields["field_deviation_nt"] = st["field_deviation_nt"]
         if mon.track.cross_track_signed_m is not None:
             fields["cross_track_signed_m"] = mon.track.cross_track_signed_m
         self.publish(keys.track(vehicle), "track", vehicle, t_s, **fields)
@@ -135,12 +146,15 @@ class TrackMonitorService(Service):
         inn = mon.innovation
         if mon is None or inn.learning or getattr(mon, "saved_sigma", True):
             return
+        if self.settings.mag_sensor and mon.field.learning and mon.n_mag > 0:
+            return  # wait for the field reference too, then save both
         path = self._sigma_path(vehicle)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp")
         tmp.write_text(json.dumps({"innovation_test": self.settings.innovation_test,
                                    "innovation_sigma_rad": inn.sigma_rad, "median_sigma_rad": inn.median_sigma_rad,
-                                   "block_sigma_rad": inn.block_sigma_rad}))
+                                   "block_sigma_rad": inn.block_sigma_rad,
+                                   "field_ref_nt": mon.field.ref_nt, "field_sigma_nt": mon.field.sigma_nt}))
         os.replace(tmp, path)
         mon.saved_sigma = True
         self.log.info("%s: innovation σ saved to %s", vehicle, path)
@@ -160,5 +174,7 @@ class TrackMonitorService(Service):
                 "anomaly_source": mon.anomaly_source,
                 "gnss_untrusted": mon.n_gnss_untrusted,
                 "bursts": st["bursts"],
+                "field_ref_nt": st["field_ref_nt"],
+                "field_deviation_nt": st["field_deviation_nt"],
             }
         return {"vehicles": out}
