@@ -321,10 +321,15 @@ def read_records(path: str | Path, key_exprs: Sequence[str] | None = None,
 
 
 def load_messages(path: str | Path, key_exprs: Sequence[str] | None = None,
-                  counts: Counter | None = None) -> list[tuple[str, dict]]:
+                  counts: Counter | None = None, progress: bool = False) -> list[tuple[str, dict]]:
     """Decoded ``(key, message)`` pairs of a recording; undecodable payloads are counted in ``counts``."""
     out: list[tuple[str, dict]] = []
-    for rec in read_records(path, key_exprs):
+    records: Iterable[Record] = read_records(path, key_exprs)
+    if progress:
+        from tqdm import tqdm
+
+        records = tqdm(records, total=summarize(path)["messages"], unit="msg", desc=f"reading {Path(path).name}")
+    for rec in records:
         try:
             out.append((rec.key, rec.decode()))
         except messages.SchemaError:

@@ -52,29 +52,38 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     zconf.add_zenoh_args(p)
 
 
-def vehicle_maps(manifest: str | None, override: str | None, vehicles) -> dict:
-    """vehicle → GridMap, from --map (all vehicles) or each vehicle's ``map`` in the manifest."""
-    from ..geomap import load_map
+def vehicle_maps(manifest: str | None, override: str | None, vehicles) -> tuple[dict, dict]:
+    """(vehicle → GridMap, vehicle → main field nT) from --map (all vehicles) or each vehicle's table in
+    the manifest (``map``; ``main_field_nt`` or the IGRF field at ``lat_deg``/``lon_deg``/``alt_m``, as
+    the geomagnetic matcher computes it)."""
+    import numpy as np
 
-    specs: dict[str, str] = {}
+    from ..geomap import core_field_enu_nt, load_map
+
+    tables: dict[str, dict] = {}
     if manifest and Path(manifest).exists():
         with open(manifest, "rb") as f:
-            for v, table in tomllib.load(f).get("vehicles", {}).items():
-                if isinstance(table, dict) and table.get("map"):
-                    specs[v] = str(table["map"])
+            tables = {v: t for v, t in tomllib.load(f).get("vehicles", {}).items() if isinstance(t, dict)}
     cache: dict[str, object] = {}
-    out = {}
+    grids, main = {}, {}
     for v in vehicles:
-        spec = override or specs.get(v)
+        table = tables.get(v, {})
+        spec = override or table.get("map")
         if not spec:
             continue
         try:
             if spec not in cache:
-                cache[spec] = load_map(spec)
-            out[v] = cache[spec]
+                cache[spec] = load_map(str(spec))
+            grids[v] = cache[spec]
         except (OSError, ValueError) as e:
             log.warning("map %s for %s not loaded: %s", spec, v, e)
-    return out
+            continue
+        if "main_field_nt" in table:
+            main[v] = float(table["main_field_nt"])
+        elif "lat_deg" in table and "lon_deg" in table:
+            main[v] = float(np.linalg.norm(core_field_enu_nt(table["lat_deg"], table["lon_deg"],
+                                                             table.get("alt_m", 0.0))))
+    return grids, main
 
 
 def make_report(paths, out_dir: str | Path, key_exprs=None, vehicles=None, title=None, map_spec=None,
@@ -88,7 +97,7 @@ def make_report(paths, out_dir: str | Path, key_exprs=None, vehicles=None, title
     liveliness: list = []
     notes = []
     for i, path in enumerate(paths):
-        got = load_messages(path, key_exprs, counts=bad)
+        got = load_messages(path, key_exprs, counts=bad, progress=progress)
         if exclude and i < len(paths) - 1:
             got = [(k, m) for k, m in got if not matches_any(exclude, k)]
         msgs += got
@@ -100,9 +109,9 @@ def make_report(paths, out_dir: str | Path, key_exprs=None, vehicles=None, title
     path = paths[-1]
     if bad:
         notes.append(f"{sum(bad.values())} recorded payloads did not decode as magmesh messages and are not plotted.")
-    grids = vehicle_maps(manifest, map_spec, found)
+    grids, main_field = vehicle_maps(manifest, map_spec, found)
     return build_report(msgs, out_dir, title=title or f"magmesh run {path.stem}",
-                        source=", ".join(str(p) for p in paths), liveliness=sorted(liveliness), grids=grids, vehicles=vehicles, progress=progress,
+                        source=", ".join(str(p) for p in paths), liveliness=sorted(liveliness), grids=grids, main_field_nt=main_field, vehicles=vehicles, progress=progress,
                         notes=notes)
 
 

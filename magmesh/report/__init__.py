@@ -45,13 +45,15 @@ def build_report(
     liveliness: Sequence[tuple[float, str, bool]] = (),
     grid=None,
     grids: dict | None = None,
+    main_field_nt: dict | None = None,
     vehicles: Sequence[str] | None = None,
     progress: bool = False,
     notes: Sequence[str] = (),
 ) -> Path:
     """Write ``index.html``, the PNGs and ``summary.json`` into ``out_dir``; return the HTML path.
 
-    ``grid`` is the anomaly map drawn under geomagnetic fixes; ``grids`` maps a vehicle id to its own map.
+    ``grid`` is the anomaly map drawn under geomagnetic fixes; ``grids`` maps a vehicle id to its own map,
+    ``main_field_nt`` a vehicle id to the core field its matcher subtracts (else sequences are de-meaned).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -67,7 +69,7 @@ def build_report(
     images: dict[str, list[tuple[str, str]]] = {v: [] for v in runs}
     for v, name, label, fn in jobs:
         run = runs[v]
-        fig = plots.plot_geomag(run, (grids or {}).get(v, grid)) if name == "geomag" else fn(run)
+        fig = plots.plot_geomag(run, (grids or {}).get(v, grid), (main_field_nt or {}).get(v)) if name == "geomag" else fn(run)
         if fig is not None:
             fname = f"{_safe(v)}_{name}.png"
             fig.savefig(out / fname)

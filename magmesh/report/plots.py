@@ -77,7 +77,8 @@ def plot_field(run: VehicleRun) -> Figure | None:
         dm = np.array([m["dm_nt"] for m in dmc], float)
         dh = np.degrees([m["dh_rad"] for m in dmc])
         ax1 = axes[1]
-        for k in range(dm.shape[1]):
+        two = dm.shape[1] > 1 and not np.allclose(dm[:, 1], dm[:, 0]) and np.any(dm[:, 1] != 0)
+        for k in range(dm.shape[1] if two else 1):
             ax1.plot(t, dm[:, k], lw=0.8, label=f"Δm compass {k + 1}, nT")
         ax1.set_ylabel("Δm, nT")
         ax1.grid(alpha=0.3)
@@ -195,11 +196,13 @@ def calibration_pairs(run: VehicleRun) -> list[tuple[str, np.ndarray, np.ndarray
             params[ok[-1]["sensor"]] = ok[-1]
     for sensor, (t, b) in before.items():
         p = params.get(sensor)
-        if p is not None:
+        if sensor in after:
+            # what the mesh compensated, sample by sample, with the parameters of the moment
+            t_after, h = after[sensor]
+            b = np.stack([np.interp(t_after, t, b[:, k]) for k in range(3)], 1) if len(t) > 1 else b
+        elif p is not None:
             # the final parameters applied to every sample: the figure the papers show
             h = magcal.apply(b, p["offset_nt"], np.array(p["matrix"], float).reshape(3, 3))
-        elif sensor in after:
-            h = after[sensor][1]
         else:
             continue
         out.append((sensor, b, np.asarray(h, float), p))
@@ -276,14 +279,18 @@ def _spread(r: np.ndarray) -> float:
 # ---- geomagnetic matching ---------------------------------------------------------------------
 
 
-def correlation_surface(grid, h_nt: np.ndarray, ins_m: np.ndarray, radius_cells: int = 12):
-    """Hausdorff distance of the de-meaned measured sequence against the map strip for every whole-cell
+def correlation_surface(grid, h_nt: np.ndarray, ins_m: np.ndarray, radius_cells: int = 12, demean: bool = False,
+                        ordered: bool = True):
+    """Hausdorff distance of the measured anomaly sequence against the map strip for every whole-cell
     shift of the INS track within ``radius_cells`` (the pre-match surface of ALGORITHMS.md §3).
 
+    ``ordered``: sample i is compared with strip point i only (max |h_i − r_i|, the matcher's default);
+    otherwise the paper's set distance. ``demean`` removes both means (when the main field is unknown).
     Returns (shift_x_m, shift_y_m, d_nt 2-D [ix, iy]) or None when the track leaves the map.
     """
     h = np.asarray(h_nt, float)
-    h = h - h.mean()
+    if demean:
+        h = h - h.mean()
     sx = np.arange(-radius_cells, radius_cells + 1) * grid.dx_m
     sy = np.arange(-radius_cells, radius_cells + 1) * grid.dy_m
     X, Y = np.meshgrid(sx, sy, indexing="ij")
@@ -295,15 +302,22 @@ def correlation_surface(grid, h_nt: np.ndarray, ins_m: np.ndarray, radius_cells:
     vals = np.full(len(ij), np.nan)
     vals[inside] = grid.bilinear(ij[inside, 0], ij[inside, 1])
     strips = vals.reshape(X.shape + (len(h),))
-    strips = strips - np.nanmean(strips, axis=-1, keepdims=True)
     complete = ~np.isnan(strips).any(axis=-1)
-    d = np.abs(h[None, None, :, None] - np.where(complete[..., None], strips, 0.0)[..., None, :])
-    dh = np.maximum(d.min(axis=-1).max(axis=-1), d.min(axis=-2).max(axis=-1))
+    strips = np.where(complete[..., None], strips, 0.0)
+    if demean:
+        strips = strips - strips.mean(axis=-1, keepdims=True)
+    if ordered:
+        dh = np.abs(h - strips).max(axis=-1)
+    else:
+        d = np.abs(h[None, None, :, None] - strips[..., None, :])
+        dh = np.maximum(d.min(axis=-1).max(axis=-1), d.min(axis=-2).max(axis=-1))
     dh[~complete] = np.nan
     return sx, sy, dh
 
 
-def plot_geomag(run: VehicleRun, grid=None) -> Figure | None:
+def plot_geomag(run: VehicleRun, grid=None, main_field_nt: float | None = None) -> Figure | None:
+    """Fixes on the map, and the correlation surface of the last fix recomputed from the recorded
+    sequence (measured total field minus ``main_field_nt``; de-meaned when that is not known)."""
     fixes = run.messages("fix")
     if not fixes:
         return None
@@ -339,7 +353,7 @@ def plot_geomag(run: VehicleRun, grid=None) -> Figure | None:
     ax.set_title(f"{run.vehicle}: geomagnetic fixes on the map")
     ax.legend(fontsize=8, loc="upper right")
     ax2 = fig.add_subplot(1, 2, 2)
-    surf = _last_surface(run, fixes, ins, grid)
+    surf = _last_surface(run, fixes, ins, grid, main_field_nt)
     if surf is not None:
         sx, sy, d = surf
         im = ax2.pcolormesh(sx, sy, d.T, cmap="magma_r", shading="auto")
@@ -347,6 +361,9 @@ def plot_geomag(run: VehicleRun, grid=None) -> Figure | None:
         k = np.unravel_index(np.nanargmin(d), d.shape)
         ax2.plot(sx[k[0]], sy[k[1]], "c*", ms=12, label="minimum")
         ax2.plot(0, 0, "w+", ms=10, label="INS position")
+        fix = ([f for f in fixes if f["accepted"]] or fixes)[-1]
+        corr = np.subtract(fix["pos_enu_m"], fix["ins_pos_enu_m"])
+        ax2.plot(corr[0], corr[1], "o", mfc="none", mec="tab:cyan", ms=14, label="matcher's fix")
         ax2.set_aspect("equal")
         ax2.set_xlabel("shift east, m")
         ax2.set_ylabel("shift north, m")
@@ -369,7 +386,7 @@ def _surface_t(fixes) -> float:
     return ([f for f in fixes if f["accepted"]] or fixes)[-1]["t_s"]
 
 
-def _last_surface(run: VehicleRun, fixes, ins, grid):
+def _last_surface(run: VehicleRun, fixes, ins, grid, main_field_nt=None):
     if grid is None or not ins:
         return None
     target = [f for f in fixes if f["accepted"]] or fixes
@@ -385,8 +402,11 @@ def _last_surface(run: VehicleRun, fixes, ins, grid):
     sel = np.flatnonzero(ti <= fix["t_s"] + 1e-9)[-n:]
     if len(sel) < 3:
         return None
-    h = np.interp(ti[sel], tm, f)
-    return correlation_surface(grid, h, pi[sel])
+    h = np.interp(ti[sel], tm, f) - (main_field_nt or 0.0)
+    # wide enough to hold the matcher's correction with a margin of six cells
+    corr = np.hypot(*np.subtract(fix["pos_enu_m"], fix["ins_pos_enu_m"])[:2])
+    radius = int(min(40, max(12, np.ceil(corr / min(grid.dx_m, grid.dy_m)) + 6)))
+    return correlation_surface(grid, h, pi[sel], radius, demean=main_field_nt is None)
 
 
 # ---- track deviation --------------------------------------------------------------------------
