@@ -16,19 +16,22 @@ Model
   (from Rᵀ Ṙ = [ω]×), plus a constant bias, a bias random walk and white noise.
 * Accelerometer: specific force f_b = Rᵀ (a_enu + [0, 0, g]) plus bias and white noise.
 * Magnetometers: Earth field from IGRF at the origin and date (``maths.earth_field_enu_nt``) plus
-  every interference source (``maths.dipole_field_nt`` / ``maths.line_current_field_nt``), rotated
-  into the body frame at each sensor's own position (sensor 1 at +baseline/2 along body x,
-  sensor 2 at −baseline/2). Each sensor sees ``m = S h + o + n``: soft iron S (I + small
-  non-symmetric part, different per sensor), hard iron o (vehicle + sensor, a few 1000 nT) and
-  white noise n. The contract's calibration form is ``h = M (m − offset)`` with M = S⁻¹.
+  every interference source (point dipoles as in ``maths.dipole_field_nt``, line currents with
+  ``maths.line_current_field_nt``), rotated into the body frame at each sensor's own position
+  (sensor 1 at +baseline/2 along body x, sensor 2 at −baseline/2). Each sensor sees
+  ``m = S C_kᵀ h + o + e(t) + n``: mounting rotation C_k (≤ 1°), soft iron S (I + small non-symmetric
+  part), hard iron o (vehicle + sensor, a few 1000 nT), the car's switched electrical loads e(t)
+  (hard-iron steps of ~60 nT) and white noise n, all different per sensor. The contract's
+  calibration form is ``h = M (m − offset)`` with M = C_k S⁻¹ (:func:`true_mag_params`).
 * GNSS: truth + Gauss–Markov position error (σ ``gnss_pos_std_m``, time constant
   ``gnss_pos_tau_s``) + white velocity noise. Under a steel bridge or viaduct the fix degrades
   (fewer satellites, higher PDOP, larger errors); in a tunnel it is lost (``fix_type = "none"``,
   last position held, zero velocity) and re-acquired a few seconds after the exit.
 * Interference layouts (:data:`LAYOUTS`): steel bridges (deck girders under the road + truss
-  walls), viaducts / tunnels (steel overhead along ~100 m + pillars), passing trucks (moving
-  dipoles in the next lane) and buried DC cables (line currents). Each source is placed on a
-  given straight of the route, so every seed's route meets the same kinds of zone.
+  walls), viaducts / tunnels (steel overhead along ~100 m, pillars, floor rebar, expansion joints),
+  passing trucks (moving dipoles in the next lane), buried DC cables (line currents) and street
+  clutter (manhole covers, parked cars). Each big source is placed on a given straight of the
+  route, so every seed's route meets the same kinds of zone.
 
 Determinism: the route, the noise and GNSS errors come from ``seed``; the sensors' hard/soft iron
 from ``vehicle_seed`` (a property of the car, so a stored calibration stays valid across drives);
@@ -693,13 +696,12 @@ def _place_clutter(s: CarSimSettings, plan: _Plan, traj: _Trajectory, b_earth_en
         return None
     i = np.minimum(np.searchsorted(traj.dist, where), traj.dist.size - 1)
     psi = traj.heading[i]
-    fwd = np.stack([np.sin(psi), np.cos(psi), np.zeros(n)], axis=1)
     left = np.stack([-np.cos(psi), np.sin(psi), np.zeros(n)], axis=1)
     road = traj.pos[i] - np.array([0.0, 0.0, s.mount_height_m])
     parked = rng.random(n) < 0.5
     lateral = np.where(parked, -rng.uniform(2.5, 3.5, n), rng.uniform(-1.5, 1.5, n))
     height = np.where(parked, 0.5, -0.1)
-    pos = road + lateral[:, None] * left + height[:, None] * np.array([0.0, 0.0, 1.0]) + 0.0 * fwd
+    pos = road + lateral[:, None] * left + height[:, None] * np.array([0.0, 0.0, 1.0])
     size = np.where(parked, rng.uniform(80.0, 250.0, n), rng.uniform(2.0, 10.0, n))
     mom = (_unit(b_earth_enu)[None, :] * 0.7 + _unit(rng.normal(size=(n, 3))) * 0.7) * size[:, None]
     return Source(name="clutter", kind="clutter", centre_enu_m=pos.mean(axis=0), dipole_pos_m=pos,
