@@ -117,6 +117,15 @@ def broad_settings(**overrides) -> Settings:
     return Settings(**base)
 
 
+def broad_settings_for(trial: Trial, **overrides) -> Settings:
+    """:func:`broad_settings` plus the magnetometer lag estimated from the trial's own gyro and
+    magnetometer (no ground truth used)."""
+    from services.heading_fuser.core import estimate_mag_delay_s
+
+    delay = estimate_mag_delay_s(trial.gyro_rad_s, trial.mag_nt, trial.rate_hz)
+    return broad_settings(mag_delay_s=delay, **overrides)
+
+
 def run_magmesh(trial: Trial, settings: Settings | None = None) -> tuple[np.ndarray, dict]:
     f = HeadingFilter(settings or broad_settings())
     dt = 1.0 / trial.rate_hz

@@ -65,6 +65,7 @@ class Settings:
 
     # process noise
     gyro_noise_rad_s_rt_hz: float = 0.002  # angle random walk density (plus model error), rad/s/√Hz
+    gyro_rate_noise_frac_rt_hz: float = 0.0  # extra rate noise ∝ |ω| (scale-factor/misalignment), 1/√Hz
     gyro_bias_walk_rad_s2_rt_hz: float = 2e-5  # bias random walk density, rad/s²/√Hz
     gyro_bias_init_std_rad_s: float = 0.005  # initial 1-σ gyro bias
     # initial attitude uncertainty
@@ -73,6 +74,7 @@ class Settings:
     init_duration_s: float = 0.0  # average accel + mag over this long before aligning (0: first sample)
     # accelerometer
     accel_noise_m_s2: float = 0.5  # 1-σ of the gravity direction, as specific force
+    accel_noise_per_rate_m_s2_per_rad_s: float = 0.0  # accel σ grows with |ω| (lever arm, centripetal)
     accel_rejection_m_s2: float = 2.0  # skip the accel update when ||a| − g| exceeds this
     accel_update_period_s: float = 0.0  # at most one accel update per this period (0: every sample)
     # magnetometer
@@ -80,6 +82,7 @@ class Settings:
     mag_heading_noise_floor_rad: float = 0.01  # floor on the heading-measurement σ
     mag_gate_sigma: float = 5.0  # innovation gate, standard deviations (PX4 EKF2_MAG_GATE)
     mag_update_period_s: float = 0.0  # at most one mag update per this period (0: every sample)
+    mag_delay_s: float = 0.0  # the magnetometer's lag behind the gyro (see estimate_mag_delay_s)
     declination_rad: float = 0.0  # magnetic declination, east positive
     ref_field_nt: float = 0.0  # reference field strength (0: learn at alignment)
     ref_dip_rad: float = float("nan")  # reference dip, down positive (nan: learn at alignment)
@@ -88,6 +91,7 @@ class Settings:
     sample_strength_tol_frac: float = 0.15  # one sample this far off is not fused
     sample_dip_tol_rad: float = 0.26  # one sample this far off is not fused (15°)
     use_field_check: bool = True
+    mag_vector_fusion: bool = True  # fuse the whole field direction when it passes every check
     # quasi-static detection and adaptive noise (§2)
     adaptive_noise: bool = True
     quasi_static_window_s: float = 1.0
@@ -109,7 +113,7 @@ class Settings:
     def __post_init__(self):
         for f in fields(self):
             v = getattr(self, f.name)
-            if isinstance(v, bool) or f.name in ("ref_dip_rad",):
+            if isinstance(v, (bool, str)) or f.name in ("ref_dip_rad",):
                 continue
             if not isinstance(v, (int, float)) or (isinstance(v, float) and math.isnan(v)):
                 raise ValueError(f"setting {f.name} must be a number, got {v!r}")
@@ -241,6 +245,7 @@ class HeadingFilter:
         self._init_mag: list = []
         self._init_t0: float | None = None
         self._window = _Window(s.quasi_static_window_s)
+        self._history: deque = deque(maxlen=512)  # (t_s, q) for delayed magnetometer samples
         self._gyro_yaw = 0.0  # integrated gyro heading (CCW yaw), for the §2 heading-change test
         self._last_accel_t = -1e9
         self._last_mag_t = -1e9
@@ -338,9 +343,11 @@ class HeadingFilter:
             self._init_acc.append(np.asarray(accel_m_s2, float))
             return
         self._predict(gyro_rad_s, dt_s)
+        if s.mag_delay_s > 0.0:
+            self._history.append((self.t_s, self.q))
         if self.t_s - self._last_accel_t >= s.accel_update_period_s - 1e-9:
             self._last_accel_t = self.t_s
-            self._fuse_accel(accel_m_s2)
+            self._fuse_accel(accel_m_s2, math.sqrt(gyro_rad_s[0] ** 2 + gyro_rad_s[1] ** 2 + gyro_rad_s[2] ** 2))
         st = self.states
         st.time_since_mag_fused_s = self.t_s - self._last_fused_t
         st.gyro_only_duration_s = 0.0 if self._gyro_only_since_t is None else self.t_s - self._gyro_only_since_t
@@ -366,7 +373,7 @@ class HeadingFilter:
         F[:3, :3] -= _skew((w0 * dt, w1 * dt, w2 * dt))
         F[0, 3] = F[1, 4] = F[2, 5] = -dt
         P = F @ self.P @ F.T
-        qg = s.gyro_noise_rad_s_rt_hz**2 * dt
+        qg = (s.gyro_noise_rad_s_rt_hz**2 + s.gyro_rate_noise_frac_rt_hz**2 * (w0 * w0 + w1 * w1 + w2 * w2)) * dt
         qb = s.gyro_bias_walk_rad_s2_rt_hz**2 * dt
         P[0, 0] += qg
         P[1, 1] += qg
@@ -382,7 +389,7 @@ class HeadingFilter:
         self.q = tuple(c / n for c in self.q)
         self.bias = self.bias + dx[3:]
 
-    def _fuse_accel(self, accel) -> None:
+    def _fuse_accel(self, accel, rate_rad_s: float = 0.0) -> None:
         s = self.settings
         a = np.asarray(accel, float)
         na = math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
@@ -398,7 +405,7 @@ class HeadingFilter:
         # (eq. 2.2) g_true ≈ g + [g]× δθ  →  H = [[g]×, 0]
         H = np.zeros((3, 6))
         H[:, :3] = _skew(g)
-        sig = (s.accel_noise_m_s2 + 2.0 * abs(err)) / maths.G0
+        sig = (s.accel_noise_m_s2 + 2.0 * abs(err) + s.accel_noise_per_rate_m_s2_per_rad_s * rate_rad_s) / maths.G0
         PHt = self.P @ H.T
         S = H @ PHt + np.eye(3) * sig * sig
         K = np.linalg.solve(S, PHt.T).T
@@ -433,7 +440,10 @@ class HeadingFilter:
         self._last_mag_t = self.t_s
         t = self.t_s
         R = _qmat(self.q)
-        mn = R @ m
+        # a delayed sample is levelled with the attitude at its own time (PX4 EKF2_MAG_DELAY); the
+        # heading error about the nav vertical is the same then and now, so H below uses R of now
+        R_m = _qmat(self._attitude_at(t - s.mag_delay_s)) if s.mag_delay_s > 0.0 else R
+        mn = R_m @ m
         x, y = mn[0], mn[1]
         h2 = x * x + y * y
         strength = math.sqrt(h2 + mn[2] * mn[2])
@@ -465,6 +475,7 @@ class HeadingFilter:
             if s.adaptive_noise:
                 gain = max(s.adaptive_gain_variance if var_fail else 1.0, s.adaptive_gain_heading if head_fail else 1.0)
         fl.field_inconsistent = window_bad or sample_bad
+        window_ok = self._window.full(t) and not window_bad
         disturbed = window_bad or not fl.dmc_valid
         # ---- innovation (eq. 2.3): φ_z = azimuth − D, H = e_upᵀ R (body error → nav yaw) ----
         Hr = R[2]
@@ -509,14 +520,13 @@ class HeadingFilter:
             if disturbed:
                 self._set_mode("gyro_only", "disturbed again while recovering")
             else:
-                if fl.quasi_static:
+                if window_ok:
                     if self._consistent_since_t is None:
                         self._consistent_since_t = t
                 else:
                     self._consistent_since_t = None
-                    self._inside_gate_since_t = None
                 consistent = self._consistent_since_t is not None and t - self._consistent_since_t >= s.recovery_hold_s
-                if usable and fl.quasi_static:
+                if usable:
                     if self._inside_gate_since_t is None:
                         self._inside_gate_since_t = t
                     fused = True
@@ -524,22 +534,79 @@ class HeadingFilter:
                         self._set_mode("magnetic", "magnetometer consistent and inside the gate")
                 else:
                     self._inside_gate_since_t = None
-                    if consistent and not sample_bad:
+                    if consistent and not sample_bad and fl.quasi_static:
                         self._slew(nu, Hr, dt_mag)
         if fused:
-            K = PHt / S
-            self._inject(K * nu)
-            self.P = self.P - np.outer(K, PHt)
-            self.P = 0.5 * (self.P + self.P.T)
+            if s.mag_vector_fusion and self.mode == "magnetic" and fl.quasi_static and not fl.field_inconsistent:
+                self._fuse_mag_vector(m, R_m, max(var_m, s.mag_heading_noise_floor_rad**2) * h2 / strength**2)
+            else:
+                K = PHt / S
+                self._inject(K * nu)
+                self.P = self.P - np.outer(K, PHt)
+                self.P = 0.5 * (self.P + self.P.T)
             self._last_fused_t = t
         fl.mag_fused = fused
         return fused
+
+    def _fuse_mag_vector(self, m: np.ndarray, R_m: np.ndarray, var_unit: float) -> None:
+        """Field-direction update (§2's magnetometer observation) for a field that passed every check.
+
+        Measurement: the unit field in the body frame against ``R_mᵀ u_ref`` (u_ref: the reference
+        field direction in ENU from the dip and declination); H = [[h]×, 0] as for gravity.
+        Used only while the field is consistent and quasi-static: then it also steadies roll and
+        pitch under linear acceleration, when the accelerometer alone cannot.
+        """
+        D, dip = self.settings.declination_rad, self.ref_dip_rad
+        u_ref = np.array([math.cos(dip) * math.sin(D), math.cos(dip) * math.cos(D), -math.sin(dip)])
+        h = R_m.T @ u_ref
+        z = m / np.linalg.norm(m)
+        H = np.zeros((3, 6))
+        H[:, :3] = _skew(h)
+        PHt = self.P @ H.T
+        S = H @ PHt + np.eye(3) * var_unit
+        K = np.linalg.solve(S, PHt.T).T
+        self._inject(K @ (z - h))
+        A = _EYE6 - K @ H
+        P = A @ self.P @ A.T + var_unit * (K @ K.T)
+        self.P = 0.5 * (P + P.T)
+
+    def _attitude_at(self, t: float) -> tuple:
+        for tq, q in reversed(self._history):
+            if tq <= t + 1e-9:
+                return q
+        return self._history[0][1] if self._history else self.q
 
     def _slew(self, nu: float, Hr: np.ndarray, dt: float) -> None:
         """Rate-limited heading correction towards a consistent magnetometer outside the gate."""
         step = max(-self.settings.recovery_slew_rad_s * dt, min(self.settings.recovery_slew_rad_s * dt, nu))
         # rotate about the nav vertical by `step`: δθ_body = Rᵀ e_up · step
         self._inject(np.concatenate([Hr * step, np.zeros(3)]))
+
+
+def estimate_mag_delay_s(gyro_rad_s, mag_nt, rate_hz: float, max_delay_s: float = 0.05) -> float:
+    """Lag of a magnetometer behind the gyro, from the sensor data alone (no ground truth).
+
+    A constant field seen from a rotating body obeys ṁ(t) = −ω(t − d) × m(t) when the magnetometer
+    lags by d. The lag is the whole-sample shift minimising the residual of that equation, refined
+    by a parabola through the three best shifts. Needs some rotation in the data.
+    """
+    w = np.asarray(gyro_rad_s, float)
+    m = np.asarray(mag_nt, float)
+    dm = np.gradient(m, axis=0) * rate_hz
+    kmax = max(1, int(round(max_delay_s * rate_hz)))
+    shifts = np.arange(0, kmax + 1)
+    cost = np.empty(len(shifts))
+    for j, k in enumerate(shifts):
+        wk = w[: len(w) - k] if k else w
+        r = dm[k:] + np.cross(wk, m[k:])
+        cost[j] = np.mean(np.sum(r * r, axis=1))
+    j = int(np.argmin(cost))
+    frac = 0.0
+    if 0 < j < len(cost) - 1:
+        c0, c1, c2 = cost[j - 1], cost[j], cost[j + 1]
+        den = c0 - 2 * c1 + c2
+        frac = 0.5 * (c0 - c2) / den if den > 0 else 0.0
+    return float(max(0.0, (shifts[j] + frac) / rate_hz))
 
 
 def magnetic_heading(mag_nt, accel_m_s2, declination_rad: float = 0.0):
