@@ -185,6 +185,7 @@ def test_fcm_and_quasistatic_services_publish_valid_messages(tmp_path):
 
     assert pop_impl_arg(["--impl", "fcm", "--set", "a=1"]) == ("fcm", ["--set", "a=1"])
     assert pop_impl_arg(["--impl=single"]) == ("single", [])
+    assert pop_impl_arg(["--impl", "threshold", "--impl", "fcm"])[0] == "fcm"  # a swap appends its --impl
     with pytest.raises(SystemExit):
         pop_impl_arg(["--impl", "nope"])
 

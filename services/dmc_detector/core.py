@@ -486,10 +486,12 @@ class Pairer:
 
     Each sensor's stream must be in time order (ingest guarantees it). A sample that can no longer find
     a partner (its partner stream has moved past it) is dropped and counted in the return value.
-    The pair takes the reference (first) sensor's time.
+    The pair takes the reference (first) sensor's time. The two streams reach a service through
+    separate subscribers, so one may run seconds ahead of the other under load (a replay at full
+    speed): ``max_pending`` samples per sensor are held for their partner (8192 ≈ 160 s at 50 Hz).
     """
 
-    def __init__(self, sensors: tuple[str, str] = ("1", "2"), tolerance_s: float = 0.005, max_pending: int = 256):
+    def __init__(self, sensors: tuple[str, str] = ("1", "2"), tolerance_s: float = 0.005, max_pending: int = 8192):
         if len(sensors) != 2 or sensors[0] == sensors[1]:
             raise ValueError(f"need two different sensor ids, got {sensors!r}")
         if not tolerance_s >= 0:

@@ -42,7 +42,7 @@ class QuasiStaticSettings:
     dpsi_threshold_deg: float = 1.5  # Δψ_initial
     variance_of: str = "magnitude"  # "magnitude" (|h|) or "components" (the paper's m_x, m_y, m_z)
     dm_threshold_nt: float = 1500.0  # added test |Δm| = ||h| − R| < this; 0 switches it off (the paper)
-    max_imu_lag_s: float = 0.5
+    max_imu_lag_s: float = 2.0  # decide a magnetometer epoch without gyro data after this much sample time
     hysteresis: HysteresisSettings = HysteresisSettings()
 
     def __post_init__(self):
