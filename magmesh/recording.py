@@ -485,13 +485,15 @@ def replay(
     """
     stats = ReplayStats()
     t0_rec: int | None = None
-    t0_wall = clock()
+    start = t0_wall = clock()
     last_rec = 0
     for rec in records:
         if should_stop():
             break
         if t0_rec is None:
+            # the schedule starts when the first sample is in hand (reading a file has a start-up cost)
             t0_rec = rec.receive_ns
+            t0_wall = clock()
         last_rec = rec.receive_ns
         if rate > 0:
             due = t0_wall + (rec.receive_ns - t0_rec) / 1e9 / rate
@@ -505,6 +507,6 @@ def replay(
         stats.published[key] += 1
         if on_progress is not None:
             on_progress(1)
-    stats.wall_s = clock() - t0_wall
+    stats.wall_s = clock() - start
     stats.recorded_span_s = (last_rec - t0_rec) / 1e9 if t0_rec is not None else 0.0
     return stats
