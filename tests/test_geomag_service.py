@@ -12,8 +12,8 @@ from sim_publishers.survey.publisher import SurveyPublisherSettings, survey_even
 class Captured(GeomagMatcherService):
     """The service with its runtime calls recorded instead of sent."""
 
-    def __init__(self, **kw):
-        super().__init__(Settings(**kw), "geomag-test", "*", {})
+    def __init__(self, vehicles: dict | None = None, **kw):
+        super().__init__(Settings(**kw), "geomag-test", "*", vehicles or {})
         self.sent: list[tuple[str, dict]] = []
         self.alarms: list[dict] = []
         self.drops: dict[str, int] = {}
@@ -43,9 +43,9 @@ class Captured(GeomagMatcherService):
         self.on_message(keys.parse(clean), msg, st)
 
 
-def _stream(**kw):
+def _stream(vehicle: str = "survey-9", **kw):
     s = SurveyPublisherSettings(**kw)
-    return [e for e in survey_events(s, "survey-9") if keys.parse(e[1]).kind == "raw"], s
+    return [e for e in survey_events(s, vehicle) if keys.parse(e[1]).kind == "raw"], s
 
 
 def test_fixes_published_with_status_and_correction():
@@ -93,3 +93,38 @@ def test_clock_going_back_restarts_the_vehicle():
         svc.feed(key, mtype, "survey-9", t, fields)
     st = svc.status_extra()["matchers"]["survey-9"]
     assert st["n_matches"] == 0 and st["buffered_samples"] == 5
+
+
+WDMAM_AIRCRAFT = dict(map="maps/map_WDMAM.hdf5", speed_m_s=150.0, period_s=20.0, ins_error0_e_m=5000.0,
+                      ins_error0_n_m=3000.0, ins_drift_e_m_s=1.0, ins_drift_n_m_s=-0.5, ins_walk_m_sqrt_s=5.0)
+
+
+def test_vehicle_table_picks_the_real_map_and_its_settings():
+    events, s = _stream("survey-w", snr=10.0, seed=1, **WDMAM_AIRCRAFT)
+    vehicles = {"survey-w": {"map": "maps/map_WDMAM.hdf5", "lat_deg": s.lat_deg, "lon_deg": s.lon_deg,
+                             "geomag": {"lambda_nt": 49.0, "search_radius_m": 20000.0, "agree_radius_m": 3000.0,
+                                        "runner_up_exclusion_m": 8600.0, "max_hausdorff_nt": 200.0,
+                                        "fix_std_m": 1000.0, "divergence_alarm_m": 5000.0}}}
+    svc = Captured(vehicles)
+    for t, key, mtype, fields in events:
+        svc.feed(key, mtype, "survey-w", t, fields)
+    truth = {e[0]: e[3]["pos_enu_m"] for e in survey_events(SurveyPublisherSettings(snr=10.0, seed=1, **WDMAM_AIRCRAFT),
+                                                              "survey-w") if e[2] == "truth"}
+    acc = [m for k, m in svc.sent if m["accepted"]]
+    assert len(acc) >= 15
+    st = svc.vehicle_states["survey-w"].matcher.settings
+    assert st.match.lambda_nt == 49.0 and st.accept.agree_radius_m == 3000.0
+    fix_err = [np.hypot(m["pos_enu_m"][0] - truth[m["t_s"]][0], m["pos_enu_m"][1] - truth[m["t_s"]][1]) for m in acc]
+    ins_err = [np.hypot(m["ins_pos_enu_m"][0] - truth[m["t_s"]][0], m["ins_pos_enu_m"][1] - truth[m["t_s"]][1])
+               for m in acc]
+    # 4.3 km cells: fixes within about a third of a cell, the INS 1.5 cells off
+    assert np.median(fix_err) < 2000.0 < 5000.0 < np.median(ins_err)
+
+
+def test_unusable_map_is_reported_not_fatal():
+    events, _ = _stream(seed=2)
+    svc = Captured({"survey-9": {"map": "maps/no_such_map.npz"}})
+    for t, key, mtype, fields in events[:20]:
+        svc.feed(key, mtype, "survey-9", t, fields)
+    assert svc.drops["vehicle_map_or_settings_unusable"] == 10
+    assert not svc.sent

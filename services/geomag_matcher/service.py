@@ -8,13 +8,15 @@ such, never as an accepted fix. It raises alarm/match while the INS and the acce
 by more than `divergence_alarm_m`.
 
 Per vehicle, the manifest's vehicle table may give `map` (a map spec: file under data/ or
-`synthetic[:seed]`) and `lat_deg`, `lon_deg`, `alt_m` (where the map lies, for the IGRF core field
-subtracted from the total field); the settings give the defaults.
+`synthetic[:seed]`), `lat_deg`, `lon_deg`, `alt_m` (where the map lies, for the IGRF core field
+subtracted from the total field) and a `geomag` table overriding any of the settings below for that
+vehicle (λ, search radius, agreement radius... suit the map's cell size and field strength).
 """
 
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -22,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from magmesh.geomap import GridMap, core_field_enu_nt, load_map
-from magmesh.runtime import Service
+from magmesh.runtime import Service, build_settings
 from schemas import keys
 
 from .core import AcceptSettings, FilterSettings, GeomagMatcher, MatcherSettings, MatchSettings
@@ -38,6 +40,7 @@ class Settings:
     subdivisions: int = 3  # fine-match subdivisions per cell (2–4)
     prematch_score: str = "centre"  # centre | corners
     search_radius_m: float = 3000.0  # half-width of the search square around the (corrected) INS start; 0: whole map
+    runner_up_exclusion_m: float = 200.0  # the runner-up must start farther than this from the match, m
     heading_search_deg: float = 0.0  # also try the INS track rotated by up to ± this (INS heading error)
     heading_step_deg: float = 1.0
     match_every_samples: int = 5  # match each time this many new samples arrived
@@ -66,6 +69,7 @@ class VehicleMatch:
         self.ins_p: deque = deque(maxlen=buffer)
         self.pending: deque = deque(maxlen=buffer)  # (t_s, f_nt)
         self.alarm_raised = False
+        self.unusable = False  # its map or settings failed to load: its samples are counted as drops
 
     def reset(self) -> None:
         self.ins_t.clear()
@@ -113,8 +117,13 @@ class GeomagMatcherService(Service):
                           self._maps[spec].dx_m, self._maps[spec].std_nt)
         return self._maps[spec]
 
+    def vehicle_settings(self, vcfg: dict) -> Settings:
+        """The service settings with the vehicle table's ``geomag`` overrides (e.g. λ for its map)."""
+        over = dict(vcfg.get("geomag", {}) or {})
+        return build_settings(Settings, {**dataclasses.asdict(self.settings), **over})
+
     def matcher_settings(self, vcfg: dict) -> MatcherSettings:
-        s = self.settings
+        s = self.vehicle_settings(vcfg)
         core = core_field_enu_nt(vcfg.get("lat_deg", s.lat_deg), vcfg.get("lon_deg", s.lon_deg),
                                  vcfg.get("alt_m", s.alt_m))
         return MatcherSettings(
@@ -122,7 +131,8 @@ class GeomagMatcherService(Service):
                 n_samples=s.n_samples, window_samples=None if s.window_samples < 0 else s.window_samples,
                 rank_frac=s.rank_frac, lambda_nt=s.lambda_nt, subdivisions=s.subdivisions,
                 prematch_score=s.prematch_score, search_radius_m=s.search_radius_m,
-                heading_search_deg=s.heading_search_deg, heading_step_deg=s.heading_step_deg),
+                heading_search_deg=s.heading_search_deg, heading_step_deg=s.heading_step_deg,
+                runner_up_exclusion_m=s.runner_up_exclusion_m),
             accept=AcceptSettings(m_agree=s.m_agree, n_window=s.n_window, agree_radius_m=s.agree_radius_m,
                                   min_margin_nt=s.min_margin_nt, max_hausdorff_nt=s.max_hausdorff_nt),
             filter=FilterSettings(fix_std_m=s.fix_std_m, gate_sigma=s.gate_sigma),
@@ -134,11 +144,16 @@ class GeomagMatcherService(Service):
     def new_vehicle(self, vehicle: str) -> VehicleMatch:
         return VehicleMatch(self.settings.ins_buffer)
 
-    def _build_matcher(self, vehicle: str) -> GeomagMatcher:
+    def _build_matcher(self, vehicle: str) -> GeomagMatcher | None:
         vcfg = self.vehicles_config.get(vehicle, {}) or {}
-        grid = self._map(str(vcfg.get("map", self.settings.map)))
-        ms = self.matcher_settings(vcfg)
-        self.log.info("vehicle %s: map %s, core field %.1f nT subtracted", vehicle, grid.name, ms.main_field_nt)
+        try:
+            grid = self._map(str(vcfg.get("map", self.settings.map)))
+            ms = self.matcher_settings(vcfg)
+        except (OSError, ValueError, TypeError, KeyError) as e:
+            self.log.error("vehicle %s: cannot match (map or settings): %s", vehicle, e)
+            return None
+        self.log.info("vehicle %s: map %s, core field %.1f nT subtracted, λ %.2f nT, search ±%.0f m", vehicle,
+                      grid.name, ms.main_field_nt, ms.match.lambda_nt, ms.match.search_radius_m)
         return GeomagMatcher(grid, ms)
 
     def on_message(self, info, msg, state: VehicleMatch) -> None:
@@ -158,8 +173,12 @@ class GeomagMatcherService(Service):
             if "f_nt" not in msg:
                 self.count_drop(info.key, "no_scalar_field")  # a vector-only vehicle: nothing to match
                 return
-            if state.matcher is None:
+            if state.matcher is None and not state.unusable:
                 state.matcher = self._build_matcher(info.vehicle)
+                state.unusable = state.matcher is None
+            if state.unusable:
+                self.count_drop(info.key, "vehicle_map_or_settings_unusable")
+                return
             if len(state.pending) == state.pending.maxlen:
                 self.count_drop(info.key, "waiting_for_ins_overflow")  # the oldest waiting sample goes
             state.pending.append((msg["t_s"], msg["f_nt"]))

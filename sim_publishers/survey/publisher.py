@@ -36,6 +36,7 @@ class SurveyPublisherSettings:
     ins_drift_e_m_s: float = 0.25
     ins_drift_n_m_s: float = -0.15
     ins_heading_bias_deg: float = 0.0  # INS heading error (dead-reckoned track rotated clockwise)
+    ins_walk_m_sqrt_s: float = 0.5  # INS position random walk
     lat_deg: float = 45.4
     lon_deg: float = -75.7
     alt_m: float = 300.0
@@ -54,7 +55,7 @@ class SurveyPublisherSettings:
             laps=self.loop_laps if self.loop else self.laps,
             ins_error0_m=(self.ins_error0_e_m, self.ins_error0_n_m),
             ins_drift_m_s=(self.ins_drift_e_m_s, self.ins_drift_n_m_s),
-            ins_heading_bias_deg=self.ins_heading_bias_deg,
+            ins_heading_bias_deg=self.ins_heading_bias_deg, ins_walk_m_sqrt_s=self.ins_walk_m_sqrt_s,
             lat_deg=self.lat_deg, lon_deg=self.lon_deg, alt_m=self.alt_m, seed=self.seed,
         )
 
