@@ -150,35 +150,40 @@ def _window_mean(t: np.ndarray, x: np.ndarray, t_end: float, width: float) -> np
 
 
 def run_ekf_on_drive(drive, sensor: str = "1", settings: online_ekf.EkfSettings | None = None,
-                     offset0=(0.0, 0.0, 0.0), matrix=None) -> dict:
-    """The EKF alone on a simulated drive, fed at every GNSS epoch as the service feeds it."""
+                     offset0=(0.0, 0.0, 0.0), matrix=None, tilt_source: str = "level") -> dict:
+    """The EKF alone on a simulated drive, fed at every GNSS epoch as the service feeds it
+    (``tilt_source`` "level": roll = pitch = 0; "accel": from the IMU with the motion removed)."""
     settings = settings or online_ekf.EkfSettings()
     g = drive.gnss
     m = drive.mag_b_nt[sensor]
     ekf = online_ekf.HardIronEkf(settings, offset0, matrix)
-    t_hist, off_hist = [], []
+    t_hist, off_hist, mat_hist = [], [], []
     t_conv = None
     speed_rate = online_ekf.SpeedRate()
     for k in range(len(g.t_s)):
         tk = float(g.t_s[k])
         mk = _window_mean(drive.t_mag_s, m, tk, 0.2)
-        ak = _window_mean(drive.t_imu_s, drive.accel_m_s2, tk, 0.2)
-        wz = float(_window_mean(drive.t_imu_s, drive.gyro_rad_s, tk, 0.2)[2])
+        ak = _window_mean(drive.t_imu_s, drive.accel_m_s2, tk, 1.0)
+        wz = float(_window_mean(drive.t_imu_s, drive.gyro_rad_s, tk, 1.0)[2])
         sp = float(g.speed_m_s[k])
         rate = speed_rate.update(tk, sp)
-        roll, pitch = online_ekf.car_roll_pitch(ak, rate, sp, wz)
+        roll, pitch = online_ekf.car_roll_pitch(ak, rate, sp, wz) if tilt_source == "accel" else (0.0, 0.0)
         ok, _ = online_ekf.gnss_usable(str(g.fix_type[k]), int(g.num_sats[k]), float(g.pdop[k]), sp, settings)
         ekf.update(tk, mk, float(g.course_rad[k]), roll, pitch, drive.declination_rad, sp, wz, ok)
         if t_conv is None and ekf.converged:
             t_conv = tk
         t_hist.append(tk)
         off_hist.append(ekf.applied_offset())
-    return {"ekf": ekf, "t": np.array(t_hist), "offset": np.array(off_hist), "t_conv": t_conv}
+        mat_hist.append(ekf.applied_matrix().ravel())
+    return {"ekf": ekf, "t": np.array(t_hist), "offset": np.array(off_hist), "matrix": np.array(mat_hist),
+            "t_conv": t_conv}
 
 
 def heading_errors_deg(drive, sensor: str, offsets_at_mag: np.ndarray, M: np.ndarray) -> np.ndarray:
-    """Magnetic heading error per magnetometer sample, levelled with the true attitude, degrees."""
-    h = np.einsum("ij,nj->ni", M, drive.mag_b_nt[sensor] - offsets_at_mag)
+    """Magnetic heading error per magnetometer sample, levelled with the true attitude, degrees.
+    ``M`` is one 3×3 matrix or one per sample (N×3×3)."""
+    d = drive.mag_b_nt[sensor] - offsets_at_mag
+    h = np.einsum("ij,nj->ni", M, d) if np.ndim(M) == 2 else np.einsum("nij,nj->ni", M, d)
     return _level_heading_err(drive, h, np.ones(len(h), bool))
 
 
@@ -199,12 +204,14 @@ def eval_online(seeds: int, duration_s: float, layout: str = "urban_a") -> dict:
             r = run_ekf_on_drive(drive, sensor)
             ekf = r["ekf"]
             offs = _at(drive.t_mag_s, r["t"], r["offset"], np.zeros(3))
-            err = heading_errors_deg(drive, sensor, offs, np.eye(3))
+            mats = _at(drive.t_mag_s, r["t"], r["matrix"], np.eye(3).ravel()).reshape(-1, 3, 3)
+            err = heading_errors_deg(drive, sensor, offs, mats)
             sel = ~drive.truth.disturbed & (drive.t_mag_s > (r["t_conv"] if r["t_conv"] is not None else np.inf))
             # the same with the true matrix: what is left when only the offset is estimated online
             r_m = run_ekf_on_drive(drive, sensor, matrix=truth.matrix)
             offs_m = _at(drive.t_mag_s, r_m["t"], r_m["offset"], np.zeros(3))
-            err_m = heading_errors_deg(drive, sensor, offs_m, truth.matrix)
+            mats_m = _at(drive.t_mag_s, r_m["t"], r_m["matrix"], truth.matrix.ravel()).reshape(-1, 3, 3)
+            err_m = heading_errors_deg(drive, sensor, offs_m, mats_m)
             sel_m = ~drive.truth.disturbed & (drive.t_mag_s > (r_m["t_conv"] if r_m["t_conv"] is not None else np.inf))
             raw_err = heading_errors_deg(drive, sensor, np.zeros_like(drive.mag_b_nt[sensor]), np.eye(3))
             per_seed.append({
@@ -217,6 +224,7 @@ def eval_online(seeds: int, duration_s: float, layout: str = "urban_a") -> dict:
                 "heading_rms_deg_true_matrix": float(np.sqrt(np.mean(err_m[sel_m] ** 2))) if sel_m.any() else math.inf,
                 "raw_heading_rms_deg": float(np.sqrt(np.mean(raw_err[~drive.truth.disturbed] ** 2))),
                 "fused": ekf.n_fused, "gated": ekf.n_rejected,
+                "mount_yaw_deg": math.degrees(ekf.mount_yaw_rad), "mount_yaw_std_deg": math.degrees(ekf.mount_yaw_std_rad),
             })
     conv = [p["converge_s"] for p in per_seed]
     return {
@@ -250,7 +258,7 @@ def eval_service_logic(seed: int, duration_s: float, layout: str = "urban_a") ->
                 if cur is not None and (not history[sid] or history[sid][-1][1] != cur.param_id):
                     history[sid].append((t_s, cur.param_id, cur.status, cur.method, cur.params))
             elif key.endswith("/imu"):
-                vc.on_imu(fields["gyro_rad_s"], fields["accel_m_s2"])
+                vc.on_imu(t_s, fields["gyro_rad_s"], fields["accel_m_s2"])
             elif key.endswith("/gnss"):
                 vc.on_gnss(t_s, fields)
         res: dict = {"wall_s": time.perf_counter() - t0, "sensors": {}}

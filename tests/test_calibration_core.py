@@ -228,3 +228,19 @@ def test_ekf_on_simulated_car_converges_without_a_vertical_correction():
     err = ev.heading_errors_deg(drive, "1", offs, drive.true_params["1"].matrix)
     sel = ~drive.truth.disturbed & (drive.t_mag_s > r["t_conv"])
     assert np.sqrt(np.mean(err[sel] ** 2)) < 2.0
+
+
+def test_ekf_mount_yaw_state_recovers_a_rotated_mounting():
+    from bench import eval_calibration as ev
+    from magmesh import maths
+    from sim_publishers.car import core as car
+
+    drive = car.simulate(seed=3, duration_s=240.0)
+    M_rot = maths.rot_z(math.radians(-2.0)) @ drive.true_params["1"].matrix  # reads 2° low
+    st = online_ekf.EkfSettings(estimate_mount_yaw=True)
+    r = ev.run_ekf_on_drive(drive, "1", settings=st, offset0=drive.true_params["1"].offset_nt, matrix=M_rot)
+    ekf = r["ekf"]
+    assert math.degrees(ekf.mount_yaw_rad) == pytest.approx(2.0, abs=0.5)
+    assert math.degrees(ekf.mount_yaw_std_rad) < 1.0
+    expected = maths.rot_z(ekf.mount_yaw_rad) @ M_rot if ekf.mount_yaw_observable else M_rot
+    assert np.allclose(ekf.applied_matrix(), expected)

@@ -254,8 +254,11 @@ class OnlineSettings:
     gnss_window: int = 150  # fused epochs kept to judge a converged EKF estimate
     min_change_nt: float = 500.0  # an EKF offset closer than this (and than 4σ) to the set in use is not published
     improve_ratio: float = 0.8  # an EKF set must cut the GNSS heading residual of the set in use to this
+    min_mount_yaw_rad: float = math.radians(0.5)  # a mounting yaw below this does not replace a fitted set
     min_interval_s: float = 30.0  # at most one EKF "ok" set per sensor in this time
     converging_publish_s: float = 5.0  # publish "converging" sets at most this often
+    tilt_source: str = "level"  # "level": roll = pitch = 0 (as a car's 2-D compass is read); "accel": IMU
+    imu_window_s: float = 1.0  # IMU averaging window, s (matches the GNSS speed-rate window)
     ekf: online_ekf.EkfSettings = field(default_factory=online_ekf.EkfSettings)
 
 
@@ -308,8 +311,7 @@ class VehicleCalibration:
         self.onl: dict[str, SensorOnline] = {}
         self.initial = dict(initial or {})
         self.declination_override = declination_rad
-        self.accel: np.ndarray | None = None
-        self.gyro: np.ndarray | None = None
+        self.imu: deque[tuple[float, np.ndarray, np.ndarray]] = deque()  # (t, gyro, accel) over imu_window_s
         self.speed_rate = online_ekf.SpeedRate()
         self.mag_recent: dict[str, deque] = {}
         self.gnss_reason = ""
@@ -329,12 +331,16 @@ class VehicleCalibration:
         self.mag_recent[sid].append((t_s, np.asarray(b_nt, float)))
         return sc
 
-    def on_imu(self, gyro_rad_s, accel_m_s2) -> None:
-        a = np.asarray(accel_m_s2, float)
-        g = np.asarray(gyro_rad_s, float)
-        # light low-pass (≈ 0.2 s at 100 Hz) against vibration
-        self.accel = a if self.accel is None else 0.95 * self.accel + 0.05 * a
-        self.gyro = g if self.gyro is None else 0.95 * self.gyro + 0.05 * g
+    def on_imu(self, t_s: float, gyro_rad_s, accel_m_s2) -> None:
+        self.imu.append((float(t_s), np.asarray(gyro_rad_s, float), np.asarray(accel_m_s2, float)))
+        while self.imu and self.imu[0][0] < t_s - self.online.imu_window_s:
+            self.imu.popleft()
+
+    def imu_mean(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Mean gyro and accelerometer over the IMU window (the span the GNSS speed rate covers)."""
+        if not self.imu:
+            return None
+        return np.mean([g for _, g, _ in self.imu], axis=0), np.mean([a for _, _, a in self.imu], axis=0)
 
     def declination(self, lat_deg: float, lon_deg: float, alt_m: float) -> float:
         if self.declination_override is not None:
@@ -352,11 +358,11 @@ class VehicleCalibration:
         ok, why = online_ekf.gnss_usable(g["fix_type"], int(g["num_sats"]), float(g["pdop"]), speed,
                                          self.online.ekf)
         self.gnss_reason = why
-        yaw_rate = float(self.gyro[2]) if self.gyro is not None else 0.0
-        if self.accel is not None:
-            roll, pitch = online_ekf.car_roll_pitch(self.accel, rate, speed, yaw_rate)
-        else:
-            roll = pitch = 0.0
+        imu = self.imu_mean()
+        yaw_rate = float(imu[0][2]) if imu is not None else 0.0
+        roll = pitch = 0.0
+        if self.online.tilt_source == "accel" and imu is not None:
+            roll, pitch = online_ekf.car_roll_pitch(imu[1], rate, speed, yaw_rate)
         decl = self.declination(float(g["lat_deg"]), float(g["lon_deg"]), float(g["alt_m"]))
         for sid, onl in self.onl.items():
             recent = [b for (tb, b) in self.mag_recent[sid] if t_s - 0.25 <= tb <= t_s + 0.05]
@@ -382,7 +388,8 @@ class VehicleCalibration:
         offset = ekf.applied_offset()
         obs = ekf.observable
         observable = tuple(bool(o) for o in obs)
-        params = magcal.MagParams.from_arrays(offset, base.M, base.field_radius_nt, base.model,
+        M_applied = ekf.applied_matrix()
+        params = magcal.MagParams.from_arrays(offset, M_applied, base.field_radius_nt, base.model,
                                               observable if base.model == "2d" or sc.current is None else
                                               tuple(a or b for a, b in zip(observable, base.observable, strict=True)))
         if not ekf.converged:
@@ -402,13 +409,15 @@ class VehicleCalibration:
             # min_change_nt and 4σ of the estimate, that explains the GNSS course clearly better
             shift = offset - base.offset
             sig = float(np.linalg.norm(ekf.std_nt[np.array(obs)])) if any(obs) else math.inf
-            if np.linalg.norm(shift) < max(self.online.min_change_nt, 4.0 * sig):
+            yaw_change = ekf.mount_yaw_observable and abs(ekf.mount_yaw_rad) > max(
+                self.online.min_mount_yaw_rad, 4.0 * ekf.mount_yaw_std_rad)
+            if np.linalg.norm(shift) < max(self.online.min_change_nt, 4.0 * sig) and not yaw_change:
                 return None
             if t_s - onl.last_ok_t < self.online.min_interval_s:
                 return None
         if len(onl.epochs) < min(30, self.online.gnss_window):
             return None
-        rms_new = onl.heading_rms(offset, base.M)
+        rms_new = onl.heading_rms(offset, M_applied)
         rms_old = onl.heading_rms(base.offset, base.M) if sc.current is not None else math.inf
         if in_use_ok and not rms_new < self.online.improve_ratio * rms_old:
             return None

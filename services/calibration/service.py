@@ -18,7 +18,7 @@ import json
 import math
 import os
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from magmesh import magcal, paths
 from magmesh.runtime import Service
@@ -48,6 +48,9 @@ class Settings:
     ekf_heading_noise_deg: float = 2.0
     ekf_min_speed_m_s: float = 3.0
     ekf_gate_sigma: float = 3.0
+    ekf_tilt: str = "level"  # level (roll = pitch = 0, as a car's 2-D compass is read) | accel (IMU tilt)
+    ekf_kinds: str = "car"  # manifest vehicle kinds whose GNSS course is their heading (comma-separated);
+    #                         vehicles without a manifest kind are served too
     publish_cal_mag: bool = True  # publish cal/mag (set false to publish parameters only)
     persist: bool = True  # keep parameter sets on disk
     state_subdir: str = "calibration"
@@ -87,8 +90,10 @@ class Calibration(Service):
             refit_interval_s=s.refit_interval_s, field_radius_nt=s.field_radius_nt, improve_ratio=s.improve_ratio,
             k0=s.k0, k1=s.k1, min_samples=s.min_samples, min_coverage_2d=s.min_coverage_2d,
             min_coverage_3d=s.min_coverage_3d)
+        if s.ekf_tilt not in ("level", "accel"):
+            raise ValueError(f"ekf_tilt must be 'level' or 'accel', got {s.ekf_tilt!r}")
         self.online_settings = OnlineSettings(
-            enabled=s.online_ekf,
+            enabled=s.online_ekf, tilt_source=s.ekf_tilt,
             ekf=online_ekf.EkfSettings(prior_std_nt=s.ekf_prior_std_nt,
                                        heading_noise_rad=math.radians(s.ekf_heading_noise_deg),
                                        min_speed_m_s=s.ekf_min_speed_m_s, gate_sigma=s.ekf_gate_sigma))
@@ -120,7 +125,15 @@ class Calibration(Service):
                 self.log.error("vehicle %s: manifest mag_params.%s unusable: %s", vehicle, sid, e)
         initial.update(self.saved.get(vehicle, {}))  # a saved fit outranks the manifest
         decl = cfg.get("declination_rad") if cfg.get("declination_source") == "manifest" else None
-        vc = VehicleCalibration(vehicle, self.cal_settings, self.online_settings, initial, decl)
+        kind = cfg.get("kind")
+        kinds = {k.strip() for k in self.settings.ekf_kinds.split(",") if k.strip()}
+        online = self.online_settings
+        if kind is not None and kind not in kinds:
+            # a multirotor flies sideways, a replayed recording has no GNSS: course is not heading
+            online = replace(online, enabled=False)
+        vc = VehicleCalibration(vehicle, self.cal_settings, online, initial, decl)
+        self.log.info("vehicle %s (kind %s): online EKF %s", vehicle, kind or "unknown",
+                      "on" if online.enabled else "off")
         for sid in initial:
             vc.sensor(sid)
             self._publish_params(vehicle, sid, vc.sensors[sid].current, t_s=initial[sid].fit_t_s)
@@ -131,7 +144,7 @@ class Calibration(Service):
         if stream == "mag":
             self._on_mag(info, msg, state)
         elif stream == "imu":
-            state.on_imu(msg["gyro_rad_s"], msg["accel_m_s2"])
+            state.on_imu(msg["t_s"], msg["gyro_rad_s"], msg["accel_m_s2"])
         elif stream == "gnss":
             for sid, rec in state.on_gnss(msg["t_s"], msg):
                 self.log.info("vehicle %s sensor %s: %s parameter set %s (%s)", info.vehicle, sid, rec.status,
