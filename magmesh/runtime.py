@@ -262,6 +262,9 @@ class Runner:
         self.passed_cut: set[str] = set()
         self.alarm_published: dict[str, str] = {}  # alarm key -> last state published ("raised"/"cleared")
         self.suppressed = 0
+        self.in_seq: dict[str, int] = {}
+        self.alarm_declared: dict[str, str] = {}  # alarm key -> last state the service logic declared
+        self.reconcile_at: float | None = None
         self.first_in_t: dict[str, float] = {}
         self.last_in_t: dict[str, float] = {}
         service._rt = self
@@ -296,6 +299,7 @@ class Runner:
                 return None
         if msg_type == "alarm":
             state = fields.get("state")
+            self.alarm_declared[key] = state
             if self.alarm_published.get(key, "cleared") == state:
                 self.count_drop(key, "alarm_state_unchanged")
                 return None
@@ -323,6 +327,58 @@ class Runner:
             else:
                 self.raised.pop(key, None)
         self.svc.log.info("alarm %s %s: %s", key, msg["state"], msg["reason"])
+        self._persist_alarms()
+
+    # ---- alarm state across restarts --------------------------------------------------------
+    def _alarm_file(self):
+        from .paths import state_dir
+
+        d = state_dir() / "alarms"
+        d.mkdir(parents=True, exist_ok=True)
+        return d / f"{self.svc.role}.{self.svc.instance}.json"
+
+    def _persist_alarms(self) -> None:
+        """Alarm states and their seq survive a crash: a restart neither repeats nor forgets a transition."""
+        try:
+            f = self._alarm_file()
+            tmp = f.with_suffix(".tmp")
+            with self.lock:
+                raised = dict(self.raised)
+            akeys = [k for k in self.alarm_published]
+            tmp.write_text(json.dumps({"published": dict(self.alarm_published), "raised": raised,
+                                       "seqs": {k: self.seq[k] for k in akeys if k in self.seq}}))
+            os.replace(tmp, f)
+        except OSError as e:
+            self.last_error = f"could not persist alarm state: {e}"
+
+    def restore_alarms(self) -> None:
+        try:
+            data = json.loads(self._alarm_file().read_text())
+        except (OSError, ValueError):
+            return
+        self.alarm_published = {k: v for k, v in data.get("published", {}).items()}
+        with self.lock:
+            self.raised = dict(data.get("raised", {}))
+        for k, v in data.get("seqs", {}).items():
+            self.seq[k] = int(v)
+        if self.raised:
+            # give the restarted logic time to see the condition again before clearing what it no longer sees
+            self.reconcile_at = time.monotonic() + float(getattr(self.svc.settings, "alarm_reconcile_s", 5.0) or 5.0)
+            self.svc.log.info("restored %d raised alarm(s) from before the restart", len(self.raised))
+
+    def reconcile_alarms(self) -> None:
+        """After a restart: clear a restored raised alarm that the service's logic has not raised again."""
+        self.reconcile_at = None
+        with self.lock:
+            raised = list(self.raised.items())
+        for key, msg in raised:
+            if self.alarm_declared.get(key) == "raised":
+                continue
+            fields = {k: v for k, v in msg.items() if k not in ("type", "version", "vehicle", "t_s", "seq")}
+            fields.update(state="cleared", service=self.svc.instance,
+                          reason=f"cleared after a restart of {self.svc.instance}: the condition is no longer seen")
+            t = self.last_in_t.get(msg["vehicle"], msg["t_s"])
+            self.publish(key, "alarm", msg["vehicle"], max(t, msg["t_s"]), fields)
         return msg
 
     def reject(self, key: str, code: str, reason: str, field: str | None, payload_len: int,
@@ -404,6 +460,11 @@ class Runner:
                             f"but the key names vehicle {info.vehicle!r}", "vehicle", len(payload),
                             info.vehicle, msg["t_s"], msg["type"])
                 return
+            last = self.in_seq.get(key)
+            sq = msg["seq"]
+            if last is not None and sq > last + 1:
+                self.drops[key]["upstream_gap"] += sq - last - 1  # lost before it reached us: visible, not silent
+            self.in_seq[key] = sq
             t = msg["t_s"]
             if info.vehicle not in self.first_in_t:
                 self.first_in_t[info.vehicle] = t
@@ -585,6 +646,8 @@ class Runner:
             qx = self.session.declare_queryable(kexpr, zenoh.handlers.FifoChannel(256))
             self.qables.append(qx)
             self._spawn(self._reader, qx, kexpr)
+        if self.mode == "active":
+            self.restore_alarms()
         svc.on_start()
         self.token = self.session.liveliness().declare_token(keys.svc_token(svc.role, svc.instance))
         svc.log.info("started %s/%s (impl %s) on %s", svc.role, svc.instance, svc.impl,
@@ -614,6 +677,8 @@ class Runner:
             if tick and time.monotonic() >= next_tick:
                 next_tick = time.monotonic() + tick
                 self._safe_tick()
+            if self.reconcile_at is not None and time.monotonic() >= self.reconcile_at and self.mode == "active":
+                self.reconcile_alarms()
 
     def _safe_tick(self) -> None:
         try:

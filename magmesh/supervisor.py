@@ -29,6 +29,9 @@ from . import __version__, zconf
 
 log = logging.getLogger("magmesh.supervisor")
 
+#: a process that ran this long before dying restarts at the shortest backoff again
+HEALTHY_AFTER_S = 3.0
+
 
 @dataclass
 class ProcessSpec:
@@ -137,10 +140,10 @@ class Child:
             return None
         rc = self.proc.poll()
         if rc is None:
-            if now - self.started_at > 30:
-                self.fails_in_row = 0
             return None
         if self.died_at is None:
+            if now - self.started_at >= HEALTHY_AFTER_S:
+                self.fails_in_row = 0  # it ran fine: this is a fault, not a crash loop
             self.died_at = now
             self.last_exit = rc
             delay = self.backoff[min(self.fails_in_row, len(self.backoff) - 1)]

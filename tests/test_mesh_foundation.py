@@ -30,6 +30,7 @@ def up(port: int, tmp_path, *sets: str, only="sim-car-1,ingest-1,dmc-1", duratio
     for s in sets:
         args += ["--set", s]
     return subprocess.Popen(args, cwd=REPO, stdout=open(tmp_path / "up.log", "ab"), stderr=subprocess.STDOUT,
+                            env={**os.environ, "MAGMESH_STATE_DIR": str(tmp_path / "state")},
                             start_new_session=True)
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import time
@@ -26,7 +27,8 @@ def test_swap_threshold_to_fcm_and_back_loses_nothing(tmp_path):
          "--only", "sim-car-1,ingest-1,dmc-1", "--duration", "200", "--log-dir", str(tmp_path / "logs"), "--quiet",
          "--set", "sim-car-1.speed=3", "--set", "sim-car-1.loop=false", "--set", "sim-car-1.duration_s=240",
          "--set", "sim-car-1.layout=urban_a"],
-        cwd=REPO, stdout=open(tmp_path / "up.log", "ab"), stderr=subprocess.STDOUT, start_new_session=True)
+        cwd=REPO, stdout=open(tmp_path / "up.log", "ab"), stderr=subprocess.STDOUT, start_new_session=True,
+        env={**os.environ, "MAGMESH_STATE_DIR": str(tmp_path / "state")})
     client = open_client(port)
     try:
         dmc = Collector(client, keys.dmc("car-1"))
