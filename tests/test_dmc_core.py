@@ -227,3 +227,35 @@ def test_service_no_params_drops_and_cal_params_take_over():
     rt, state = _run_service(svc, t, b1, b2, cal=cal)
     assert state.params["1"].param_id == "fit-7" and state.param_origin["1"] == "cal"
     assert {m["param_source"] for k, m in rt.out if k == keys.dmc("car-1")} == {"manifest"}  # sensor 2 still manifest
+
+
+def test_service_adopts_alarm_state_handed_over_in_a_swap():
+    """A new holder that never saw the disturbance still clears the alarm the previous holder raised."""
+    from services.dmc_detector.service import ThresholdDmcDetector
+
+    svc = ThresholdDmcDetector(vehicles_config=_vehicles_config())
+    rt = _FakeRuntime()
+    akey = keys.alarm("car-1", "dmc")
+    rt.mode = "active"
+    rt.alarm_published = {akey: "raised"}
+    rt.raised = {akey: {"t_s": 12.0, "state": "raised"}}
+    orig = rt.publish
+
+    def publish(key, msg_type, vehicle, t_s, fields):
+        msg = orig(key, msg_type, vehicle, t_s, fields)
+        if msg_type == "alarm":
+            rt.alarm_published[key] = msg["state"]
+        return msg
+
+    rt.publish = publish
+    svc._rt = rt
+    state = svc.new_vehicle("car-1")
+    t, b1, b2, _, _ = synthetic_drive(seed=9, n=400, source_at_s=None)
+    for i in range(len(t)):
+        for sensor, b in (("1", b1[i]), ("2", b2[i])):
+            msg = messages.make("mag", "car-1", float(t[i]), i, sensor=sensor, b_nt=[float(x) for x in b])
+            svc.on_message(keys.parse(keys.clean_mag("car-1", sensor)), msg, state)
+    alarms = [m for k, m in rt.out if k == akey]
+    assert [a["state"] for a in alarms] == ["cleared"]
+    clear = svc.settings.clear_after_s
+    assert clear - 0.05 <= alarms[0]["t_s"] <= clear + 0.1 and alarms[0]["raised_t_s"] == 12.0

@@ -330,6 +330,12 @@ class AlarmLatch:
                 return "raised"
         return None
 
+    def adopt(self, raised: bool, raised_t_s: float | None = None) -> None:
+        """Take over an alarm state decided elsewhere (a live swap): the run timers are kept, so a
+        condition that has already been absent for ``clear_after_s`` clears at the next epoch."""
+        self.raised = bool(raised)
+        self.raised_t_s = raised_t_s if raised else None
+
     def state(self) -> dict:
         return {"raised": self.raised, "raised_t_s": self.raised_t_s, "invalid_since": self._invalid_since,
                 "valid_since": self._valid_since}

@@ -173,13 +173,29 @@ class DmcDetectorService(Service):
                              "cal/params); epochs are dropped until they arrive", info.vehicle, ", ".join(missing))
         return False
 
+    def _adopt_published_alarm(self, vehicle: str, state: VehicleState) -> None:
+        """After a live swap the runtime carries on the previous holder's alarm state; align the latch
+        with it so this instance clears an alarm it did not raise itself (and never raises one twice)."""
+        rt = self._runtime
+        if getattr(rt, "mode", "active") != "active":
+            return
+        published = getattr(rt, "alarm_published", {}).get(keys.alarm(vehicle, "dmc"))
+        latch = state.detector.latch
+        if published is None or (published == "raised") == latch.raised:
+            return
+        raised_msg = getattr(rt, "raised", {}).get(keys.alarm(vehicle, "dmc")) or {}
+        latch.adopt(published == "raised", raised_msg.get("raised_t_s", raised_msg.get("t_s")))
+        self.log.info("vehicle %s: alarm state %s adopted from the mesh", vehicle, published)
+
     def _publish(self, vehicle: str, state: VehicleState, d: core.Decision, param_source: str) -> None:
         state.epochs += 1
         state.n_valid += int(d.valid)
         self.publish(keys.dmc(vehicle), "dmc", vehicle, d.t_s, dm_nt=d.dm_nt, ddm_nt_s=d.ddm_nt_s, dh_rad=d.dh_rad,
                      ddh_rad_s=d.ddh_rad_s, heading_rad=d.heading_rad, stage1_pass=d.stage1_pass,
                      credibility=d.credibility, valid=d.valid, impl=self.impl, param_source=param_source)
-        if d.transition is not None:
+        if d.transition is None:
+            self._adopt_published_alarm(vehicle, state)
+        else:
             reason, value, threshold, unit = state.detector.describe(d)
             raised_t = state.detector.latch.raised_t_s
             extra = {"raised_t_s": raised_t} if raised_t is not None else {}
