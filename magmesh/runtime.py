@@ -696,8 +696,9 @@ class Runner:
         for t_s, key, msg_type, fields in svc.produce():
             if self.stop_event.is_set():
                 break
-            if t0_sample is None:
+            if t0_sample is None:  # the clock starts at the first sample, however long producing it took
                 t0_sample = t_s
+                t0_wall = time.monotonic()
             if speed > 0:
                 due = t0_wall + (t_s - t0_sample) / speed
                 delay = due - time.monotonic()
