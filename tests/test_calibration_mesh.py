@@ -115,7 +115,7 @@ def test_car_parameters_converge_are_queryable_and_survive_a_restart(tmp_path):
             replies = [messages.decode(bytes(b)) for b in _query(late, keys.cal_params(vehicle, "*"))]
             assert {r["sensor"] for r in replies} == {"1", "2"}
             st = msgpack.unpackb(_query(late, keys.svc_status("calibration", "cal-t"))[0], raw=False)
-            assert st["calibration"][vehicle]["sensors"]["1"]["params"]["status"] in ("ok",)
+            assert st["calibration"]["vehicles"][vehicle]["sensors"]["1"]["params"]["status"] in ("ok",)
         saved_before_restart = {r["sensor"]: r["param_id"] for r in replies}
         # restart: saved parameters come back at once (the source is stopped: no new data)
         _stop(procs[1])

@@ -257,4 +257,14 @@ class Calibration(Service):
                     entry["ekf"] = {**onl.ekf.internal_states, **onl.ekf.flags}
                 sensors[sid] = entry
             vehicles[v] = {"sensors": sensors, "gnss_unusable_reason": vc.gnss_reason}
-        return {"calibration": vehicles}
+        parts = []
+        for v, vc in sorted(list(self.vehicle_states.items())):
+            for sid, sc in sorted(list(vc.sensors.items()) if vc else []):
+                cur = sc.current
+                if cur is None:
+                    parts.append(f"{v}/{sid} none")
+                else:
+                    rmse = "" if cur.rmse_nt is None else f" {cur.rmse_nt:.0f}nT"
+                    parts.append(f"{v}/{sid} {cur.status} {cur.method} {cur.params.model}{rmse}")
+        # "summary" first: `magmesh status` shows the start of this entry in its NOTE column
+        return {"calibration": {"summary": "; ".join(parts), "vehicles": vehicles}}
