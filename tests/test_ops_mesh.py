@@ -13,6 +13,7 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from magmesh import recording as rc
@@ -162,36 +163,49 @@ def test_record_replay_through_a_swapped_detector_and_report(tmp_path):
     assert "dmc-single" in page  # the swap is visible in the services table
 
 
-def test_broad_trial_through_ingest_and_a_detector(tmp_path):
+def test_broad_trial_through_the_mesh_gives_heading_and_alarms(tmp_path):
     zenoh = pytest.importorskip("zenoh")
+    from magmesh.report.data import group, heading_error
     from magmesh.zconf import build_config
 
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
     router = zenoh.open(build_config(mode="router", listen=[endpoint]))
     path = tmp_path / "broad.mcap"
+    manifest = ["--manifest", str(MANIFEST)]
     procs = [_spawn("services.ingest", endpoint, "--instance", "ingest-b"),
-             _spawn("services.dmc_detector", endpoint, "--impl", "quasistatic", "--instance", "dmc-qs",
-                    "--manifest", str(MANIFEST))]
+             _spawn("services.dmc_detector", endpoint, "--impl", "quasistatic", "--instance", "dmc-qs", *manifest),
+             _spawn("services.heading_fuser", endpoint, "--instance", "heading-b", *manifest)]
     try:
         time.sleep(2.0)
         rec = _Recorder(endpoint, path)
-        # the 1 cm magnet trial, 40 s around the start of the attached-magnet block, 8× real time
+        # the 1 cm magnet trial from 20 s to 60 s (the magnet is attached at about 38 s), 8× real time
         sim = _spawn("sim_publishers.replay", endpoint, "--vehicle", "broad-1", "--instance", "replay-b",
                      "--set", "dataset=broad:32_disturbed_attached_magnet_1cm", "--set", "speed=8",
-                     "--set", "start_s=40", "--set", "duration_s=40")
+                     "--set", "rate_hz=50", "--set", "start_s=20", "--set", "duration_s=40")
         procs.append(sim)
-        n_mag = lambda: rec.progress.get("per_key", {}).get(keys.clean_mag("broad-1", "1"), 0)  # noqa: E731
-        assert _wait_for(lambda: n_mag() >= 3700, 60, procs[:2]), f"{n_mag()} clean mag samples"
+        n_head = lambda: rec.progress.get("per_key", {}).get(keys.heading("broad-1"), 0)  # noqa: E731
+        assert _wait_for(lambda: n_head() >= 380, 60, procs[:3]), f"{n_head()} heading messages"
         time.sleep(1.5)
         counts = rec.finish()
     finally:
         _stop(procs)
         router.close()
     per_key = counts["per_key"]
-    assert per_key.get(keys.clean_mag("broad-1", "1"), 0) >= 3700
-    assert per_key.get(keys.truth("broad-1", "sources"), 0) > 300
-    msgs = rc.load_messages(path)
-    dmc = [m for k, m in msgs if k == keys.dmc("broad-1")]
-    alarms = [m for k, m in msgs if k == keys.alarm("broad-1", "dmc")]
-    assert len(dmc) > 100, "the detector produced nothing for the replayed trial"
-    assert any(a["state"] == "raised" for a in alarms), "no alarm on the attached magnet"
+    assert per_key.get(keys.clean_mag("broad-1", "1"), 0) >= 1900  # 40 s at 285.7 Hz / 6
+    assert per_key.get(keys.truth("broad-1", "sources"), 0) >= 390
+    run = group(rc.load_messages(path))["broad-1"]
+    alarms = run.alarms()
+    dmc_alarms = [a for a in alarms if a.source == "dmc"]
+    assert dmc_alarms, "no DMC alarm on the attached magnet"
+    # raised within a few seconds of the magnet's arrival, as the truth marks it
+    src = run.truth("sources")
+    ts = np.array([m["t_s"] for m in src])
+    dist = np.array([m["disturbed"] for m in src], bool)
+    onset = next(t0 for t0, _ in run.disturbed_intervals() if dist[(ts >= t0) & (ts < t0 + 10.0)].mean() > 0.5)
+    assert onset - 1.0 <= dmc_alarms[0].start <= onset + 5.0, (onset, dmc_alarms[0].start)
+    # the heading follows the optical truth before the magnet and stops trusting the magnetometer after it
+    t, err = heading_error(run)
+    before = (t > 28.0) & (t < onset - 1.0)
+    assert before.sum() > 50 and np.sqrt(np.mean(np.degrees(err[before]) ** 2)) < 10.0
+    modes_after = {m["mode"] for m in run.messages("heading") if m["t_s"] > onset + 3.0}
+    assert modes_after - {"magnetic"}, modes_after
