@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -175,7 +175,8 @@ def _prepare(h_nt, settings: MatchSettings):
     return h
 
 
-def _strip(m: GridMap, starts: np.ndarray, offsets: np.ndarray, cols, coarse: bool, demean: bool) -> np.ndarray:
+def _strip(m: GridMap, starts: np.ndarray, offsets: np.ndarray, cols, coarse: bool) -> np.ndarray:
+    """Reference strips H'_N: the map at start + INS offsets (cell means for the pre-match, else bilinear)."""
     gi = starts[:, 0:1] + offsets[None, cols, 0]
     gj = starts[:, 1:2] + offsets[None, cols, 1]
     r = m.cell_mean(gi, gj) if coarse else m.bilinear(gi, gj)
@@ -204,7 +205,7 @@ def _ssda_scores(
     order = np.argsort(-np.abs(h - (h.mean() if s.demean else ref)), kind="stable")
     if s.demean:
         # demeaned strips need every column first: no column-wise abandon, score all
-        r = _strip(m, starts, offsets, slice(None), coarse, False)
+        r = _strip(m, starts, offsets, slice(None), coarse)
         r = r - r.mean(axis=1, keepdims=True)
         return hausdorff(h, r, w, s.rank_frac), c * n
     for i in order:
@@ -214,14 +215,14 @@ def _ssda_scores(
             cols = np.arange(n)
         else:
             cols = np.arange(max(0, i - w), min(n, i + w + 1))
-        r = _strip(m, starts[live], offsets, cols, coarse, False)
+        r = _strip(m, starts[live], offsets, cols, coarse)
         term = np.abs(h[i] - r).min(axis=1)
         evals += live.size * cols.size
         over[live] += term > lam
         live = live[over[live] <= allowed]
     scores = np.full(c, np.inf)
     if live.size:
-        r = _strip(m, starts[live], offsets, slice(None), coarse, False)
+        r = _strip(m, starts[live], offsets, slice(None), coarse)
         scores[live] = hausdorff(h, r, w, s.rank_frac)
         evals += live.size * n * (1 if w == 0 else 2)
     return scores, evals
@@ -233,8 +234,8 @@ def _offsets_ij(m: GridMap, ins_m: np.ndarray) -> np.ndarray:
 
 
 def _finish(
-    m: GridMap, h: np.ndarray, starts: np.ndarray, scores: np.ndarray, offsets: np.ndarray, lam: float,
-    s: MatchSettings, area: float,
+    m: GridMap, starts: np.ndarray, scores: np.ndarray, offsets: np.ndarray, lam: float, s: MatchSettings,
+    area: float,
 ) -> MatchResult:
     b = int(np.argmin(scores))
     best = float(scores[b])
@@ -346,12 +347,12 @@ def _match_once(m: GridMap, h_nt, ins_m, settings: MatchSettings, centre_m=None)
     lat = (fc[:, None, 0] + A.ravel()[None, :]).ravel(), (fc[:, None, 1] + B.ravel()[None, :]).ravel()
     lattice = np.unique(np.stack(lat, axis=-1), axis=0)
     starts = lattice / k
-    r = _strip(m, starts, offsets, slice(None), coarse=False, demean=False)
+    r = _strip(m, starts, offsets, slice(None), coarse=False)
     if s.demean:
         r = r - r.mean(axis=1, keepdims=True)
     scores = hausdorff(h, r, s.window_samples, s.rank_frac)
     evals += starts.shape[0] * h.size * (1 if s.window_samples == 0 else 2)
-    res = _finish(m, h, starts, scores, offsets, lam, s, area)
+    res = _finish(m, starts, scores, offsets, lam, s, area)
     res.n_prematch, res.n_abandoned, res.n_feasible, res.n_fine = cells.shape[0], n_abandoned, feasible.size, len(starts)
     res.term_evaluations = evals
     return res
@@ -374,12 +375,12 @@ def match_exhaustive(m: GridMap, h_nt, ins_m, settings: MatchSettings, centre_m=
     starts = np.stack([GI.ravel(), GJ.ravel()], axis=-1)
     scores = np.empty(starts.shape[0])
     for c0 in range(0, starts.shape[0], chunk):
-        r = _strip(m, starts[c0:c0 + chunk], offsets, slice(None), coarse=False, demean=False)
+        r = _strip(m, starts[c0:c0 + chunk], offsets, slice(None), coarse=False)
         if s.demean:
             r = r - r.mean(axis=1, keepdims=True)
         scores[c0:c0 + chunk] = hausdorff(h, r, s.window_samples, s.rank_frac)
     area = float((hi[0] - lo[0]) * (hi[1] - lo[1]) * m.cell_area_m2)
-    res = _finish(m, h, starts, scores, offsets, s.lambda_nt, s, area)
+    res = _finish(m, starts, scores, offsets, s.lambda_nt, s, area)
     res.n_fine = starts.shape[0]
     res.term_evaluations = starts.shape[0] * h.size * (1 if s.window_samples == 0 else 2)
     return res
@@ -440,8 +441,8 @@ class MofNAcceptor:
                 1 for c in self._history if c is not None and float(np.hypot(*(c - corr))) < s.agree_radius_m
             )
             status = "accepted" if self.agreeing >= s.m_agree else "pending"
-        if status != "accepted":
-            self.agreeing = 0 if status != "pending" else self.agreeing
+        if status in ("rejected", "ambiguous"):
+            self.agreeing = 0
         self.last_status = status
         return status
 
@@ -640,9 +641,3 @@ class GeomagMatcher:
             "diverged": self.diverged,
             "last_status": None if self.last_fix is None else self.last_fix.status,
         }
-
-
-def with_overrides(settings, **kw):
-    """dataclasses.replace that ignores keys the dataclass does not have (for flat service settings)."""
-    names = set(settings.__dataclass_fields__)
-    return replace(settings, **{k: v for k, v in kw.items() if k in names})
