@@ -244,3 +244,32 @@ def test_ekf_mount_yaw_state_recovers_a_rotated_mounting():
     assert math.degrees(ekf.mount_yaw_std_rad) < 1.0
     expected = maths.rot_z(ekf.mount_yaw_rad) @ M_rot if ekf.mount_yaw_observable else M_rot
     assert np.allclose(ekf.applied_matrix(), expected)
+
+
+def test_vehicle_logic_on_the_car_circle_with_and_without_a_manifest_set():
+    from services.calibration.core import OnlineSettings, VehicleCalibration
+    from sim_publishers.car import core as car
+
+    drive = car.simulate(seed=1, duration_s=60.0)
+    manifest = {sid: ParamRecord(magcal.MagParams.from_arrays(p.offset_nt, p.matrix, p.field_radius_nt), f"{sid}-manifest",
+                                 "manifest", "manifest") for sid, p in drive.true_params.items()}
+    for initial in (None, manifest):
+        vc = VehicleCalibration("car", CalibrationSettings(), OnlineSettings(), initial)
+        published = []
+        for t_s, key, _type, f in car.iter_messages(drive, "car", truth=False):
+            if "/mag/" in key:
+                sc = vc.on_mag(f["sensor"], t_s, f["b_nt"])
+                if sc.due(t_s):
+                    a = sc.fit(t_s)
+                    if a.accepted:
+                        published.append((t_s, a.record.status, a.record.method))
+            elif key.endswith("/imu"):
+                vc.on_imu(t_s, f["gyro_rad_s"], f["accel_m_s2"])
+            elif key.endswith("/gnss"):
+                published += [(t_s, r.status, r.method) for _, r in vc.on_gnss(t_s, f)]
+        first_ok = min(t for t, st, m in published if st == "ok" and m == "arls")
+        assert first_ok <= drive.calib_turn_t_s[1] + 5.0
+        converging = [p for p in published if p[1] == "converging"]
+        assert (len(converging) == 0) == (initial is not None)  # never displaces a trusted set
+        for sid in ("1", "2"):
+            assert vc.sensors[sid].current.status == "ok" and vc.sensors[sid].current.params.model == "2d"

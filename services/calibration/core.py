@@ -393,7 +393,9 @@ class VehicleCalibration:
                                               observable if base.model == "2d" or sc.current is None else
                                               tuple(a or b for a, b in zip(observable, base.observable, strict=True)))
         if not ekf.converged:
-            has_fit = sc.current is not None and sc.current.status == "ok"
+            # "converging" estimates are published only while no trusted set (fitted, saved or from the
+            # manifest) is in use: an estimate still converging must not displace one
+            has_fit = sc.current is not None and sc.current.status in ("ok", "manifest")
             if has_fit or t_s - onl.last_converging_t < self.online.converging_publish_s:
                 return None
             onl.last_converging_t = t_s
@@ -403,7 +405,7 @@ class VehicleCalibration:
             sc.current = rec
             onl.base_id = rec.param_id
             return rec
-        in_use_ok = sc.current is not None and sc.current.status == "ok"
+        in_use_ok = sc.current is not None and sc.current.status in ("ok", "manifest")
         if in_use_ok:
             # a fitted set is replaced only on clear evidence of a changed hard iron: a shift beyond
             # min_change_nt and 4σ of the estimate, that explains the GNSS course clearly better
