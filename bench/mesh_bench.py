@@ -1,0 +1,303 @@
+"""``magmesh bench mesh``: the real mesh processes under N simulated vehicles, against the raw-Zenoh limit.
+
+Pipeline: fleet (N vehicles: 2 magnetometers at 50 Hz, IMU 100 Hz, GNSS 5 Hz) → ingest → dmc_detector
+(+ calibration and heading_fuser consuming beside them) → sink. Limit: the same fleet through the same number of
+hops (raw → relay → relay → sink) with no decoding or processing. Both in the same run, on the same machine.
+
+Figures: sustained samples/s end to end (raw samples whose DMC epoch reached the sink), latency of the DMC output
+(raw publish → dmc received) p50/p99, CPU per stage (% of one core), memory per process, messages lost, and the
+ratio pipeline / limit. Every figure is a median over ``--repeat`` runs.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import msgpack
+import numpy as np
+
+from magmesh import paths, zconf
+from schemas import keys
+
+from .fleet import vehicle_ids
+
+CLK = os.sysconf("SC_CLK_TCK")
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _cpu_s(pid: int) -> float:
+    try:
+        f = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+        return (int(f[11]) + int(f[12])) / CLK
+    except (OSError, IndexError):
+        return float("nan")
+
+
+def _rss_mb(pid: int) -> float:
+    try:
+        for line in open(f"/proc/{pid}/status"):
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return float("nan")
+
+
+def _manifest(n: int, tmp: Path) -> Path:
+    """A manifest whose bench vehicles carry the demo car's compensation (the fleet replays that car)."""
+    import tomllib
+
+    with open(paths.DEPLOY_DIR / "mesh.toml", "rb") as f:
+        car = tomllib.load(f)["vehicles"]["car-1"]
+    lines = []
+    for v in vehicle_ids(n):
+        lines.append(f'[vehicles.{v}]\nkind = "car"\ndeclination_rad = {car.get("declination_rad", 0.0)!r}\n')
+        for s, p in car.get("mag_params", {}).items():
+            lines.append(f"[vehicles.{v}.mag_params.{s}]\n")
+            for k, val in p.items():
+                lines.append(f"{k} = {json.dumps(val)}\n")
+    path = tmp / "bench.toml"
+    path.write_text("".join(lines))
+    return path
+
+
+class Sink:
+    """Counts outputs and their latency (receive wall time − t_s) in its own thread."""
+
+    def __init__(self, session, keyexpr: str, latency: bool):
+        import zenoh
+
+        self.sub = session.declare_subscriber(keyexpr, zenoh.handlers.FifoChannel(100_000))
+        self.n = 0
+        self.lat: list[float] = []
+        self.t_last = 0.0
+        self.latency = latency
+        self.q: queue.Queue = queue.Queue()
+        threading.Thread(target=self._run, daemon=True).start()
+
+    def _run(self) -> None:
+        unpack = msgpack.unpackb
+        while True:
+            try:
+                s = self.sub.recv()
+            except Exception:
+                return
+            now = time.time()
+            self.n += 1
+            self.t_last = now
+            if self.latency:
+                self.lat.append(now - unpack(s.payload.to_bytes())["t_s"])
+
+
+def _spawn(args: list[str], port: int, log: Path) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONUNBUFFERED="1", MAGMESH_LOG_LEVEL="WARNING")
+    return subprocess.Popen([sys.executable, *args, "--connect", f"tcp/127.0.0.1:{port}"], cwd=paths.REPO,
+                            stdout=open(log, "ab"), stderr=subprocess.STDOUT, env=env, start_new_session=True)
+
+
+def _stop(procs: dict) -> None:
+    for p in procs.values():
+        if p.poll() is None:
+            p.terminate()
+    for p in procs.values():
+        try:
+            p.wait(5)
+        except subprocess.TimeoutExpired:
+            p.kill()
+
+
+def _wait_tokens(session, tokens: list[str], timeout: float = 30.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        live = {str(r.ok.key_expr) for r in session.liveliness().get(keys.svc_all(), timeout=1.0) if r.ok}
+        if set(tokens) <= live:
+            return True
+        time.sleep(0.2)
+    return False
+
+
+def _status(session, role: str, inst: str) -> dict:
+    for r in session.get(keys.svc_status(role, inst), timeout=3.0):
+        if r.ok:
+            return msgpack.unpackb(r.ok.payload.to_bytes())
+    return {}
+
+
+def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple[str, ...], tmp: Path) -> dict:
+    """One run: ``kind`` is "pipeline" or "limit"."""
+    import zenoh
+
+    port = _free_port()
+    router = zenoh.open(zconf.build_config(mode="router", listen=[f"tcp/127.0.0.1:{port}"]))
+    man = _manifest(n, tmp)
+    procs: dict[str, subprocess.Popen] = {}
+    tokens = []
+    if kind == "pipeline":
+        procs["ingest"] = _spawn(["-m", "services.ingest", "--instance", "b-ingest"], port, tmp / "ingest.log")
+        tokens.append(keys.svc_token("ingest", "b-ingest"))
+        procs["dmc_detector"] = _spawn(["-m", "services.dmc_detector", "--instance", "b-dmc", "--manifest", str(man)],
+                                       port, tmp / "dmc.log")
+        tokens.append(keys.svc_token("dmc_detector", "b-dmc"))
+        if "calibration" in stages:
+            procs["calibration"] = _spawn(["-m", "services.calibration", "--instance", "b-cal", "--manifest", str(man)],
+                                          port, tmp / "cal.log")
+            tokens.append(keys.svc_token("calibration", "b-cal"))
+        if "heading_fuser" in stages:
+            procs["heading_fuser"] = _spawn(["-m", "services.heading_fuser", "--instance", "b-heading", "--manifest",
+                                             str(man)], port, tmp / "heading.log")
+            tokens.append(keys.svc_token("heading_fuser", "b-heading"))
+        sink_key = keys.dmc("*")
+    else:
+        procs["relay1"] = _spawn(["-m", "bench.relay", "--from", "raw", "--to", "clean", "--instance", "r1"], port,
+                                 tmp / "relay1.log")
+        procs["relay2"] = _spawn(["-m", "bench.relay", "--from", "clean", "--to", "benchout", "--instance", "r2"],
+                                 port, tmp / "relay2.log")
+        tokens += [keys.svc_token("relay", "r1"), keys.svc_token("relay", "r2")]
+        sink_key = "magmesh/*/benchout/mag/2"
+    try:
+        if not _wait_tokens(router, tokens):
+            raise RuntimeError(f"{kind}: services did not come up (logs in {tmp})")
+        sink = Sink(router, sink_key, latency=not max_mode)
+        time.sleep(0.5)
+        start_at = time.time() + 2.0
+        cpu0 = {}
+        fleet_args = ["-m", "bench.fleet", "--vehicles", str(n), "--duration", str(duration_s), "--start-at",
+                      str(start_at)] + (["--max"] if max_mode else [])
+        fleet = subprocess.Popen([sys.executable, *fleet_args, "--connect", f"tcp/127.0.0.1:{port}"], cwd=paths.REPO,
+                                 stdout=subprocess.PIPE, stderr=open(tmp / "fleet.log", "ab"), text=True)
+        while time.time() < start_at:
+            time.sleep(0.01)
+        cpu0 = {k: _cpu_s(p.pid) for k, p in procs.items()}
+        cpu0["fleet"] = _cpu_s(fleet.pid)
+        t_start = time.time()
+        rss = {}
+        time.sleep(duration_s * 0.8)
+        rss = {k: _rss_mb(p.pid) for k, p in procs.items()}
+        cpu_fleet = _cpu_s(fleet.pid)
+        out, _ = fleet.communicate(timeout=duration_s + 120)
+        fl = json.loads(out.strip().splitlines()[-1])
+        expected = fl["sent"]["mag"] // 2  # one DMC epoch (or relayed mag/2) per magnetometer pair
+        deadline = time.time() + 60
+        while sink.n < expected and time.time() < deadline:
+            last = sink.n
+            time.sleep(0.5)
+            if sink.n == last and time.time() - sink.t_last > 5:
+                break
+        t_end = sink.t_last
+        cpu1 = {k: _cpu_s(p.pid) for k, p in procs.items()}
+        wall = max(t_end - t_start, 1e-6)
+        statuses = {}
+        if kind == "pipeline":
+            statuses["ingest"] = _status(router, "ingest", "b-ingest")
+            statuses["dmc_detector"] = _status(router, "dmc_detector", "b-dmc")
+        drops = {}
+        for name, st in statuses.items():
+            for key, reasons in st.get("drops", {}).items():
+                for r, c in reasons.items():
+                    if r != "alarm_state_unchanged":
+                        drops[f"{name}:{r}"] = drops.get(f"{name}:{r}", 0) + c
+        lost = max(0, expected - sink.n) + sum(drops.values())
+        if kind == "pipeline" and statuses.get("ingest"):
+            ing_in = sum(v["n"] for v in statuses["ingest"].get("in", {}).values())
+            lost += max(0, fl["total"] - ing_in)
+        lat = np.array(sink.lat) * 1000 if sink.lat else np.array([np.nan])
+        samples_done = fl["total"] * min(1.0, sink.n / max(expected, 1))
+        return {
+            "kind": kind, "vehicles": n, "max_mode": max_mode, "duration_s": duration_s,
+            "offered_samples_s": fl["offered_rate"], "published_samples_s": round(fl["rate"], 1),
+            "sustained_samples_s": round(samples_done / wall, 1),
+            "outputs": sink.n, "expected_outputs": expected, "lost": int(lost), "drops": drops,
+            "latency_ms_p50": round(float(np.nanpercentile(lat, 50)), 2),
+            "latency_ms_p99": round(float(np.nanpercentile(lat, 99)), 2),
+            "cpu_pct": {k: round(100 * (cpu1[k] - cpu0[k]) / wall, 1) for k in procs}
+                       | {"fleet": round(100 * (cpu_fleet - cpu0["fleet"]) / (duration_s * 0.8), 1)},
+            "rss_mb": {k: round(v, 1) for k, v in rss.items()},
+        }
+    finally:
+        _stop(procs)
+        router.close()
+
+
+def _median_case(kind, n, duration_s, max_mode, stages, repeat, tmp) -> dict:
+    runs = [run_case(kind, n, duration_s, max_mode, stages, tmp) for _ in range(repeat)]
+    out = dict(runs[0])
+    for k in ("sustained_samples_s", "published_samples_s", "latency_ms_p50", "latency_ms_p99"):
+        out[k] = round(statistics.median(r[k] for r in runs), 2)
+    out["lost"] = max(r["lost"] for r in runs)
+    out["runs"] = len(runs)
+    return out
+
+
+def available_stages() -> tuple[str, ...]:
+    import importlib.util
+
+    st = ["ingest", "dmc_detector"]
+    for name in ("calibration", "heading_fuser"):
+        if importlib.util.find_spec(f"services.{name}.service") is not None:
+            st.append(name)
+    return tuple(st)
+
+
+def bench(vehicles: list[int], duration_s: float = 8.0, repeat: int = 1, stages: tuple[str, ...] | None = None,
+          limit_vehicles: int | None = None, progress=None) -> dict:
+    stages = stages or available_stages()
+    tmp = Path(tempfile.mkdtemp(prefix="magmesh-bench-"))
+    say = progress or (lambda s: None)
+    # throughput at saturation: the same load, pipeline vs no-processing limit, same run
+    n_sat = limit_vehicles or max(10, min(vehicles))
+    say(f"saturation: pipeline, {n_sat} vehicles, as fast as possible")
+    pipe_max = _median_case("pipeline", n_sat, duration_s, True, stages, repeat, tmp)
+    say(f"saturation: limit (same hops, no processing), {n_sat} vehicles")
+    lim_max = _median_case("limit", n_sat, duration_s, True, stages, repeat, tmp)
+    table = []
+    for n in vehicles:
+        say(f"paced at sensor rates: pipeline, {n} vehicles")
+        r = _median_case("pipeline", n, duration_s, False, stages, repeat, tmp)
+        r["sustained"] = bool(r["lost"] == 0 and r["latency_ms_p99"] <= 50.0
+                              and r["published_samples_s"] >= 0.95 * r["offered_samples_s"]
+                              and r["outputs"] >= 0.999 * r["expected_outputs"])
+        table.append(r)
+    ok = [r["vehicles"] for r in table if r["sustained"]]
+    ratio = pipe_max["sustained_samples_s"] / max(lim_max["sustained_samples_s"], 1e-9)
+    return {
+        "stages": list(stages),
+        "saturation": {"pipeline": pipe_max, "limit": lim_max},
+        "ratio_to_limit": round(ratio, 3),
+        "scaling": table,
+        "max_vehicles": max(ok) if ok else 0,
+        "logs": str(tmp),
+    }
+
+
+def format_text(res: dict) -> str:
+    p, lim = res["saturation"]["pipeline"], res["saturation"]["limit"]
+    lines = [f"stages: {' → '.join(res['stages'])}",
+             f"saturation ({p['vehicles']} vehicles, as fast as possible): pipeline {p['sustained_samples_s']:.0f} "
+             f"samples/s, no-processing limit {lim['sustained_samples_s']:.0f} samples/s → ratio "
+             f"{res['ratio_to_limit']:.2f}",
+             "", "| vehicles | offered samples/s | published | sustained end to end | p50 ms | p99 ms | lost | CPU % "
+             "per stage | RSS MB | sustained |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in res["scaling"]:
+        cpu = ", ".join(f"{k} {v:.0f}" for k, v in r["cpu_pct"].items())
+        rss = ", ".join(f"{k} {v:.0f}" for k, v in r["rss_mb"].items())
+        lines.append(f"| {r['vehicles']} | {r['offered_samples_s']} | {r['published_samples_s']:.0f} | "
+                     f"{r['sustained_samples_s']:.0f} | {r['latency_ms_p50']:.1f} | {r['latency_ms_p99']:.1f} | "
+                     f"{r['lost']} | {cpu} | {rss} | {'yes' if r['sustained'] else 'no'} |")
+    lines.append(f"\nmax vehicles sustained (zero loss, p99 ≤ 50 ms): {res['max_vehicles']}")
+    return "\n".join(lines)

@@ -1,0 +1,38 @@
+"""``magmesh bench mesh``: throughput, latency, CPU and loss of the real mesh against the raw-Zenoh limit."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bench", help="benchmarks (mesh: real processes under N vehicles vs the raw-Zenoh limit)")
+    bsub = p.add_subparsers(dest="bench_name", metavar="NAME")
+    m = bsub.add_parser("mesh", help="the whole pipeline under N simulated vehicles, against the no-processing limit")
+    m.add_argument("--vehicles", default="10,50,200,500",
+                   help="comma-separated vehicle counts for the scaling table (default 10,50,200,500)")
+    m.add_argument("--duration", type=float, default=8.0, help="seconds of load per run")
+    m.add_argument("--repeat", type=int, default=3, help="runs per case; figures are medians")
+    m.add_argument("--saturation-vehicles", type=int, default=None,
+                   help="vehicles for the pipeline-vs-limit throughput run (default: the smallest count, ≥ 10)")
+    m.add_argument("--stages", default=None, help="comma-separated stages (default: all available)")
+    m.add_argument("--json", action="store_true")
+    m.set_defaults(func=run_mesh)
+    p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
+
+
+def run_mesh(args: argparse.Namespace) -> int:
+    from bench.mesh_bench import bench, format_text
+
+    vehicles = [int(x) for x in args.vehicles.split(",") if x.strip()]
+    stages = tuple(s.strip() for s in args.stages.split(",")) if args.stages else None
+    res = bench(vehicles, args.duration, args.repeat, stages, args.saturation_vehicles,
+                progress=lambda s: print(s, file=sys.stderr, flush=True))
+    if args.json:
+        json.dump(res, sys.stdout)
+        print()
+    else:
+        print(format_text(res))
+    return 0

@@ -1,0 +1,17 @@
+"""Smoke version of `magmesh bench mesh`: the benchmark runs end to end and accounts for every message."""
+
+import pytest
+
+from bench.mesh_bench import bench, format_text
+
+pytestmark = pytest.mark.mesh
+
+
+def test_bench_mesh_smoke():
+    res = bench([2], duration_s=3.0, repeat=1, stages=("ingest", "dmc_detector"), limit_vehicles=2)
+    row = res["scaling"][0]
+    assert row["lost"] == 0, row
+    assert row["outputs"] >= 0.99 * row["expected_outputs"] > 0
+    assert res["saturation"]["limit"]["sustained_samples_s"] > 0 and res["ratio_to_limit"] > 0
+    assert set(row["cpu_pct"]) >= {"ingest", "dmc_detector", "fleet"}
+    print("\n" + format_text(res))
