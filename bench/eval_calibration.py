@@ -387,7 +387,22 @@ def run(args) -> dict:
                      "car_duration_s": args.car_duration, "gross_size_rel": GROSS_SIZE},
         "eval_wall_s": time.perf_counter() - t0,
     }
-    return result
+    return _plain(result)
+
+
+def _plain(v):
+    """JSON-safe plain Python: numpy scalars to Python, non-finite floats to None (strict JSON has no inf)."""
+    if isinstance(v, dict):
+        return {str(k): _plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    if isinstance(v, (np.floating, float)):
+        return float(v) if math.isfinite(v) else None
+    if isinstance(v, (np.integer,)):
+        return int(v)
+    if isinstance(v, np.bool_):
+        return bool(v)
+    return v
 
 
 def _f(x, nd=3) -> str:

@@ -22,7 +22,7 @@ def _run(*argv: str) -> dict:
 def _check_goals(r: dict) -> None:
     for k in HEADLINE:
         assert k in r
-    json.dumps(r)  # plain Python only
+    json.dumps(r, allow_nan=False)  # plain Python only, strict JSON
     assert r["arls_offset_err_pct"] <= ev.GOAL_PCT and r["arls_matrix_err_pct"] <= ev.GOAL_PCT
     assert r["ls_offset_err_pct"] > ev.GOAL_PCT  # where LS fails
     for name, v in r["real_spread"].items():
