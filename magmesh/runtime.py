@@ -41,6 +41,7 @@ from schemas.messages import SchemaError
 from . import __version__, zconf
 
 QUEUE_CAPACITY = 65536
+_HEADER_NAMES = frozenset(("type", "version", "vehicle", "t_s", "seq"))
 FIFO_CAPACITY = 4096
 STOP_GRACE_S = 1.5
 
@@ -94,6 +95,10 @@ class Service:
     def publish(self, key: str, msg_type: str, vehicle: str, t_s: float, **fields: Any) -> dict:
         """Publish one message on ``key``; returns the message sent (with its seq)."""
         return self._runtime.publish(key, msg_type, vehicle, t_s, fields)
+
+    def republish(self, key: str, msg: dict) -> dict | None:
+        """Publish an already validated input message's fields on another key, with this service's seq."""
+        return self._runtime.republish(key, msg)
 
     def alarm(self, vehicle: str, source: str, state: str, severity: str, reason: str,
               value: float | None, threshold: float | None, t_s: float, unit: str = "", **extra: Any) -> dict:
@@ -196,7 +201,18 @@ def settings_help(cls: type | None) -> str:
     return "\n".join(lines)
 
 
+_PRIMS = (float, int, str, bool, type(None))
+
+
 def _plain(v: Any) -> Any:
+    """Plain msgpack-able values (numpy scalars/arrays, dataclasses and tuples converted)."""
+    t = type(v)
+    if t in _PRIMS:
+        return v
+    if t is dict:
+        return {str(k): (x if type(x) in _PRIMS else _plain(x)) for k, x in v.items()}
+    if t is list and all(type(x) in _PRIMS for x in v):
+        return v
     if dataclasses.is_dataclass(v):
         return {k: _plain(x) for k, x in dataclasses.asdict(v).items()}
     if isinstance(v, dict):
@@ -305,16 +321,25 @@ class Runner:
                 return None
         return self._send(key, msg_type, vehicle, t_s, fields)
 
-    def _send(self, key: str, msg_type: str, vehicle: str, t_s: float, fields: dict) -> dict:
+    def _send(self, key: str, msg_type: str, vehicle: str, t_s: float, fields: dict, trusted: bool = False) -> dict:
         seq = self.seq.get(key, -1) + 1
-        msg = messages.make(msg_type, vehicle, t_s, seq, **_plain(fields))
-        payload = messages.encode(msg)  # validates: a service never emits what the contract forbids
+        msg = messages.make(msg_type, vehicle, t_s, seq, **(fields if trusted else _plain(fields)))
+        # validated unless the fields come from a message validated on input (a service never emits what the
+        # contract forbids)
+        payload = messages.encode(msg, check=not trusted)
         self._publisher(key).put(payload)
         self.seq[key] = seq
         self.count_out[key].n += 1
         if msg_type == "alarm":
             self._alarm_sent(key, msg)
         return msg
+
+    def republish(self, key: str, msg: dict) -> dict | None:
+        """Publish the fields of an already validated input message on another key (no re-validation)."""
+        fields = {k: v for k, v in msg.items() if k not in _HEADER_NAMES}
+        if self.mode != "active":
+            return self.publish(key, msg["type"], msg["vehicle"], msg["t_s"], fields)
+        return self._send(key, msg["type"], msg["vehicle"], msg["t_s"], fields, trusted=True)
 
     def publish_alarm(self, key: str, vehicle: str, t_s: float, fields: dict) -> dict | None:
         return self.publish(key, "alarm", vehicle, t_s, fields)

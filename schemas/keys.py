@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from functools import lru_cache
 
 ROOT = "magmesh"
 SVC = "svc"
@@ -131,6 +132,7 @@ def clean_all(vehicle: str = "*") -> str:
     return f"{ROOT}/{_v(vehicle)}/clean/**"
 
 
+@lru_cache(maxsize=65536)
 def raw_to_clean(raw_key: str) -> str:
     """``magmesh/v/raw/x/..`` → ``magmesh/v/clean/x/..`` (the ingest mapping)."""
     info = parse(raw_key)
@@ -245,6 +247,11 @@ def parse(key: str) -> KeyInfo:
     """Parse a concrete magmesh key; raise :class:`KeyError_` naming what is wrong."""
     if not isinstance(key, str):
         raise KeyError_(f"key must be a string, got {type(key).__name__}")
+    return _parse(key)
+
+
+@lru_cache(maxsize=65536)
+def _parse(key: str) -> KeyInfo:
     parts = key.split("/")
     if len(parts) < 3 or parts[0] != ROOT:
         raise KeyError_(f"key {key!r} does not start with '{ROOT}/<vehicle>/<kind>'")

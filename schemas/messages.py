@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Any
 
 import msgpack
@@ -523,6 +524,7 @@ def make(msg_type: str, vehicle: str, t_s: float, seq: int, **fields: Any) -> di
 
 
 #: which message type a key carries (by kind/stream)
+@lru_cache(maxsize=65536)
 def type_for_key(key: str) -> str:
     info = _keys.parse(key)
     if info.kind in ("raw", "clean"):

@@ -49,8 +49,7 @@ class Ingest(Service):
             self.reject(key, r.code, r.reason, r.field, len(payload), info.vehicle, msg["t_s"], msg["type"])
             return
         accept(msg, st)
-        fields = {k: v for k, v in msg.items() if k not in ("type", "version", "vehicle", "t_s", "seq")}
-        self.publish(keys.raw_to_clean(key), msg["type"], info.vehicle, msg["t_s"], **fields)
+        self.republish(keys.raw_to_clean(key), msg)
 
     def status_extra(self) -> dict:
         gaps = {k: st.upstream_gaps for vs in list(self.vehicle_states.values()) if vs
