@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from bisect import bisect_left, insort
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -151,6 +152,38 @@ def cross_track(route: Route, pos_enu_m) -> tuple[float, float]:
 
 def wrap_pi(x: float) -> float:
     return (x + math.pi) % (2 * math.pi) - math.pi
+
+
+class RunningMedian:
+    """Median of the samples of the last ``window_s`` seconds (sorted list + bisect: O(n) per sample in C)."""
+
+    def __init__(self, window_s: float):
+        self.window_s = window_s
+        self.clear()
+
+    def clear(self) -> None:
+        self._q: deque[tuple[float, float]] = deque()
+        self._sorted: list[float] = []
+
+    def __len__(self) -> int:
+        return len(self._q)
+
+    @property
+    def oldest(self) -> float:
+        return self._q[0][1]
+
+    @property
+    def newest_t_s(self) -> float | None:
+        return self._q[-1][0] if self._q else None
+
+    def push(self, t_s: float, x: float) -> float:
+        self._q.append((t_s, x))
+        insort(self._sorted, x)
+        while t_s - self._q[0][0] > self.window_s:
+            _, old = self._q.popleft()
+            del self._sorted[bisect_left(self._sorted, old)]
+        n = len(self._sorted)
+        return self._sorted[n // 2] if n % 2 else 0.5 * (self._sorted[n // 2 - 1] + self._sorted[n // 2])
 
 
 # ---- detectors --------------------------------------------------------------------------------
@@ -276,7 +309,7 @@ class InnovationDetector:
         self.n_bursts = 0
 
     def _restart(self) -> None:
-        self._window: deque[tuple[float, float]] = deque()
+        self._window = RunningMedian(self.s.median_window_s)
         self._block_sum = 0.0
         self._block_n = 0
         self._block_t0: float | None = None
@@ -346,10 +379,7 @@ class InnovationDetector:
             x = ec
         self.corrected_rad = ec
         # running median over the window
-        self._window.append((t_s, x))
-        while self._window and t_s - self._window[0][0] > s.median_window_s:
-            self._window.popleft()
-        med = float(np.median([v for _, v in self._window]))
+        med = self._window.push(t_s, x)
         self.median_rad = med
         e = x
         if self._t_first is None:
@@ -396,7 +426,7 @@ class InnovationDetector:
             level = abs(med)
             thr, clear_thr = k * msig, s.innovation_clear_sigma * msig
             if step_fired and not gate_fired:
-                detail = (f"the magnetometer heading jumped by {math.degrees(e - (self._window[0][1])):+.2f}° "
+                detail = (f"the magnetometer heading jumped by {math.degrees(e - self._window.oldest):+.2f}° "
                           f"and stayed there {self.burst_s:.2f} s")
             elif gate_fired:
                 detail = (f"median heading innovation {math.degrees(med):+.2f}° exceeds {k:g}σ = "
@@ -442,7 +472,7 @@ class FieldStrengthMonitor:
             self.ref_nt = self.sigma_nt = None
         self.learning_samples: list[float] = []
         self._t_first: float | None = None
-        self._window: deque[tuple[float, float]] = deque()
+        self._window = RunningMedian(self.s.field_window_s)
         self.field_nt: float | None = None
         self.median_nt: float | None = None
         self.deviation_nt: float | None = None
@@ -459,12 +489,10 @@ class FieldStrengthMonitor:
         s = self.s
         f = math.sqrt(b_nt[0] ** 2 + b_nt[1] ** 2 + b_nt[2] ** 2)
         self.field_nt = f
-        if self._window and t_s - self._window[-1][0] > s.max_attitude_gap_s:
+        last = self._window.newest_t_s
+        if last is not None and t_s - last > s.max_attitude_gap_s:
             self._window.clear()
-        self._window.append((t_s, f))
-        while self._window and t_s - self._window[0][0] > s.field_window_s:
-            self._window.popleft()
-        med = float(np.median([v for _, v in self._window]))
+        med = self._window.push(t_s, f)
         self.median_nt = med
         if self._t_first is None:
             self._t_first = t_s

@@ -237,7 +237,6 @@ def simulate(s: MultirotorSettings) -> Flight:
     dt = s.dt_s
     n = int(round(s.duration_s / dt)) + 1
     t = np.arange(n) * dt
-    g = G0
 
     a = np.asarray(s.a_enu_m, float)
     b = np.asarray(s.b_enu_m, float)
@@ -269,118 +268,137 @@ def simulate(s: MultirotorSettings) -> Flight:
     gnss_pos_noise = rng.standard_normal((len(gnss_idx), 3)) * [s.gnss_noise_m, s.gnss_noise_m, s.gnss_vert_noise_m]
     gnss_vel_noise = rng.standard_normal((len(gnss_idx), 3)) * s.gnss_vel_noise_m_s
 
-    out_pos = np.empty((n, 3))
-    out_vel = np.zeros((n, 3))
-    out_psi = np.empty(n)
-    out_theta = np.empty(n)
-    out_phi = np.empty(n)
-    out_gyro = np.empty((n, 3))
-    out_acc = np.empty((n, 3))
-    out_mag = np.empty((n, 3))
-    out_bearth = np.empty((n, 3))
-    out_att = np.empty((n, 3))  # ψ̂, θ̂, φ̂
-    out_psim = np.empty(n)
+    # the loop runs on Python floats (small numpy operations would cost ~10× more per step)
+    wind_l = wind.tolist()
+    tilt_l = tilt_err.tolist()
+    gbias_l = (gyro_bias + gyro_noise).tolist()
+    magn_l = (mag_noise + dist).tolist()
+    accn_l = accel_noise.tolist()
+    gpn_l = gnss_pos_noise.tolist()
+    gvn_l = gnss_vel_noise.tolist()
+    gnss_set = {int(k): i for i, k in enumerate(gnss_idx)}
+    bE, bN, bU = (float(x) for x in b_enu)
+    hx, hy, hz = (float(x) for x in hard_iron)
+    mdx, mdy, mdz = (float(x) for x in motor_dir)
+    ux, uy = float(u[0]), float(u[1])
+    lx, ly = float(left[0]), float(left[1])
+    ax0, ay0, alt = float(a[0]), float(a[1]), float(a[2])
+
+    rows = []  # per step: true pos/vel/attitude, sensors, estimates
     gnss_pos = np.empty((len(gnss_idx), 3))
     gnss_vel = np.empty((len(gnss_idx), 3))
 
     # state
-    p = a[:2] + left * s.start_offset_m
-    v = np.zeros(2)
+    px, py = ax0 + lx * s.start_offset_m, ay0 + ly * s.start_offset_m
+    vx = vy = 0.0
     psi = course
     theta = phi = 0.0
     psi_dot = 0.0
     psi_hat = course
     bias_hat = 0.0
-    v_int = np.zeros(2)
-    # controller's GNSS-held measurement
-    gk = 0
-    p_meas = p.copy()
-    v_meas = v.copy()
+    ix = iy = 0.0  # velocity-error integrator
+    pmx, pmy, vmx, vmy = px, py, 0.0, 0.0  # controller's GNSS-held measurement
     max_tilt = math.radians(s.max_tilt_deg)
     max_rate = math.radians(s.max_yaw_rate_deg_s)
-    thrust_z = g
-    a_aero = np.zeros(2)
+    aax = aay = 0.0  # aerodynamic (thrust + drag) horizontal acceleration
+    R = _body_to_enu(psi, theta, phi)
+    alpha = dt / s.attitude_tau_s
+    yaw_alpha = min(1.0, dt / 0.1)
+    two_pi = 2 * math.pi
 
     for k in range(n):
-        # --- sensors at the current state ---
-        R = _body_to_enu(psi, theta, phi)
-        b_body = R.T @ b_enu
-        out_bearth[k] = b_body
-        thrust_excess = thrust_z / max(math.cos(theta) * math.cos(phi), 0.5) - g
-        m = b_body + hard_iron + s.motor_field_nt_per_m_s2 * thrust_excess * motor_dir + mag_noise[k] + dist[k]
-        out_mag[k] = m
-        # specific force in the body frame: thrust along body z (+ noise)
-        # specific force (thrust + drag, i.e. acceleration minus gravity), body frame
-        out_acc[k] = R.T @ np.array([a_aero[0], a_aero[1], g]) + accel_noise[k]
+        # --- sensors at the current state (R: the attitude reached at the end of the previous step) ---
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = R
+        # b_body = Rᵀ b_enu
+        bbx = r00 * bE + r10 * bN + r20 * bU
+        bby = r01 * bE + r11 * bN + r21 * bU
+        bbz = r02 * bE + r12 * bN + r22 * bU
+        thrust_excess = G0 / max(math.cos(theta) * math.cos(phi), 0.5) - G0
+        mn = magn_l[k]
+        mot = s.motor_field_nt_per_m_s2 * thrust_excess
+        m0 = bbx + hx + mot * mdx + mn[0]
+        m1 = bby + hy + mot * mdy + mn[1]
+        m2 = bbz + hz + mot * mdz + mn[2]
+        # specific force (thrust + drag, i.e. acceleration minus gravity), body frame: Rᵀ [aax, aay, g]
+        an = accn_l[k]
+        f0 = r00 * aax + r10 * aay + r20 * G0 + an[0]
+        f1 = r01 * aax + r11 * aay + r21 * G0 + an[1]
+        f2 = r02 * aax + r12 * aay + r22 * G0 + an[2]
         # body rates: yaw about body up = −ψ̇ (roll/pitch rates are small and left out)
-        gyro = np.array([0.0, 0.0, -psi_dot]) + gyro_bias[k] + gyro_noise[k]
-        out_gyro[k] = gyro
-        if gk < len(gnss_idx) and gnss_idx[gk] == k:
-            gnss_pos[gk, :2] = p + gnss_pos_noise[gk, :2]
-            gnss_pos[gk, 2] = a[2] + gnss_pos_noise[gk, 2]
-            gnss_vel[gk, :2] = v + gnss_vel_noise[gk, :2]
-            gnss_vel[gk, 2] = gnss_vel_noise[gk, 2]
-            p_meas = gnss_pos[gk, :2]
-            v_meas = gnss_vel[gk, :2]
-            gk += 1
+        gb = gbias_l[k]
+        g0, g1, g2 = gb[0], gb[1], -psi_dot + gb[2]
+        gi = gnss_set.get(k)
+        if gi is not None:
+            gp, gv = gpn_l[gi], gvn_l[gi]
+            pmx, pmy = px + gp[0], py + gp[1]
+            vmx, vmy = vx + gv[0], vy + gv[1]
+            gnss_pos[gi] = (pmx, pmy, alt + gp[2])
+            gnss_vel[gi] = (vmx, vmy, gv[2])
 
         # --- flight controller: attitude estimate ---
-        theta_hat = theta + tilt_err[k, 0]
-        phi_hat = phi + tilt_err[k, 1]
+        te = tilt_l[k]
+        theta_hat = theta + te[0]
+        phi_hat = phi + te[1]
         # tilt compensation (level the field with the estimated roll/pitch): b_l = Ry(−θ̂) Rx(φ̂) m
         cp, sp = math.cos(phi_hat), math.sin(phi_hat)
         ct, st = math.cos(theta_hat), math.sin(theta_hat)
-        my = cp * m[1] - sp * m[2]
-        mz = sp * m[1] + cp * m[2]
-        mx = ct * m[0] - st * mz
+        my = cp * m1 - sp * m2
+        mz = sp * m1 + cp * m2
+        mx = ct * m0 - st * mz
         psi_m = math.atan2(my, mx) + decl
         e = _wrap(psi_m - psi_hat)
         # complementary filter: ψ̂̇ = −(ω_z − b̂) + k e ; b̂̇ = k_b e  (heading rate = −body-z rate)
-        psi_hat = _wrap(psi_hat + dt * (-(gyro[2] - bias_hat) + s.mag_gain_per_s * e))
+        psi_hat = _wrap(psi_hat + dt * (-(g2 - bias_hat) + s.mag_gain_per_s * e))
         bias_hat += dt * s.bias_gain_per_s2 * e
-        out_att[k] = (psi_hat % (2 * math.pi), theta_hat, phi_hat)
-        out_psim[k] = psi_m % (2 * math.pi)
-        out_pos[k, :2] = p
-        out_pos[k, 2] = a[2]
-        out_vel[k, :2] = v
-        out_psi[k] = psi % (2 * math.pi)
-        out_theta[k] = theta
-        out_phi[k] = phi
+        rows.append((px, py, vx, vy, psi % two_pi, theta, phi, g0, g1, g2, f0, f1, f2, m0, m1, m2,
+                     bbx, bby, bbz, psi_hat % two_pi, theta_hat, phi_hat, psi_m % two_pi))
 
         # --- position controller (mission line following, NE frame) ---
-        r = p_meas - a[:2]
-        along = float(r @ u)
-        cross = float(r @ left)
-        remaining = length - along
-        v_along = min(s.cruise_speed_m_s, math.sqrt(max(0.0, 2 * 1.0 * remaining)))
-        v_sp = u * v_along - left * s.pos_gain_per_s * cross
-        ev = v_sp - v_meas
-        v_int += dt * s.vel_int_per_s2 * ev
-        a_cmd = s.vel_gain_per_s * ev + v_int
+        rx, ry = pmx - ax0, pmy - ay0
+        along = rx * ux + ry * uy
+        cross = rx * lx + ry * ly
+        v_along = min(s.cruise_speed_m_s, math.sqrt(max(0.0, 2 * 1.0 * (length - along))))
+        spx = ux * v_along - lx * s.pos_gain_per_s * cross
+        spy = uy * v_along - ly * s.pos_gain_per_s * cross
+        evx, evy = spx - vmx, spy - vmy
+        ix += dt * s.vel_int_per_s2 * evx
+        iy += dt * s.vel_int_per_s2 * evy
+        acx = s.vel_gain_per_s * evx + ix
+        acy = s.vel_gain_per_s * evy + iy
         # eq. 4: roll/pitch set points from the commanded acceleration using the ESTIMATED heading
-        fwd_hat = np.array([math.sin(psi_hat), math.cos(psi_hat)])
-        left_hat = np.array([-math.cos(psi_hat), math.sin(psi_hat)])
-        theta_d = -math.atan(float(a_cmd @ fwd_hat) / g)
-        phi_d = -math.atan(float(a_cmd @ left_hat) * math.cos(theta_d) / g)
+        sh, ch = math.sin(psi_hat), math.cos(psi_hat)
+        a_fwd = acx * sh + acy * ch  # forward unit (sin ψ̂, cos ψ̂)
+        a_left = -acx * ch + acy * sh  # left unit (−cos ψ̂, sin ψ̂)
+        theta_d = -math.atan(a_fwd / G0)
+        phi_d = -math.atan(a_left * math.cos(theta_d) / G0)
         theta_d = max(-max_tilt, min(max_tilt, theta_d))
         phi_d = max(-max_tilt, min(max_tilt, phi_d))
         # yaw: hold the estimated heading on the route's course
         rate_cmd = max(-max_rate, min(max_rate, s.yaw_gain_per_s * _wrap(course - psi_hat)))
 
         # --- airframe ---
-        alpha = dt / s.attitude_tau_s
         theta += alpha * (theta_d - theta)
         phi += alpha * (phi_d - phi)
-        psi_dot += min(1.0, dt / 0.1) * (rate_cmd - psi_dot)
+        psi_dot += yaw_alpha * (rate_cmd - psi_dot)
         psi = _wrap(psi + dt * psi_dot)
         # thrust: vertical component = g (height hold); horizontal from the TRUE attitude (eq. 1–3, 5)
         R = _body_to_enu(psi, theta, phi)
-        thrust_dir = R[:, 2]
-        thrust_z = g
-        a_thrust = g * thrust_dir[:2] / thrust_dir[2]
-        a_aero = a_thrust - s.drag_per_s * (v - wind[k])
-        v = v + dt * a_aero
-        p = p + dt * v
+        tz = R[8]
+        w = wind_l[k]
+        aax = G0 * R[2] / tz - s.drag_per_s * (vx - w[0])
+        aay = G0 * R[5] / tz - s.drag_per_s * (vy - w[1])
+        vx += dt * aax
+        vy += dt * aay
+        px += dt * vx
+        py += dt * vy
+
+    arr = np.asarray(rows)
+    out_pos = np.column_stack([arr[:, 0], arr[:, 1], np.full(n, alt)])
+    out_vel = np.column_stack([arr[:, 2], arr[:, 3], np.zeros(n)])
+    out_psi, out_theta, out_phi = arr[:, 4], arr[:, 5], arr[:, 6]
+    out_gyro, out_acc, out_mag, out_bearth = arr[:, 7:10], arr[:, 10:13], arr[:, 13:16], arr[:, 16:19]
+    out_att = arr[:, 19:22]
+    out_psim = arr[:, 22]
 
     return Flight(
         settings=s, t_s=t, pos_enu_m=out_pos, vel_enu_m_s=out_vel, heading_rad=out_psi, pitch_rad=out_theta,
@@ -395,15 +413,12 @@ def _wrap(x: float) -> float:
     return (x + math.pi) % (2 * math.pi) - math.pi
 
 
-def _body_to_enu(psi: float, theta: float, phi: float) -> np.ndarray:
-    """R = Rz(π/2 − ψ) Ry(−θ) Rx(φ) (magmesh.maths.body_to_enu, inlined for speed)."""
+def _body_to_enu(psi: float, theta: float, phi: float) -> tuple:
+    """R = Rz(π/2 − ψ) Ry(−θ) Rx(φ), row-major 9-tuple (magmesh.maths.body_to_enu, inlined for speed)."""
     yaw = math.pi / 2 - psi
     cy, sy = math.cos(yaw), math.sin(yaw)
     ct, st = math.cos(theta), math.sin(theta)
     cr, sr = math.cos(phi), math.sin(phi)
-    # Rz(yaw) · Ry(−θ) · Rx(φ)
-    return np.array([
-        [cy * ct, cy * (-st) * sr - sy * cr, cy * (-st) * cr + sy * sr],
-        [sy * ct, sy * (-st) * sr + cy * cr, sy * (-st) * cr - cy * sr],
-        [st, ct * sr, ct * cr],
-    ])
+    return (cy * ct, -cy * st * sr - sy * cr, -cy * st * cr + sy * sr,
+            sy * ct, -sy * st * sr + cy * cr, -sy * st * cr - cy * sr,
+            st, ct * sr, ct * cr)
