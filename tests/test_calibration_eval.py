@@ -48,3 +48,7 @@ def test_full_evaluation_meets_the_goals(request):
         for sid, v in r["service_logic"][mode]["sensors"].items():
             assert v["first_ok_s"] is not None and v["first_ok_s"] <= v["calib_turn_end_s"] + 10, (mode, sid)
             assert v["heading_rms_deg"] <= ev.GOAL_HEADING_DEG, (mode, sid)
+    step = r["service_logic_hard_iron_step"]
+    for sid, v in step["online"]["sensors"].items():  # the online EKF follows a hard-iron step, static fits do not
+        assert v["heading_rms_deg_from_step_plus_60s"] < step["static"]["sensors"][sid]["heading_rms_deg_from_step_plus_60s"]
+        assert "ekf" in v["methods"]
