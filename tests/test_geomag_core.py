@@ -186,3 +186,24 @@ def test_ins_error_filter_tracks_a_drifting_correction_and_gates_outliers():
     assert not kf.update(t + 25, far) and not kf.update(t + 50, far)
     assert kf.update(t + 75, far)
     assert np.allclose(kf.correction_at(t + 75), far)
+
+
+def test_ssda_pruning_is_exact_for_every_window_and_rank():
+    from services.geomag_matcher.core import _ssda_scores, _strip
+
+    rng = np.random.default_rng(21)
+    small = synthetic_paper_map(3, n_cells=40)
+    offs = np.cumsum(rng.normal(0.8, 0.3, (12, 2)), axis=0)
+    offs -= offs[0]
+    starts = rng.uniform(0, 25, (400, 2))
+    h = small.bilinear(*(starts[0] + offs).T) + rng.normal(0, 2.0, 12)
+    for window in (0, 1, None):
+        for rank in (1.0, 0.75):
+            s = MatchSettings(n_samples=12, window_samples=window, rank_frac=rank)
+            full = hausdorff(h, _strip(small, starts, offs, slice(None), coarse=True), window, rank)
+            lam = float(np.quantile(full, 0.2))
+            pruned, _ = _ssda_scores(small, h, starts, offs, lam, s, coarse=True)
+            kept = np.isfinite(pruned)
+            assert np.allclose(pruned[kept], full[kept])
+            assert np.all(full[~kept] > lam)  # abandoned only when provably above λ
+            assert np.all(kept[full < lam])
