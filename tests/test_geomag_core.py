@@ -207,3 +207,16 @@ def test_ssda_pruning_is_exact_for_every_window_and_rank():
             assert np.allclose(pruned[kept], full[kept])
             assert np.all(full[~kept] > lam)  # abandoned only when provably above λ
             assert np.all(kept[full < lam])
+
+
+def test_demean_survives_an_unknown_constant_bias(grid):
+    rng = np.random.default_rng(9)
+    hits_plain = hits_demean = 0
+    for _ in range(5):
+        h, ins, true0 = _paper_case(grid, 20, 16, rng)
+        h = h + 25.0  # e.g. a core-field reference 25 nT off
+        plain = match_sequence(grid, h, ins, MatchSettings())
+        dem = match_sequence(grid, h, ins, MatchSettings(demean=True))
+        hits_plain += bool(plain.found and np.hypot(*(plain.start_ij - true0)) < 1.0)
+        hits_demean += bool(np.hypot(*(dem.start_ij - true0)) < 1.0)
+    assert hits_demean == 5 and hits_plain <= 2

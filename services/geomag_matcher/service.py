@@ -26,6 +26,7 @@ import numpy as np
 from magmesh.geomap import GridMap, core_field_enu_nt, load_map
 from magmesh.runtime import Service, build_settings
 from schemas import keys
+from services.physical import refuse_unphysical
 
 from .core import AcceptSettings, FilterSettings, GeomagMatcher, MatcherSettings, MatchSettings
 
@@ -41,6 +42,7 @@ class Settings:
     prematch_score: str = "centre"  # centre | corners
     search_radius_m: float = 3000.0  # half-width of the search square around the (corrected) INS start; 0: whole map
     runner_up_exclusion_m: float = 200.0  # the runner-up must start farther than this from the match, m
+    demean: bool = False  # match mean-removed sequences (unknown constant bias; slower: no SSDA pruning)
     heading_search_deg: float = 0.0  # also try the INS track rotated by up to ± this (INS heading error)
     heading_step_deg: float = 1.0
     match_every_samples: int = 5  # match each time this many new samples arrived
@@ -132,7 +134,7 @@ class GeomagMatcherService(Service):
                 rank_frac=s.rank_frac, lambda_nt=s.lambda_nt, subdivisions=s.subdivisions,
                 prematch_score=s.prematch_score, search_radius_m=s.search_radius_m,
                 heading_search_deg=s.heading_search_deg, heading_step_deg=s.heading_step_deg,
-                runner_up_exclusion_m=s.runner_up_exclusion_m),
+                runner_up_exclusion_m=s.runner_up_exclusion_m, demean=s.demean),
             accept=AcceptSettings(m_agree=s.m_agree, n_window=s.n_window, agree_radius_m=s.agree_radius_m,
                                   min_margin_nt=s.min_margin_nt, max_hausdorff_nt=s.max_hausdorff_nt),
             filter=FilterSettings(fix_std_m=s.fix_std_m, gate_sigma=s.gate_sigma),
@@ -157,6 +159,8 @@ class GeomagMatcherService(Service):
         return GeomagMatcher(grid, ms)
 
     def on_message(self, info, msg, state: VehicleMatch) -> None:
+        if refuse_unphysical(self, info, msg):
+            return
         if info.kind == "clean" and info.stream == "ins":
             t = msg["t_s"]
             if state.ins_t and t < state.ins_t[-1] - self.settings.restart_jump_s:
