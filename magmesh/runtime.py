@@ -41,6 +41,7 @@ from schemas.messages import SchemaError
 from . import __version__, zconf
 
 QUEUE_CAPACITY = 65536
+ALARM_HISTORY = 4  # alarm / cal-params samples each publisher keeps for late joiners and miss recovery
 _HEADER_NAMES = frozenset(("type", "version", "vehicle", "t_s", "seq"))
 FIFO_CAPACITY = 4096
 STOP_GRACE_S = 1.5
@@ -291,8 +292,18 @@ class Runner:
         if pub is None:
             import zenoh
 
-            pub = self.session.declare_publisher(
-                key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
+            opts = dict(congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
+            kind = keys.parse(key).kind
+            if kind == "alarm" or (kind == "cal" and "/cal/params/" in key):
+                # state that must never be missed: the last sample stays cached for late joiners (history), and
+                # heartbeats let an AdvancedSubscriber detect and recover a missed sample
+                from zenoh import ext
+
+                pub = ext.declare_advanced_publisher(
+                    self.session, key, cache=ext.CacheConfig(max_samples=ALARM_HISTORY),
+                    sample_miss_detection=ext.MissDetectionConfig(heartbeat=0.5), publisher_detection=True, **opts)
+            else:
+                pub = self.session.declare_publisher(key, **opts)
             self.publishers[key] = pub
         return pub
 

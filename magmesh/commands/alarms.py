@@ -33,11 +33,23 @@ def fmt(msg: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Currently raised alarms first (queried), then every transition as it arrives.
+
+    The live part is an AdvancedSubscriber with miss detection: a transition lost on the way is reported,
+    never silently skipped.
+    """
+    import queue
+
     import zenoh
+    from zenoh import ext
 
     out = sys.stdout
+    q: queue.Queue = queue.Queue()
     with zenoh.open(zconf.config_from_args(args)) as session:
-        sub = session.declare_subscriber(keys.alarms_all(args.vehicle), zenoh.handlers.FifoChannel(4096))
+        sub = ext.declare_advanced_subscriber(
+            session, keys.alarms_all(args.vehicle), lambda s: q.put(("s", str(s.key_expr), s.payload.to_bytes())),
+            recovery=ext.RecoveryConfig(heartbeat=True), subscriber_detection=True)
+        sub.sample_miss_listener(lambda m: q.put(("miss", str(m.source), m.nb)))
         for rep in session.get(keys.alarms_all(args.vehicle), timeout=2.0):
             if rep.ok is not None:
                 msg = msgpack.unpackb(rep.ok.payload.to_bytes())
@@ -45,16 +57,22 @@ def run(args: argparse.Namespace) -> int:
         deadline = time.monotonic() + args.duration if args.duration else None
         try:
             while deadline is None or time.monotonic() < deadline:
-                s = sub.try_recv()
-                if s is None:
-                    time.sleep(0.05)
+                timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
+                try:
+                    ev = q.get(timeout=timeout)
+                except queue.Empty:
+                    break
+                if ev[0] == "miss":
+                    print(f"WARNING: {ev[2]} alarm sample(s) from {ev[1]} were missed in transit", file=sys.stderr,
+                          flush=True)
                     continue
                 try:
-                    msg = msgpack.unpackb(s.payload.to_bytes())
+                    msg = msgpack.unpackb(ev[2])
                 except Exception:
-                    print(f"undecodable alarm payload on {s.key_expr}", file=sys.stderr)
+                    print(f"undecodable alarm payload on {ev[1]}", file=sys.stderr)
                     continue
                 print(json.dumps(msg) if args.json else fmt(msg), file=out, flush=True)
         except KeyboardInterrupt:
             pass
+        sub.undeclare()
     return 0
