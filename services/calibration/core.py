@@ -388,10 +388,11 @@ class VehicleCalibration:
         offset = ekf.applied_offset()
         obs = ekf.observable
         observable = tuple(bool(o) for o in obs)
+        if sc.current is not None and sc.current.status in ("ok", "manifest"):
+            # components the EKF cannot see keep the trusted set's value, and its observability
+            observable = tuple(a or b for a, b in zip(observable, base.observable, strict=True))
         M_applied = ekf.applied_matrix()
-        params = magcal.MagParams.from_arrays(offset, M_applied, base.field_radius_nt, base.model,
-                                              observable if base.model == "2d" or sc.current is None else
-                                              tuple(a or b for a, b in zip(observable, base.observable, strict=True)))
+        params = magcal.MagParams.from_arrays(offset, M_applied, base.field_radius_nt, base.model, observable)
         if not ekf.converged:
             # "converging" estimates are published only while no trusted set (fitted, saved or from the
             # manifest) is in use: an estimate still converging must not displace one
