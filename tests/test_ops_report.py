@@ -188,3 +188,23 @@ def test_alarm_intervals_and_bool_intervals():
 def test_empty_run_still_writes_a_page(tmp_path):
     index = report.build_report([], tmp_path, title="nothing")
     assert "No vehicle messages" in index.read_text()
+
+
+def test_report_command_on_a_recording(tmp_path, rendered):
+    from magmesh import cli
+    from magmesh import recording as rc
+
+    _, _, msgs = rendered
+    path = tmp_path / "run.mcap"
+    with rc.RecordingWriter(path) as w:
+        for key, msg in msgs:
+            if key.startswith("magmesh/survey-1/"):  # keep it small: one vehicle
+                w.write_message(key, msg, 1_800_000_000_000_000_000 + int(msg["t_s"] * 1e9))
+        w.write_liveliness(keys.svc_token("geomag_matcher", "geomag-1"), True, 1_800_000_000_000_000_000)
+    out = tmp_path / "rep"
+    assert cli.main(["report", str(path), "-o", str(out), "--map", "synthetic:7", "--no-progress"]) == 0
+    page = (out / "index.html").read_text()
+    assert "survey-1_geomag.png" in page and (out / "survey-1_geomag.png").exists()
+    assert "magmesh/svc/geomag_matcher/geomag-1" in page and "run.mcap" in page
+    s = json.loads((out / "summary.json").read_text())["vehicles"]
+    assert set(s) == {"survey-1"} and s["survey-1"]["geomag"]["accepted"] == 6

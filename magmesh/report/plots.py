@@ -64,10 +64,13 @@ def plot_field(run: VehicleRun) -> Figure | None:
     rows = 2 if dmc else 1
     fig, axes = _fig(rows, 3.2)
     ax = axes[0]
+    colour = {s: f"C{i}" for i, s in enumerate(sorted(set(raw) | set(cal)))}
     for sensor, (t, b) in raw.items():
-        ax.plot(t, np.linalg.norm(b, axis=1) / 1000.0, lw=0.8, label=f"|b| sensor {sensor} (uncompensated)")
+        ax.plot(t, np.linalg.norm(b, axis=1) / 1000.0, lw=0.8, color=colour[sensor],
+                label=f"|b| sensor {sensor} (uncompensated)")
     for sensor, (t, b) in cal.items():
-        ax.plot(t, np.linalg.norm(b, axis=1) / 1000.0, lw=0.8, ls="--", label=f"|h| sensor {sensor} (calibrated)")
+        ax.plot(t, np.linalg.norm(b, axis=1) / 1000.0, lw=0.8, ls="--", color=colour[sensor], alpha=0.8,
+                label=f"|h| sensor {sensor} (calibrated)")
     ax.set_ylabel("field strength, µT")
     ax.set_title(f"{run.vehicle}: magnetic field strength and interference features")
     ax.grid(alpha=0.3)
@@ -83,7 +86,9 @@ def plot_field(run: VehicleRun) -> Figure | None:
         ax1.set_ylabel("Δm, nT")
         ax1.grid(alpha=0.3)
         ax2 = ax1.twinx()
-        ax2.plot(t, dh, lw=0.8, color="k", alpha=0.6, label="Δh, deg")
+        ax2.plot(t, dh, lw=0.5, color="0.45", alpha=0.5, label="Δh, deg")
+        ax1.set_zorder(ax2.get_zorder() + 1)  # Δm in front of the noisier Δh
+        ax1.patch.set_visible(False)
         ax2.set_ylabel("Δh, deg")
         lines = ax1.get_legend_handles_labels()[0] + ax2.get_legend_handles_labels()[0]
         ax1.legend(handles=lines, loc="upper right", fontsize=8)
@@ -191,21 +196,28 @@ def calibration_pairs(run: VehicleRun) -> list[tuple[str, np.ndarray, np.ndarray
     after = run.mag_sensors("cal")
     params = {}
     for k in run.keys_of("cal", "params"):
-        ok = [m for m in run.by_key[k] if m["status"] in ("ok", "manifest")]
+        ms = run.by_key[k]
+        ok = [m for m in ms if m["status"] in ("ok", "manifest")]
         if ok:
             params[ok[-1]["sensor"]] = ok[-1]
+        elif ms:  # no usable fit yet: still tells the model (2-D / 3-D) the calibration works in
+            params[ms[-1]["sensor"]] = ms[-1]
     for sensor, (t, b) in before.items():
         p = params.get(sensor)
         if sensor in after:
             # what the mesh compensated, sample by sample, with the parameters of the moment
             t_after, h = after[sensor]
             b = np.stack([np.interp(t_after, t, b[:, k]) for k in range(3)], 1) if len(t) > 1 else b
-        elif p is not None:
+        elif p is not None and p["status"] in ("ok", "manifest"):
             # the final parameters applied to every sample: the figure the papers show
             h = magcal.apply(b, p["offset_nt"], np.array(p["matrix"], float).reshape(3, 3))
         else:
             continue
-        out.append((sensor, b, np.asarray(h, float), p))
+        h = np.asarray(h, float)
+        if p is None:
+            # no parameter message in the run: a 2-D (horizontal) calibration passes z through unchanged
+            p = {"model": "2d" if np.allclose(h[:, 2], b[:, 2], atol=1.0) else "3d", "status": None}
+        out.append((sensor, b, h, p))
     return out
 
 
