@@ -273,3 +273,18 @@ def test_vehicle_logic_on_the_car_circle_with_and_without_a_manifest_set():
         assert (len(converging) == 0) == (initial is not None)  # never displaces a trusted set
         for sid in ("1", "2"):
             assert vc.sensors[sid].current.status == "ok" and vc.sensors[sid].current.params.model == "2d"
+
+
+def test_calibrator_restarts_its_window_when_the_clock_goes_back():
+    c = _cloud(model="2d", seed=9, n_samples=600)
+    sc = SensorCalibrator("1", CalibrationSettings(model="2d", sample_interval_s=0.0))
+    for i, m in enumerate(c.m_nt):
+        sc.update(100.0 + 0.05 * i, m)
+    assert len(sc.t) == 600
+    sc.update(0.0, c.m_nt[0])  # a replay starting over
+    assert len(sc.t) == 1 and sc.due(5.0)
+    rate = online_ekf.SpeedRate()
+    for k in range(6):
+        rate.update(10.0 + 0.2 * k, 5.0 + 0.2 * k)  # 1 m/s²
+    assert rate.update(11.2, 6.2) == pytest.approx(1.0)
+    assert rate.update(0.0, 3.0) == 0.0

@@ -150,6 +150,9 @@ class SensorCalibrator:
 
     def update(self, t_s: float, b_nt) -> None:
         st = self.settings
+        if t_s < self.last_kept_t - 1.0:
+            # the vehicle's clock went back (a replay restarted): the window starts again
+            self.reset_window()
         if t_s - self.last_kept_t < st.sample_interval_s:
             return
         self.last_kept_t = t_s

@@ -98,6 +98,9 @@ class SpeedRate:
         self.v: list[float] = []
 
     def update(self, t_s: float, speed_m_s: float) -> float:
+        if self.t and t_s < self.t[-1]:  # clock went back: start again
+            self.t.clear()
+            self.v.clear()
         self.t.append(float(t_s))
         self.v.append(float(speed_m_s))
         while self.t and self.t[0] < t_s - self.window_s:
@@ -192,7 +195,7 @@ class HardIronEkf:
     # ---- step --------------------------------------------------------------------------------
 
     def predict(self, t_s: float):
-        if self.t_last is not None:
+        if self.t_last is not None and t_s >= self.t_last:
             dt = max(0.0, t_s - self.t_last)
             self.P[:3, :3] += np.eye(3) * (self.settings.random_walk_nt_sqrt_s**2) * dt
         self.t_last = t_s
