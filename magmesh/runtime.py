@@ -425,7 +425,12 @@ class Runner:
             try:
                 vehicle = keys.parse(key).vehicle
             except keys.KeyError_:
-                vehicle = None
+                # a malformed key may still name a valid vehicle: report it there
+                parts = key.split("/") if isinstance(key, str) else []
+                try:
+                    vehicle = keys.check_id(parts[1]) if len(parts) > 1 and parts[0] == keys.ROOT else None
+                except keys.KeyError_:
+                    vehicle = None
         if not vehicle:
             self.svc.log.warning("rejected input on %s (%s): %s", key[:200], code, reason)
             return
