@@ -106,6 +106,7 @@ class Settings:
     recovery_hold_s: float = 2.0  # consistency needed before the mag may steer; then inside the gate
     recovery_slew_rad_s: float = 0.035  # max heading correction rate while re-acquiring (≈ 2°/s)
     recovery_noise_gain: float = 10.0  # R_m multiplier while recovering
+    recovery_exit_rad: float = 0.035  # back to magnetic once |innovation| stays below this for recovery_hold_s
     rejection_timeout_s: float = 5.0  # persistent gate rejections this long in magnetic → recovering
     # alarm
     heading_alarm_std_rad: float = 0.087  # heading σ above this while not magnetic raises the flag (5°)
@@ -527,11 +528,13 @@ class HeadingFilter:
                     self._consistent_since_t = None
                 consistent = self._consistent_since_t is not None and t - self._consistent_since_t >= s.recovery_hold_s
                 if usable:
-                    if self._inside_gate_since_t is None:
-                        self._inside_gate_since_t = t
                     fused = True
-                    if t - self._inside_gate_since_t >= s.recovery_hold_s:
-                        self._set_mode("magnetic", "magnetometer consistent and inside the gate")
+                    if abs(nu) > s.recovery_exit_rad:
+                        self._inside_gate_since_t = None
+                    elif self._inside_gate_since_t is None:
+                        self._inside_gate_since_t = t
+                    elif t - self._inside_gate_since_t >= s.recovery_hold_s:
+                        self._set_mode("magnetic", "magnetometer consistent and its heading agrees")
                 else:
                     self._inside_gate_since_t = None
                     if consistent and not sample_bad and fl.quasi_static:
@@ -541,7 +544,13 @@ class HeadingFilter:
                 self._fuse_mag_vector(m, R_m, max(var_m, s.mag_heading_noise_floor_rad**2) * h2 / strength**2)
             else:
                 K = PHt / S
-                self._inject(K * nu)
+                dx = K * nu
+                if self.mode == "recovering":
+                    # re-acquisition never steps the heading faster than recovery_slew_rad_s
+                    step, limit = abs(float(Hr @ dx[:3])), s.recovery_slew_rad_s * dt_mag
+                    if step > limit:
+                        dx *= limit / step
+                self._inject(dx)
                 self.P = self.P - np.outer(K, PHt)
                 self.P = 0.5 * (self.P + self.P.T)
             self._last_fused_t = t

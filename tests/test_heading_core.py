@@ -1,0 +1,165 @@
+"""Heading fuser core against seeded synthetic sensors with known truth (no mesh)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from magmesh import maths
+from services.heading_fuser.core import HeadingFilter, Settings, estimate_mag_delay_s
+
+FIELD_ENU_NT = np.array([-3000.0, 33000.0, -35000.0])  # declination ≈ −5.2°
+DECL = maths.declination_rad(FIELD_ENU_NT)
+RATE_HZ = 100.0
+
+
+def synth(duration_s: float, yaw_rate_rad_s, seed: int, gyro_bias=(0.0, 0.0, 0.0), extra_field_nt=None,
+          heading0: float = 0.3):
+    """Level body turning about up: (t, gyro, accel, mag, true heading). yaw_rate may be a function of t."""
+    rng = np.random.default_rng(seed)
+    n = int(duration_s * RATE_HZ)
+    t = np.arange(n) / RATE_HZ
+    r = yaw_rate_rad_s(t) if callable(yaw_rate_rad_s) else np.full(n, float(yaw_rate_rad_s))
+    heading = heading0 - np.concatenate([[0.0], np.cumsum(r[:-1]) / RATE_HZ])  # CCW yaw rate → heading decreases
+    gyro = np.zeros((n, 3))
+    gyro[:, 2] = r
+    gyro += np.asarray(gyro_bias) + rng.normal(0.0, 0.002, (n, 3))
+    accel = np.tile([0.0, 0.0, maths.G0], (n, 1)) + rng.normal(0.0, 0.05, (n, 3))
+    b = np.tile(FIELD_ENU_NT, (n, 1)) + (0.0 if extra_field_nt is None else extra_field_nt(t))
+    mag = np.empty((n, 3))
+    for i in range(n):
+        mag[i] = maths.body_to_enu(heading[i]).T @ b[i]
+    mag += rng.normal(0.0, 50.0, (n, 3))
+    return t, gyro, accel, mag, maths.wrap_2pi(heading)
+
+
+def run(f: HeadingFilter, gyro, accel, mag, dmc=None):
+    out, modes, fused = [], [], []
+    for i in range(len(gyro)):
+        f.update(gyro[i], accel[i], mag[i], dt_s=0.0 if i == 0 else 1.0 / RATE_HZ,
+                 dmc_valid=None if dmc is None else bool(dmc[i]))
+        out.append(f.heading_rad() if f.aligned else np.nan)
+        modes.append(f.mode)
+        fused.append(f.flags.mag_fused)
+    return np.array(out), np.array(modes), np.array(fused)
+
+
+def err_deg(h, truth):
+    return np.degrees(np.abs(maths.angle_diff(h, truth)))
+
+
+def test_aligns_and_tracks_a_turn_with_declination():
+    t, g, a, m, truth = synth(30.0, 0.2, seed=1)
+    f = HeadingFilter(Settings(declination_rad=DECL))
+    h, modes, _ = run(f, g, a, m)
+    e = err_deg(h, truth)
+    assert e[1] < 1.0  # aligned from the first sample, declination applied
+    assert np.nanmax(e) < 1.5
+    assert set(modes[1:]) == {"magnetic"}
+    hd, pitch, roll = f.euler()
+    assert abs(pitch) < 0.01 and abs(roll) < 0.01
+
+
+def test_gyro_bias_is_estimated():
+    bias = (0.002, -0.003, 0.01)
+    t, g, a, m, truth = synth(120.0, lambda t: 0.3 * np.sin(0.2 * t), seed=2, gyro_bias=bias)
+    f = HeadingFilter(Settings(declination_rad=DECL))
+    h, _, _ = run(f, g, a, m)
+    assert np.allclose(f.bias, bias, atol=0.0015)
+    assert np.nanmax(err_deg(h, truth)[6000:]) < 1.0
+
+
+def test_dmc_invalid_switches_to_gyro_and_back_without_a_jump():
+    # a disturbance that rotates the measured field by 25° while the DMC says invalid (t 20–40 s)
+    def dist(t):
+        extra = np.zeros((len(t), 3))
+        on = (t >= 20) & (t < 40)
+        extra[on] = [15000.0, 0.0, 0.0]
+        return extra
+
+    t, g, a, m, truth = synth(70.0, 0.1, seed=3, gyro_bias=(0, 0, 0.004), extra_field_nt=dist)
+    dmc = ~((t >= 19.5) & (t < 40.5))
+    f = HeadingFilter(Settings(declination_rad=DECL))  # learns the bias in the first 20 s
+    h, modes, fused = run(f, g, a, m, dmc)
+    inside = (t > 20) & (t < 40)
+    assert np.all(modes[inside] == "gyro_only")
+    assert not fused[inside].any()
+    assert "recovering" in set(modes[(t > 40) & (t < 50)])
+    assert modes[-1] == "magnetic"
+    assert np.nanmax(err_deg(h, truth)) < 3.0
+    steps = np.degrees(np.abs(maths.angle_diff(h[1:], h[:-1]))) - np.degrees(0.1 / RATE_HZ)
+    assert steps[(t[1:] > 40) & (t[1:] < 50)].max() < 0.2
+
+
+def test_recovery_slews_a_drifted_heading_back_at_a_bounded_rate():
+    # the gyro drifts 20° during a 100 s DMC outage (uncorrected bias); the magnetometer is clean afterwards
+    t, g, a, m, truth = synth(200.0, 0.0, seed=4, gyro_bias=(0, 0, math.radians(0.2)))
+    dmc = ~((t >= 10) & (t < 110))
+    s = Settings(declination_rad=DECL, gyro_bias_init_std_rad_s=1e-6, gyro_bias_walk_rad_s2_rt_hz=1e-9)
+    f = HeadingFilter(s)
+    h, modes, _ = run(f, g, a, m, dmc)
+    assert err_deg(h, truth)[int(109 * RATE_HZ)] > 15.0  # drifted while gyro-only
+    step_deg = np.degrees(np.abs(maths.angle_diff(h[1:], h[:-1])))
+    rec = modes[1:] == "recovering"
+    assert rec.sum() > 5 * RATE_HZ
+    # while re-acquiring: at most the slew rate (plus the uncorrected drift itself)
+    assert step_deg[rec].max() * RATE_HZ <= math.degrees(s.recovery_slew_rad_s) * 1.02 + 0.25
+    assert step_deg[t[1:] > 110].max() < 0.1  # and no jump when it hands back to magnetic
+    assert err_deg(h, truth)[-1] < 1.0
+    assert modes[-1] == "magnetic"
+
+
+def test_field_check_rejects_a_magnet_without_dmc():
+    def magnet(t):
+        extra = np.zeros((len(t), 3))
+        extra[(t >= 15) & (t < 35)] = [8000.0, 6000.0, -9000.0]
+        return extra
+
+    t, g, a, m, truth = synth(45.0, 0.15, seed=5, extra_field_nt=magnet)
+    f = HeadingFilter(Settings(declination_rad=DECL))
+    h, modes, fused = run(f, g, a, m)
+    inside = (t > 17) & (t < 35)
+    assert not fused[inside].any()
+    assert (modes[inside] != "magnetic").all()
+    assert np.nanmax(err_deg(h, truth)) < 2.0
+
+
+def test_long_gyro_only_stretch_raises_the_uncertainty_flag():
+    t, g, a, m, truth = synth(400.0, 0.05, seed=6)
+    dmc = t < 5
+    f = HeadingFilter(Settings(declination_rad=DECL, heading_alarm_std_rad=math.radians(2.0)))
+    flags = []
+    for i in range(len(g)):
+        f.update(g[i], a[i], m[i], dt_s=0.0 if i == 0 else 0.01, dmc_valid=bool(dmc[i]))
+        flags.append(f.flags.heading_uncertain)
+    flags = np.array(flags)
+    assert not flags[t < 6].any()
+    assert flags[-1]
+    assert f.internal_states.heading_std_rad > math.radians(2.0)
+    assert f.internal_states.gyro_only_duration_s > 300
+
+
+def test_settings_are_checked():
+    with pytest.raises(ValueError, match="mag_noise_nt"):
+        Settings(mag_noise_nt=-1.0)
+    with pytest.raises(ValueError, match="mag_gate_sigma"):
+        Settings(mag_gate_sigma=0.0)
+
+
+def test_magnetometer_lag_is_estimated_from_sensor_data():
+    t, g, a, m, truth = synth(60.0, lambda t: 1.5 * np.sin(1.3 * t), seed=7)
+    lag = 3  # samples
+    m_late = np.vstack([np.repeat(m[:1], lag, axis=0), m[:-lag]])
+    d = estimate_mag_delay_s(g, m_late, RATE_HZ)
+    assert abs(d - lag / RATE_HZ) < 0.6 / RATE_HZ
+
+
+def test_reset_returns_to_initialising():
+    t, g, a, m, truth = synth(2.0, 0.1, seed=8)
+    f = HeadingFilter(Settings())
+    run(f, g, a, m)
+    assert f.aligned
+    f.reset()
+    assert f.mode == "initialising" and not f.aligned and f.flags.initialising
