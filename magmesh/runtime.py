@@ -294,7 +294,7 @@ class Runner:
 
             opts = dict(congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
             kind = keys.parse(key).kind
-            if kind == "alarm" or (kind == "cal" and "/cal/params/" in key):
+            if (kind == "alarm" or (kind == "cal" and "/cal/params/" in key)) and isinstance(self.session, zenoh.Session):
                 # state that must never be missed: the last sample stays cached for late joiners (history), and
                 # heartbeats let an AdvancedSubscriber detect and recover a missed sample
                 from zenoh import ext
@@ -308,6 +308,8 @@ class Runner:
         return pub
 
     def publish(self, key: str, msg_type: str, vehicle: str, t_s: float, fields: dict) -> dict | None:
+        if msg_type == "alarm":
+            self.alarm_declared[key] = fields.get("state")
         if self.mode != "active" and msg_type != "reject":
             cut = self.cut.get(vehicle)
             if self.mode == "standby":
@@ -326,7 +328,6 @@ class Runner:
                 return None
         if msg_type == "alarm":
             state = fields.get("state")
-            self.alarm_declared[key] = state
             if self.alarm_published.get(key, "cleared") == state:
                 self.count_drop(key, "alarm_state_unchanged")
                 return None
