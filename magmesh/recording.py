@@ -355,12 +355,16 @@ def summarize(path: str | Path) -> dict:
         summ = reader.get_summary()
         meta = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
     per_key: dict[str, int] = {}
+    n_live = 0
     start = end = None
     if summ is not None and summ.statistics is not None:
         st = summ.statistics
         for cid, n in st.channel_message_counts.items():
-            topic = summ.channels[cid].topic
-            per_key[topic] = per_key.get(topic, 0) + int(n)
+            ch = summ.channels[cid]
+            if ch.metadata.get("magmesh_type") == LIVELINESS:
+                n_live += int(n)
+                continue
+            per_key[ch.topic] = per_key.get(ch.topic, 0) + int(n)
         if st.message_count:
             start, end = st.message_start_time, st.message_end_time
     return {
@@ -370,8 +374,40 @@ def summarize(path: str | Path) -> dict:
         "start_ns": start,
         "end_ns": end,
         "duration_s": (end - start) / 1e9 if start is not None else 0.0,
+        "liveliness_events": n_live,
         "metadata": meta.get(METADATA_NAME, {}),
     }
+
+
+def to_json_mcap(src: str | Path, dst: str | Path, key_exprs: Sequence[str] | None = None) -> dict:
+    """Copy a recording with JSON-encoded messages (for viewers without msgpack, e.g. Foxglove).
+
+    Same channels, schemas, log and publish times; undecodable payloads and liveliness events are left out
+    and counted. Returns ``{"written": n, "left_out": m}``.
+    """
+    n = left = 0
+    with open(dst, "wb") as fh:
+        w = Writer(fh, compression=CompressionType.ZSTD)
+        w.start(profile="", library="magmesh")
+        schemas_: dict[str, int] = {}
+        chans: dict[str, int] = {}
+        for rec in read_records(src, key_exprs):
+            try:
+                msg = rec.decode()
+            except messages.SchemaError:
+                left += 1
+                continue
+            t = msg["type"]
+            if t not in schemas_:
+                schemas_[t] = w.register_schema(f"{SCHEMA_PREFIX}{t}", SCHEMA_ENCODING,
+                                                json.dumps(json_schema(t), ensure_ascii=False).encode())
+            if rec.key not in chans:
+                chans[rec.key] = w.register_channel(rec.key, "json", schemas_[t], {"magmesh_type": t})
+            w.add_message(chans[rec.key], log_time=rec.receive_ns, data=json.dumps(msg).encode(),
+                          publish_time=rec.sample_ns, sequence=int(msg["seq"]) % (2**32))
+            n += 1
+        w.finish()
+    return {"written": n, "left_out": left}
 
 
 # ---- remapping and replay ----------------------------------------------------------------------

@@ -179,3 +179,20 @@ def test_liveliness_events_are_stored_apart_from_messages(tmp_path):
     assert rc.load_liveliness(path) == [(2e-6, "magmesh/svc/dmc_detector/dmc-1", True),
                                         (3e-6, "magmesh/svc/dmc_detector/dmc-1", False)]
     assert len(rc.load_messages(path)) == 1
+
+
+def test_json_copy_for_viewers(tmp_path):
+    src, dst = tmp_path / "run.mcap", tmp_path / "run.json.mcap"
+    _write_demo(src)
+    with rc.RecordingWriter(tmp_path / "x.mcap") as w:  # liveliness is not counted as messages
+        w.write_liveliness(keys.svc_token("ingest", "i-1"), True, 5)
+    assert rc.summarize(tmp_path / "x.mcap")["messages"] == 0
+    assert rc.summarize(tmp_path / "x.mcap")["liveliness_events"] == 1
+    r = rc.to_json_mcap(src, dst)
+    assert r == {"written": 60, "left_out": 1}
+    with open(dst, "rb") as fh:
+        got = [(c.topic, c.message_encoding, json.loads(m.data), m.log_time)
+               for _, c, m in make_reader(fh).iter_messages(log_time_order=True)]
+    orig = rc.load_messages(src)
+    assert [(g[0], g[2]) for g in got] == orig
+    assert {g[1] for g in got} == {"json"}

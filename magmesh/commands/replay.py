@@ -39,6 +39,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("input", help="MCAP file written by magmesh record")
     p.add_argument("--rate", default="1.0", help="speed factor (1.0 = original timing) or 'max'")
     p.add_argument("--keys", nargs="+", default=None, metavar="KEYEXPR", help="replay only these keys")
+    p.add_argument("--start", type=float, default=0.0, metavar="S",
+                   help="begin S seconds into the recording (receive time)")
+    p.add_argument("--end", type=float, default=0.0, metavar="S", help="stop S seconds into the recording (0: end)")
     p.add_argument("--remap", action="append", default=[], metavar="OLD=NEW",
                    help="rename a vehicle id (car-1=car-1r) or a key prefix (repeatable)")
     p.add_argument("--wait-subscribers", type=float, default=2.0, metavar="S",
@@ -57,6 +60,8 @@ def replay_to_mesh(
     wait_subscribers_s: float = 2.0,
     stop: threading.Event | None = None,
     progress: bool = False,
+    start_s: float = 0.0,
+    end_s: float = 0.0,
 ) -> ReplayStats:
     """Publish a recording on a Zenoh session built from ``conf``; return what was published."""
     import zenoh
@@ -95,7 +100,13 @@ def replay_to_mesh(
 
             bar = tqdm(total=total, unit="msg", desc="replay", file=sys.stderr)
         try:
-            stats = replay(read_records(path, key_exprs), lambda k, p: publisher(k).put(p), rate=rate,
+            records = read_records(path, key_exprs)
+            if start_s > 0 or end_s > 0:
+                t0 = summ["start_ns"] or 0
+                lo = t0 + int(start_s * 1e9)
+                hi = t0 + int(end_s * 1e9) if end_s > 0 else None
+                records = (r for r in records if r.receive_ns >= lo and (hi is None or r.receive_ns < hi))
+            stats = replay(records, lambda k, p: publisher(k).put(p), rate=rate,
                            remaps=remaps, should_stop=stop.is_set, on_progress=bar.update if bar else None)
         finally:
             if bar is not None:
@@ -126,6 +137,7 @@ def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGINT, lambda s, f: stop.set())
     signal.signal(signal.SIGTERM, lambda s, f: stop.set())
     stats = replay_to_mesh(zconf.config_from_args(args), args.input, rate, args.keys, remaps,
-                           args.wait_subscribers, stop, progress=not args.no_progress and sys.stderr.isatty())
+                           args.wait_subscribers, stop, progress=not args.no_progress and sys.stderr.isatty(),
+                           start_s=args.start, end_s=args.end)
     print(json.dumps(stats.as_dict()) if args.json else format_stats(stats))
     return 0
