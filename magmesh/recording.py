@@ -476,6 +476,15 @@ def remap_sample(key: str, payload: bytes, remaps: Sequence[Remap]) -> tuple[str
     return new_key, payload
 
 
+def time_window(records: Iterable[Record], start_ns: int, start_s: float = 0.0, end_s: float = 0.0) -> Iterator[Record]:
+    """Records received in [start_s, end_s) seconds after ``start_ns`` (``end_s`` 0: to the end)."""
+    lo = start_ns + int(round(start_s * 1e9))
+    hi = start_ns + int(round(end_s * 1e9)) if end_s > 0 else None
+    for r in records:
+        if r.receive_ns >= lo and (hi is None or r.receive_ns < hi):
+            yield r
+
+
 def parse_rate(text: str | float) -> float:
     """``--rate``: a positive speed factor (1.0 = real time) or ``max`` (0: as fast as possible)."""
     if isinstance(text, str) and text.strip().lower() in ("max", "inf", "0"):

@@ -196,3 +196,12 @@ def test_json_copy_for_viewers(tmp_path):
     orig = rc.load_messages(src)
     assert [(g[0], g[2]) for g in got] == orig
     assert {g[1] for g in got} == {"json"}
+
+
+def test_time_window(tmp_path):
+    path = tmp_path / "run.mcap"
+    _write_demo(path, n=50, dt=0.01)
+    s = rc.summarize(path)
+    got = list(rc.time_window(rc.read_records(path, [keys.raw_mag("*", "*")]), s["start_ns"], 0.1, 0.2))
+    assert [r.decode()["seq"] for r in got] == list(range(10, 20))
+    assert len(list(rc.time_window(rc.read_records(path), s["start_ns"], 0.45))) == 5 + 1  # 45..49 and an alarm

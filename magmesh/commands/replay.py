@@ -23,7 +23,7 @@ from pathlib import Path
 
 from .. import zconf
 from ..recording import (Remap, ReplayStats, keyexpr_matches, parse_rate, read_records, remap_sample, replay,
-                         summarize)
+                         summarize, time_window)
 
 log = logging.getLogger("magmesh.replay")
 
@@ -100,12 +100,7 @@ def replay_to_mesh(
 
             bar = tqdm(total=total, unit="msg", desc="replay", file=sys.stderr)
         try:
-            records = read_records(path, key_exprs)
-            if start_s > 0 or end_s > 0:
-                t0 = summ["start_ns"] or 0
-                lo = t0 + int(start_s * 1e9)
-                hi = t0 + int(end_s * 1e9) if end_s > 0 else None
-                records = (r for r in records if r.receive_ns >= lo and (hi is None or r.receive_ns < hi))
+            records = time_window(read_records(path, key_exprs), summ["start_ns"] or 0, start_s, end_s)
             stats = replay(records, lambda k, p: publisher(k).put(p), rate=rate,
                            remaps=remaps, should_stop=stop.is_set, on_progress=bar.update if bar else None)
         finally:
