@@ -12,7 +12,9 @@ Pure Python/numpy; never imports zenoh. Method: He, Luo, Wu (seed paper 003, ALG
   ramps quickly but false-alarms on short magnetometer bursts and misses slow ramps, which the filter
   follows. The default test (``"robust"``) keeps the k·σ gate but
   - applies it to the running median of e over ``median_window_s`` (bursts shorter than half the window
-    cannot raise it), with σ the robust (MAD) spread of e, and
+    cannot raise it), gated at ``median_k_sigma`` times the median's own spread on undisturbed flight and
+    held for ``gate_persist_s``; bursts beyond ``burst_sigma`` × the robust (MAD) σ of e are excised and
+    the flight controller's recovery from them modelled out; and
   - adds a two-sided CUSUM (Page) on block means of e, clipped at ±``clip_sigma``·σ (Huber) and normalised
     by the learned spread of those block means: g⁺ ← max(0, g⁺ + z − ν), g⁻ ← max(0, g⁻ − z − ν),
     raise when g > h. A slow ramp makes the filter lag the magnetometer by (ramp rate × filter time
@@ -57,7 +59,9 @@ class TrackMonitorSettings:
     route_margin_m: float = 5.0  # along-track slack before A and beyond B where d is still monitored
     # ---- heading-innovation detector ----
     innovation_test: str = "robust"  # "paper": |e| > kσ per sample; "robust": median + CUSUM (see module doc)
-    innovation_k_sigma: float = 5.0  # paper: 5σ
+    innovation_k_sigma: float = 5.0  # gate of the paper's per-sample test (paper: 5σ)
+    median_k_sigma: float = 6.0  # gate of the robust test's running median, in its own σ (its tails are
+    # heavier than Gaussian: tilt-estimate errors and gusts move it for seconds)
     innovation_sigma_rad: float = 0.0  # σ of e on undisturbed flight; 0: learn it
     median_sigma_rad: float = 0.0  # σ of the running median of e; 0: learn it
     block_sigma_rad: float = 0.0  # σ of block means of clipped e; 0: learn it
@@ -65,6 +69,7 @@ class TrackMonitorSettings:
     learn_s: float = 30.0  # then learn σ over this much (assumed undisturbed) flight
     sigma_floor_rad: float = 0.001  # lower bound for learned σ
     median_window_s: float = 0.6
+    gate_persist_s: float = 0.3  # the median must stay beyond kσ this long
     block_s: float = 0.5  # CUSUM block length
     clip_sigma: float = 3.0  # Huber clip of e before block averaging, in σ
     cusum_drift: float = 3.0  # ν, in block σ
@@ -89,7 +94,7 @@ class TrackMonitorSettings:
         if self.innovation_test not in INNOVATION_TESTS:
             raise ValueError(f"innovation_test must be one of {', '.join(INNOVATION_TESTS)}, "
                              f"got {self.innovation_test!r}")
-        for name in ("track_threshold_m", "innovation_k_sigma", "learn_s", "median_window_s", "block_s",
+        for name in ("track_threshold_m", "innovation_k_sigma", "median_k_sigma", "learn_s", "median_window_s", "block_s",
                      "field_k_sigma", "field_window_s",
                      "clip_sigma", "cusum_threshold", "sigma_floor_rad"):
             if not getattr(self, name) > 0:
@@ -99,7 +104,7 @@ class TrackMonitorSettings:
         if not (0 < self.innovation_clear_sigma <= self.innovation_k_sigma):
             raise ValueError("innovation_clear_sigma must be in (0, innovation_k_sigma]")
         for name in ("clear_hold_s", "track_persist_s", "anomaly_clear_hold_s", "warmup_s",
-                     "innovation_sigma_rad", "median_sigma_rad", "block_sigma_rad",
+                     "innovation_sigma_rad", "median_sigma_rad", "block_sigma_rad", "gate_persist_s",
                      "field_ref_nt", "field_sigma_nt", "field_min_dev_nt", "cusum_drift", "route_margin_m"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be ≥ 0, got {getattr(self, name)!r}")
@@ -319,6 +324,7 @@ class InnovationDetector:
         self._t_last: float | None = None
         self._t_prev: float | None = None
         self._recovery = 0.0
+        self._gate_since_s: float | None = None
         self._burst_t0: float | None = None
         self.burst_s = 0.0
         self.median_rad: float | None = None
@@ -333,7 +339,7 @@ class InnovationDetector:
         if age < s.warmup_s:
             return
         self.learning_samples.append((t_s, e_raw if s.innovation_test == "paper" else e, med))
-        if age < s.warmup_s + s.learn_s:
+        if age < s.warmup_s + s.learn_s or len(self.learning_samples) < 20:  # (a time jump ends the window early)
             return
         self.apply_sigmas(learn_sigmas(self.learning_samples, s))
         self.learning_samples = []
@@ -401,6 +407,7 @@ class InnovationDetector:
             self.test_ratio = level / (k * sigma)
         else:
             msig = self.median_sigma_rad
+            k = s.median_k_sigma
             # CUSUM on block means of the Huber-clipped innovation
             c = s.clip_sigma * sigma
             if self._block_t0 is None:
@@ -416,7 +423,13 @@ class InnovationDetector:
                 self.cusum_neg = max(0.0, self.cusum_neg - z - s.cusum_drift)
                 self._block_sum, self._block_n, self._block_t0 = 0.0, 0, None
             g = max(self.cusum_pos, self.cusum_neg)
-            gate_fired = abs(med) > k * msig
+            if abs(med) > k * msig:
+                if self._gate_since_s is None:
+                    self._gate_since_s = t_s
+            else:
+                self._gate_since_s = None
+            # continuing condition: the median stays beyond the gate for gate_persist_s
+            gate_fired = self._gate_since_s is not None and t_s - self._gate_since_s >= s.gate_persist_s - 1e-9
             cusum_fired = g > s.cusum_threshold
             fired = gate_fired or cusum_fired or step_fired
             self.test_ratio = max(abs(med) / (k * msig), g / s.cusum_threshold)
