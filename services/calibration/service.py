@@ -23,6 +23,7 @@ from dataclasses import dataclass, replace
 from magmesh import magcal, paths
 from magmesh.runtime import Service
 from schemas import keys
+from services.physical import refuse_unphysical
 
 from . import online_ekf
 from .core import USABLE, CalibrationSettings, OnlineSettings, ParamRecord, VehicleCalibration
@@ -140,6 +141,8 @@ class Calibration(Service):
         return vc
 
     def on_message(self, info, msg, state: VehicleCalibration) -> None:
+        if refuse_unphysical(self, info, msg):
+            return
         stream = info.stream
         if stream == "mag":
             self._on_mag(info, msg, state)

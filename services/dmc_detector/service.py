@@ -19,6 +19,7 @@ from typing import Any
 
 from magmesh.runtime import Service
 from schemas import keys
+from services.physical import refuse_unphysical
 
 from . import core
 from .core import CompassParams, FeatureSettings, HysteresisSettings, Pairer, Thresholds
@@ -119,6 +120,8 @@ class DmcDetectorService(Service):
                     self.log.error("vehicle %s: manifest mag_params.%s unusable: %s", vehicle, sensor, e)
 
     def on_message(self, info, msg: dict, state: VehicleState) -> None:
+        if refuse_unphysical(self, info, msg):
+            return
         if info.sensor not in self.sensors:
             self.count_drop(info.key, "sensor_not_used")
             return

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from magmesh.magcal import MagParams
 from magmesh.runtime import Service
 from schemas import keys
+from services.physical import refuse_unphysical
 
 from . import core
 
@@ -87,6 +88,8 @@ class HeadingFuser(Service):
 
     # ---- inputs -------------------------------------------------------------------------------
     def on_message(self, info, msg: dict, state: VehicleState) -> None:
+        if refuse_unphysical(self, info, msg):
+            return
         kind, stream = info.kind, info.stream
         if kind == "clean" and stream == "imu":
             self._on_imu(info, msg, state)

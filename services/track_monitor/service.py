@@ -24,6 +24,7 @@ from dataclasses import dataclass, replace
 from magmesh import paths
 from magmesh.runtime import Service
 from schemas import keys
+from services.physical import refuse_unphysical
 
 from .core import AlarmEvent, TrackMonitor, TrackMonitorSettings
 
@@ -80,6 +81,8 @@ class TrackMonitorService(Service):
 
     # ---- inputs -------------------------------------------------------------------------------
     def on_message(self, info, msg: dict, mon: TrackMonitor) -> None:
+        if refuse_unphysical(self, info, msg):
+            return
         stream = info.stream
         if stream == "route":
             mon.set_route(msg["a_enu_m"], msg["b_enu_m"], msg["route_id"])
