@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from schemas import keys
+from services.physical import refuse_unphysical
 
 from . import core, fcm, quasistatic
 from .core import HysteresisSettings
@@ -93,6 +94,8 @@ class SingleDmcDetector(DmcDetectorService):
             s.thresholds(), s.feature_settings(), s.hysteresis()))
 
     def on_message(self, info, msg: dict, state: VehicleState) -> None:
+        if refuse_unphysical(self, info, msg):
+            return
         if info.sensor != self.settings.sensor_a:
             self.count_drop(info.key, "sensor_not_used")
             return
@@ -117,6 +120,7 @@ class QuasiStaticServiceSettings:
     dpsi_threshold_deg: float = quasistatic.QuasiStaticSettings.dpsi_threshold_deg
     variance_of: str = quasistatic.QuasiStaticSettings.variance_of
     dm_threshold_nt: float = quasistatic.QuasiStaticSettings.dm_threshold_nt
+    level: str = quasistatic.QuasiStaticSettings.level
     max_imu_lag_s: float = quasistatic.QuasiStaticSettings.max_imu_lag_s
     raise_after_s: float = HysteresisSettings.raise_after_s
     clear_after_s: float = HysteresisSettings.clear_after_s
@@ -129,9 +133,11 @@ class QuasiStaticServiceSettings:
         self.core()
 
     def core(self) -> quasistatic.QuasiStaticSettings:
-        return quasistatic.QuasiStaticSettings(self.window_s, self.var_threshold_nt2, self.dpsi_threshold_deg,
-                                               self.variance_of, self.dm_threshold_nt, self.max_imu_lag_s,
-                                               HysteresisSettings(self.raise_after_s, self.clear_after_s))
+        return quasistatic.QuasiStaticSettings(
+            window_s=self.window_s, var_threshold_nt2=self.var_threshold_nt2,
+            dpsi_threshold_deg=self.dpsi_threshold_deg, variance_of=self.variance_of,
+            dm_threshold_nt=self.dm_threshold_nt, level=self.level, max_imu_lag_s=self.max_imu_lag_s,
+            hysteresis=HysteresisSettings(self.raise_after_s, self.clear_after_s))
 
 
 class QuasiStaticDmcDetector(DmcDetectorService):
@@ -163,6 +169,8 @@ class QuasiStaticDmcDetector(DmcDetectorService):
         return quasistatic.QuasiStaticDetector(self.settings.core())
 
     def on_message(self, info, msg: dict, state: VehicleState) -> None:
+        if refuse_unphysical(self, info, msg):
+            return
         if info.stream != "imu" and info.sensor != self.settings.sensor:
             self.count_drop(info.key, "sensor_not_used")
             return

@@ -11,8 +11,8 @@ the gyro. The paper's settings: open road var_initial = 0.8 µT², Δψ_initial 
 In a car the body-frame components change whenever the car turns, so the component variance test
 fails in every turn whatever the field. ``variance_of = "magnitude"`` (the default here) tests the
 variance of the compensated field strength |h| instead, which turning does not change; ``"components"``
-is the paper's form. The gyro heading rate is the angular rate about the measured up direction
-(accelerometer, FLU): dψ/dt = −ω · â (heading is clockwise, yaw rate counter-clockwise).
+is the paper's form. The gyro heading rate is the rate about the body's up axis, dψ/dt = −ω_z (FLU,
+heading clockwise), consistent with the level magnetometer heading it is compared with.
 
 Added here: the field-strength test |Δm| = ||h| − R| < ``dm_threshold_nt`` of §1, which catches a
 disturbance that stays constant while the vehicle stands in it (quasi-static, but wrong);
@@ -39,9 +39,10 @@ from .core import AlarmLatch, CompassParams, Decision, HysteresisSettings, compa
 class QuasiStaticSettings:
     window_s: float = 1.0  # sliding window L
     var_threshold_nt2: float = 0.8e6  # var_initial (0.8 µT² = 0.8e6 nT²)
-    dpsi_threshold_deg: float = 1.5  # Δψ_initial
+    dpsi_threshold_deg: float = 2.5  # Δψ_initial (the paper: 0.5 open road, 2 garage; a car leaning in turns needs 2.5)
     variance_of: str = "magnitude"  # "magnitude" (|h|) or "components" (the paper's m_x, m_y, m_z)
     dm_threshold_nt: float = 1500.0  # added test |Δm| = ||h| − R| < this; 0 switches it off (the paper)
+    level: str = "body"  # "body": a near-level vehicle (ψ̇ = −ω_z, level compass); "accel": levelled by the accelerometer
     max_imu_lag_s: float = 2.0  # decide a magnetometer epoch without gyro data after this much sample time
     hysteresis: HysteresisSettings = HysteresisSettings()
 
@@ -50,6 +51,8 @@ class QuasiStaticSettings:
             raise ValueError(f"window_s must be in (0, 60] s, got {self.window_s}")
         if not (self.var_threshold_nt2 > 0 and self.dpsi_threshold_deg > 0):
             raise ValueError("var_threshold_nt2 and dpsi_threshold_deg must be positive")
+        if self.level not in ("body", "accel"):
+            raise ValueError(f"level must be 'body' or 'accel', got {self.level!r}")
         if self.dm_threshold_nt < 0:
             raise ValueError("dm_threshold_nt must be ≥ 0 (0: off)")
         if self.variance_of not in ("magnitude", "components"):
@@ -67,7 +70,7 @@ class QuasiStaticDetector:
         self.reset()
 
     def reset(self):
-        self._gyro: deque[tuple[float, float]] = deque()  # (t, integrated gyro heading ψ_g)
+        self._gyro: deque[tuple[float, float, np.ndarray]] = deque()  # (t, integrated gyro heading ψ_g, accel)
         self._psi_g = 0.0
         self._last_imu: tuple[float, float] | None = None  # (t, heading rate)
         self._mag: deque[tuple[float, np.ndarray, float, float]] = deque()  # (t, h, |h|−R, ψ_m) in window
@@ -83,15 +86,21 @@ class QuasiStaticDetector:
     def add_imu(self, t_s: float, gyro_rad_s, accel_m_s2) -> list[Decision]:
         w = np.asarray(gyro_rad_s, float)
         a = np.asarray(accel_m_s2, float)
-        na = float(np.linalg.norm(a))
-        up = a / na if na > 1.0 else np.array([0.0, 0.0, 1.0])
-        rate = -float(w @ up)  # heading rate, clockwise positive
+        if self.settings.level == "accel":
+            # rate about the measured up direction (a board or phone turned every way)
+            na = float(np.linalg.norm(a))
+            rate = -float(w @ (a / na)) if na > 1.0 else -float(w[2])
+        else:
+            # rate about the body's up axis: a near-level vehicle, like the level compass heading it is
+            # compared with (the accelerometer's "up" tilts with the centripetal acceleration of every
+            # turn and would mis-scale the rate by several per cent)
+            rate = -float(w[2])
         if self._last_imu is not None and t_s > self._last_imu[0]:
             t0, r0 = self._last_imu
             if t_s - t0 < 1.0:
                 self._psi_g += 0.5 * (r0 + rate) * (t_s - t0)  # trapezoid
         self._last_imu = (t_s, rate)
-        self._gyro.append((t_s, self._psi_g))
+        self._gyro.append((t_s, self._psi_g, a))
         horizon = t_s - self.settings.window_s - self.settings.max_imu_lag_s - 1.0
         while len(self._gyro) > 2 and self._gyro[1][0] < horizon:
             self._gyro.popleft()
@@ -99,8 +108,7 @@ class QuasiStaticDetector:
 
     def add_mag(self, t_s: float, b_nt, params: CompassParams, declination_rad: float = 0.0) -> list[Decision]:
         h = params.compensate(b_nt)
-        self._pending.append((t_s, h, float(params.strength(h) - params.field_radius_nt),
-                              float(compass_heading(h, declination_rad))))
+        self._pending.append((t_s, h, float(params.strength(h) - params.field_radius_nt), declination_rad))
         imu_t = self._last_imu[0] if self._last_imu else -math.inf
         return self._drain(imu_t, mag_t=t_s)
 
@@ -126,12 +134,28 @@ class QuasiStaticDetector:
             return g[-1][1]
         if ts[i] == t or i == 0:
             return g[i][1]
-        (t0, p0), (t1, p1) = g[i - 1], g[i]
+        (t0, p0, _), (t1, p1, _) = g[i - 1], g[i]
         return p0 + (p1 - p0) * (t - t0) / (t1 - t0)
 
+    def _accel_at(self, t: float) -> np.ndarray | None:
+        """The newest accelerometer sample at or before t (else the oldest kept)."""
+        best = None
+        for tg, _, a in self._gyro:
+            if tg > t:
+                break
+            best = a
+        if best is None and self._gyro:
+            best = self._gyro[0][2]
+        return best
+
     # ---- the test -------------------------------------------------------------------------
-    def _decide(self, t_s: float, h: np.ndarray, dm: float, psi_m: float) -> Decision:
+    def _decide(self, t_s: float, h: np.ndarray, dm: float, declination_rad: float) -> Decision:
         s = self.settings
+        acc = self._accel_at(t_s) if s.level == "accel" else None
+        if acc is not None and np.linalg.norm(acc) > 1.0:
+            psi_m = float(maths.tilt_compensated_heading(h, acc, declination_rad))
+        else:
+            psi_m = float(compass_heading(h, declination_rad))
         if self._mag and t_s <= self._mag[-1][0]:
             self._mag.clear()
         self._mag.append((t_s, h, dm, psi_m))

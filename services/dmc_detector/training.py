@@ -100,8 +100,8 @@ class Metrics:
     n_valid: int
     n_good: int
     onset_delay_s: float | None = None  # median delay from a disturbance's start to the alarm
-    missed_zones: int = 0
-    false_alarms: int = 0
+    missed_zones: int | None = 0
+    false_alarms: int | None = 0
 
     def as_dict(self) -> dict:
         return {k: (None if v is None else (round(v, 4) if isinstance(v, float) else v))
