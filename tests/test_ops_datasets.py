@@ -16,16 +16,18 @@ from sim_publishers.replay.publisher import ReplaySettings, replay_events
 DATASETS = [f"broad:{t}" for t in core.broad_trials()] + ["car_circles", "kok:eight", "kok:square"]
 
 
-def _validate_all(events, vehicle):
+def _validate_all(events, vehicle, every: int = 1):
+    """Time order and counts of every event; the full encode/decode round trip of every ``every``-th."""
     seq: dict[str, int] = {}
     last_t = -math.inf
-    for t, key, mtype, fields in events:
+    for i, (t, key, mtype, fields) in enumerate(events):
         assert t >= last_t
         last_t = t
-        assert messages.type_for_key(key) == mtype
-        assert keys.parse(key).vehicle == vehicle
-        msg = messages.make(mtype, vehicle, t, seq.get(key, 0), **fields)
-        messages.decode(messages.encode(msg), where=key, expected_type=mtype)
+        if i % every == 0 or seq.get(key, 0) == 0:
+            assert messages.type_for_key(key) == mtype
+            assert keys.parse(key).vehicle == vehicle
+            msg = messages.make(mtype, vehicle, t, seq.get(key, 0), **fields)
+            messages.decode(messages.encode(msg), where=key, expected_type=mtype)
         seq[key] = seq.get(key, 0) + 1
     return seq
 
@@ -33,7 +35,7 @@ def _validate_all(events, vehicle):
 @pytest.mark.parametrize("dataset", DATASETS)
 def test_every_message_is_valid_and_time_ordered(dataset):
     rec = core.load(dataset)
-    seq = _validate_all(core.stream(rec, "real-1"), "real-1")
+    seq = _validate_all(core.stream(rec, "real-1"), "real-1", every=5 if dataset.startswith("broad") else 1)
     assert seq[keys.raw_mag("real-1", "1")] == len(rec.mag_t_s)
     assert seq[keys.truth("real-1", "pose")] > 10
     if dataset.startswith("broad"):
