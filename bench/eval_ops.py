@@ -46,7 +46,7 @@ def synthetic_recording(path: Path, seconds: float, seed: int, rate_hz=(100.0, 1
     rng = np.random.default_rng(seed)
     events = []
     streams = [(keys.raw_mag("eval-1", "1"), "1"), (keys.raw_mag("eval-1", "2"), "2"), (keys.raw_mag("eval-1", "3"), "3")]
-    for (key, sensor), hz in zip(streams, rate_hz):
+    for (key, sensor), hz in zip(streams, rate_hz, strict=False):
         t = np.arange(0.0, seconds, 1.0 / hz)
         jitter = rng.uniform(0.0, 1e-3, len(t))
         for i, ti in enumerate(t):

@@ -94,7 +94,7 @@ def _contiguous_seq(path: Path) -> dict[str, tuple[int, int]]:
     out = {}
     for k, s in seqs.items():
         s.sort()
-        out[k] = (len(s), sum(1 for a, b in zip(s, s[1:]) if b != a + 1))
+        out[k] = (len(s), sum(1 for a, b in zip(s, s[1:], strict=False) if b != a + 1))
     return out
 
 

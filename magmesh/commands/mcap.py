@@ -43,7 +43,7 @@ def run_info(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(s))
         return 0
-    start = (_dt.datetime.fromtimestamp(s["start_ns"] / 1e9, _dt.timezone.utc).isoformat(timespec="seconds")
+    start = (_dt.datetime.fromtimestamp(s["start_ns"] / 1e9, _dt.UTC).isoformat(timespec="seconds")
              if s["start_ns"] else "-")
     print(f"{s['path']}: {s['messages']} samples on {len(s['keys'])} keys, {s['duration_s']:.1f} s from {start}")
     meta = s["metadata"]

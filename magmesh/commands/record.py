@@ -80,7 +80,7 @@ def record(
 
         def drain_once() -> int:
             n = 0
-            for i, (expr, sub) in enumerate(subs):
+            for i, (_expr, sub) in enumerate(subs):
                 while True:
                     sample = sub.try_recv()
                     if sample is None:

@@ -22,8 +22,17 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from .. import zconf
-from ..recording import (Remap, ReplayStats, keyexpr_matches, parse_rate, read_records, remap_sample, replay,
-                         summarize, time_window)
+from ..recording import (
+    Remap,
+    ReplayStats,
+    keyexpr_matches,
+    parse_rate,
+    read_records,
+    remap_sample,
+    replay,
+    summarize,
+    time_window,
+)
 
 log = logging.getLogger("magmesh.replay")
 

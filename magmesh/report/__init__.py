@@ -119,7 +119,7 @@ figcaption { color: #555; font-size: 0.9em; } nav a { margin-right: 1em; }
 
 def _html(title, source, runs: dict[str, VehicleRun], summaries, images, has_timeline, liveliness, notes) -> str:
     e = html.escape
-    now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    now = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
     parts = [f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{e(title)}</title>",
              f"<style>{_CSS}</style></head><body>",
              f"<h1>{e(title)}</h1><p class='sub'>{e(source)} — report made {now}</p>"]
@@ -144,7 +144,7 @@ def _html(title, source, runs: dict[str, VehicleRun], summaries, images, has_tim
     if liveliness:
         parts.append("<h2>Services</h2><table><tr><th>time (UTC)</th><th>service</th><th>event</th></tr>")
         for t, token, alive in liveliness:
-            ts = _dt.datetime.fromtimestamp(t, _dt.timezone.utc).strftime("%H:%M:%S.%f")[:-3]
+            ts = _dt.datetime.fromtimestamp(t, _dt.UTC).strftime("%H:%M:%S.%f")[:-3]
             cls, word = ("cleared", "appeared") if alive else ("raised", "gone")
             parts.append(f"<tr><td>{ts}</td><td>{e(token)}</td><td class='{cls}'>{word}</td></tr>")
         parts.append("</table>")

@@ -131,7 +131,7 @@ def bool_intervals(t: np.ndarray, flag: np.ndarray) -> list[tuple[float, float]]
     if len(t) == 0:
         return out
     edges = np.flatnonzero(np.diff(np.concatenate([[0], flag.astype(np.int8), [0]])))
-    for a, b in zip(edges[::2], edges[1::2]):
+    for a, b in zip(edges[::2], edges[1::2], strict=False):
         end = t[b] if b < len(t) else t[-1]
         out.append((float(t[a]), float(end)))
     return out

@@ -11,7 +11,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
-from magmesh import magcal, maths
+from magmesh import magcal
 
 from .data import VehicleRun, bool_intervals, heading_error, rms
 
@@ -357,7 +357,7 @@ def plot_geomag(run: VehicleRun, grid=None, main_field_nt: float | None = None) 
         p = np.array([f["pos_enu_m"] for f in acc])
         q = np.array([f["ins_pos_enu_m"] for f in acc])
         ax.plot(p[:, 0], p[:, 1], "o", mfc="none", color="tab:cyan", ms=6, label=f"accepted fixes ({len(acc)})")
-        for a, b in zip(q, p):
+        for a, b in zip(q, p, strict=False):
             ax.annotate("", xy=a[:2], xytext=b[:2], arrowprops=dict(arrowstyle="-", color="tab:cyan", lw=0.6))
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("east, m")
