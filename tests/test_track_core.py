@@ -15,6 +15,7 @@ from services.track_monitor.core import (
     TrackMonitorSettings,
     cross_track,
     learn_sigmas,
+    mag_heading,
 )
 from sim_publishers.multirotor.core import GAUSS_NT, MultirotorSettings, disturbance_g, simulate
 
@@ -145,6 +146,21 @@ def test_combined_verdict_is_held_while_the_field_strength_is_off():
     cleared = [e for e in ev if e.source == "mag_anomaly" and e.state == "cleared"]
     assert len(cleared) == 1 and 52.0 + 5.0 <= cleared[0].t_s <= 52.0 + 7.0
     assert "field strength back" in cleared[0].reason
+
+
+def test_mag_heading_levels_the_field_like_the_flight_controller():
+    s = MultirotorSettings(seed=9, duration_s=20.0)
+    f = simulate(s)
+    decl = math.radians(s.declination_deg)
+    for k in range(0, len(f.t_s), 97):
+        got = mag_heading(f.mag_nt[k], f.att_roll_rad[k], f.att_pitch_rad[k], decl)
+        assert abs(math.remainder(got - f.mag_heading_rad[k], 2 * math.pi)) < 1e-9
+    # a level, undisturbed field gives the true heading
+    from magmesh.maths import body_to_enu
+    from sim_publishers.multirotor.core import earth_field_enu
+    for psi in (0.3, 2.0, 4.5):
+        b = body_to_enu(psi, 0.0, 0.0).T @ earth_field_enu(s)
+        assert abs(math.remainder(mag_heading(b, 0.0, 0.0, decl) - psi, 2 * math.pi)) < 1e-9
 
 
 def test_learn_sigmas_needs_samples_and_pools_them():

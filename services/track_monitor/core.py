@@ -155,6 +155,19 @@ def cross_track(route: Route, pos_enu_m) -> tuple[float, float]:
     return (ux * ry - uy * rx) / n, (ux * rx + uy * ry) / n
 
 
+def mag_heading(b_nt, roll_rad: float, pitch_rad: float, declination_rad: float = 0.0) -> float:
+    """Tilt-compensated magnetometer heading (FLU body field levelled with the given roll and pitch), rad.
+
+    b_level = Ry(−θ) Rx(φ) b;  ψ_m = atan2(b_level,y, b_level,x) + D  (magmesh.maths conventions).
+    """
+    cp, sp = math.cos(roll_rad), math.sin(roll_rad)
+    ct, st = math.cos(pitch_rad), math.sin(pitch_rad)
+    by = cp * b_nt[1] - sp * b_nt[2]
+    bz = sp * b_nt[1] + cp * b_nt[2]
+    bx = ct * b_nt[0] - st * bz
+    return (math.atan2(by, bx) + declination_rad) % (2 * math.pi)
+
+
 def wrap_pi(x: float) -> float:
     return (x + math.pi) % (2 * math.pi) - math.pi
 

@@ -26,7 +26,7 @@ from magmesh.runtime import Service
 from schemas import keys
 from services.physical import refuse_unphysical
 
-from .core import AlarmEvent, TrackMonitor, TrackMonitorSettings
+from .core import AlarmEvent, TrackMonitor, TrackMonitorSettings, mag_heading
 
 
 @dataclass(frozen=True)
@@ -35,20 +35,29 @@ class Settings(TrackMonitorSettings):
     persist_sigma: bool = True  # save learned σ per vehicle and reuse it on the next start
     state_subdir: str = "track_monitor"
     mag_sensor: str = "1"  # magnetometer whose field strength holds the combined verdict ("" to ignore)
+    mag_source: str = "clean"  # clean: clean/mag/{sensor}; cal: cal/mag/{sensor} (calibration service output)
+    mag_match_s: float = 0.05  # an attitude sample without a magnetometer heading takes it from a field
+    # sample at most this far in time (levelled with the attitude's roll/pitch, + the vehicle's declination_rad)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.mag_source not in ("clean", "cal"):
+            raise ValueError(f"mag_source must be clean or cal, got {self.mag_source!r}")
 
 
 class TrackMonitorService(Service):
     role = "track_monitor"
     impl = "track_monitor"
     Settings = Settings
-    CONSUMES = ("clean/route", "clean/gnss", "clean/attitude", "clean/mag/{sensor}")
+    CONSUMES = ("clean/route", "clean/gnss", "clean/attitude", "clean/mag/{sensor} or cal/mag/{sensor}")
     PRODUCES = ("track", "alarm/track", "alarm/heading_innovation", "alarm/mag_anomaly")
 
     def subscriptions(self) -> list[str]:
         p = self.vehicle_pattern
         subs = [keys.clean_route(p), keys.clean_gnss(p), keys.clean_attitude(p)]
         if self.settings.mag_sensor:
-            subs.append(keys.clean_mag(p, self.settings.mag_sensor))
+            build = keys.clean_mag if self.settings.mag_source == "clean" else keys.cal_mag
+            subs.append(build(p, self.settings.mag_sensor))
         return subs
 
     # ---- per-vehicle state --------------------------------------------------------------------
@@ -62,6 +71,7 @@ class TrackMonitorService(Service):
             s = replace(s, fc_mag_gain_per_s=float(gain))
         mon = TrackMonitor(s)
         mon.saved_sigma = False
+        mon.last_mag = None
         if s.persist_sigma and mon.innovation.learning:
             path = self._sigma_path(vehicle)
             try:
@@ -99,10 +109,17 @@ class TrackMonitorService(Service):
             else:
                 self._publish_track(info.vehicle, msg["t_s"], mon)
         elif stream == "mag":
+            mon.last_mag = (msg["t_s"], msg["b_nt"])
             self._emit(info.vehicle, mon.update_mag(msg["t_s"], msg["b_nt"]))
         elif stream == "attitude":
             was_learning = mon.innovation.learning
-            self._emit(info.vehicle, mon.update_attitude(msg["t_s"], msg["heading_rad"], msg["mag_heading_rad"]))
+            psi_m = msg["mag_heading_rad"]
+            if psi_m is None and mon.last_mag is not None and abs(mon.last_mag[0] - msg["t_s"]) <= self.settings.mag_match_s:
+                decl = float((self.vehicles_config.get(info.vehicle) or {}).get("declination_rad", 0.0))
+                psi_m = mag_heading(mon.last_mag[1], msg["roll_rad"], msg["pitch_rad"], decl)
+            if psi_m is None:
+                self.count_drop(info.key, "no magnetometer heading")
+            self._emit(info.vehicle, mon.update_attitude(msg["t_s"], msg["heading_rad"], psi_m))
             if was_learning and not mon.innovation.learning:
                 self.log.info("%s: innovation σ learned: %.3f° (median %.3f°, block %.3f°)", info.vehicle,
                               math.degrees(mon.innovation.sigma_rad), math.degrees(mon.innovation.median_sigma_rad),
