@@ -28,6 +28,7 @@ from __future__ import annotations
 import csv
 import math
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -239,7 +240,7 @@ def eval_online(seeds: int, duration_s: float, layout: str = "urban_a") -> dict:
 
 
 def eval_service_logic(seed: int, duration_s: float, layout: str = "urban_a", step_nt=None,
-                       step_t_s: float | None = None) -> dict:
+                       step_t_s: float | None = None, online: OnlineSettings | None = None) -> dict:
     """The service's per-vehicle logic fed a simulated drive's messages in time order (no mesh),
     with the online EKF and with static fits only. ``step_nt`` adds a hard-iron step (both sensors, sensor
     frame) from ``step_t_s`` on: new cargo, a magnetised part — the case the online EKF is for."""
@@ -254,7 +255,8 @@ def eval_service_logic(seed: int, duration_s: float, layout: str = "urban_a", st
     out: dict = {"seed": seed, "layout": layout, "step_nt": None if step_nt is None else list(step_nt),
                  "step_t_s": step_t_s}
     for mode in ("online", "static"):
-        vc = VehicleCalibration("car", CalibrationSettings(), OnlineSettings(enabled=mode == "online"))
+        vc = VehicleCalibration("car", CalibrationSettings(),
+                                replace(online or OnlineSettings(), enabled=mode == "online"))
         t0 = time.perf_counter()
         history: dict[str, list] = {"1": [], "2": []}  # (t, param_id, status, method, params)
         for t_s, key, _mtype, fields in car.iter_messages(drive, "car", truth=False):

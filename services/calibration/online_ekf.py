@@ -50,7 +50,7 @@ GOOD_FIX = ("3d", "dgps", "rtk_float", "rtk_fixed")
 @dataclass(frozen=True)
 class EkfSettings:
     prior_std_nt: float = 5_000.0  # 1 σ of the initial offset estimate, per axis
-    random_walk_nt_sqrt_s: float = 2.0  # process noise: slow hard-iron change
+    random_walk_nt_sqrt_s: float = 30.0  # process noise: hard-iron change (keeps the filter able to follow a step)
     heading_noise_rad: float = math.radians(2.0)  # magnetometer heading noise + sideslip, 1 σ
     gnss_vel_std_m_s: float = 0.10  # GNSS velocity noise, 1 σ (course noise = this / speed)
     min_speed_m_s: float = 3.0  # below this the course is not the heading
