@@ -44,16 +44,18 @@ def test_dmc_alarm_raised_and_cleared_on_urban_drive_not_on_clean(tmp_path, impl
     alarms = Collector(router, keys.alarm("*", "dmc"))
     procs = []
     duration = 110.0
+    env = {"MAGMESH_STATE_DIR": str(tmp_path / "state")}  # no alarm state carried over from other runs
     try:
-        procs.append(spawn("services.ingest", port, "--instance", "ingest-t", log_path=tmp_path / "ingest.log"))
+        procs.append(spawn("services.ingest", port, "--instance", "ingest-t", log_path=tmp_path / "ingest.log",
+                           env=env))
         procs.append(spawn("services.dmc_detector", port, "--impl", impl, "--instance", f"dmc-{impl}",
-                           "--manifest", _manifest(tmp_path), log_path=tmp_path / "dmc.log"))
+                           "--manifest", _manifest(tmp_path), log_path=tmp_path / "dmc.log", env=env))
         assert wait_alive(router, keys.svc_token("dmc_detector", f"dmc-{impl}")), (tmp_path / "dmc.log").read_text()
         assert wait_alive(router, keys.svc_token("ingest", "ingest-t"))
         for vid, layout in (("car-1", "urban_a"), ("car-2", "clean")):
             procs.append(spawn("sim_publishers.car", port, "--vehicle", vid, "--instance", f"sim-{vid}",
                                "--set", "speed=0", "--set", f"duration_s={duration}", "--set", f"layout={layout}",
-                               log_path=tmp_path / f"sim-{vid}.log"))
+                               log_path=tmp_path / f"sim-{vid}.log", env=env))
         n_epochs = int(duration * 50) + 1
         deadline = time.monotonic() + 120.0
         while time.monotonic() < deadline:

@@ -43,7 +43,7 @@ class QuasiStaticSettings:
     variance_of: str = "magnitude"  # "magnitude" (|h|) or "components" (the paper's m_x, m_y, m_z)
     dm_threshold_nt: float = 1500.0  # added test |Δm| = ||h| − R| < this; 0 switches it off (the paper)
     level: str = "body"  # "body": a near-level vehicle (ψ̇ = −ω_z, level compass); "accel": levelled by the accelerometer
-    max_imu_lag_s: float = 2.0  # decide a magnetometer epoch without gyro data after this much sample time
+    max_imu_lag_s: float = 10.0  # decide a magnetometer epoch without gyro data after this much sample time
     hysteresis: HysteresisSettings = HysteresisSettings()
 
     def __post_init__(self):
