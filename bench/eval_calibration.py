@@ -107,7 +107,7 @@ def load_real(name: str) -> np.ndarray:
 def inject_gross(m: np.ndarray, model: str, frac: float, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     size = GROSS_SIZE[model] * float(np.median(np.linalg.norm(m, axis=1)))
-    mask = synthetic._bursts(len(m), frac, 4, rng)
+    mask = synthetic.burst_mask(len(m), frac, 4, rng)
     out = m.copy()
     labels = np.cumsum(np.diff(np.concatenate([[0], mask.astype(int)])) == 1)[mask]
     dirs = rng.normal(size=(labels.max() + 1 if mask.any() else 1, 3))

@@ -40,7 +40,7 @@ class Cloud:
     settings: CloudSettings
 
 
-def _bursts(n: int, frac: float, k: int, rng) -> np.ndarray:
+def burst_mask(n: int, frac: float, k: int, rng) -> np.ndarray:
     mask = np.zeros(n, bool)
     total = int(round(frac * n))
     if total == 0:
@@ -87,7 +87,7 @@ def make_cloud(s: CloudSettings = CloudSettings()) -> Cloud:
     else:
         raise ValueError(f"model must be '2d' or '3d', got {s.model!r}")
     m = h @ D.T + b + rng.normal(0, s.noise_nt, (n, 3))
-    gross = _bursts(n, s.gross_frac, s.gross_bursts, rng)
+    gross = burst_mask(n, s.gross_frac, s.gross_bursts, rng)
     if gross.any():
         # one disturbance vector per burst (a passing magnetic object), ± 20% jitter inside it
         labels = np.cumsum(np.diff(np.concatenate([[0], gross.astype(int)])) == 1)[gross]
