@@ -106,6 +106,8 @@ class Settings:
     recovery_hold_s: float = 2.0  # consistency needed before the mag may steer; then inside the gate
     recovery_slew_rad_s: float = 0.035  # max heading correction rate while re-acquiring (≈ 2°/s)
     recovery_noise_gain: float = 10.0  # R_m multiplier while recovering
+    disturbed_noise_gain: float = 0.0  # >0: in gyro_only without a DMC veto, fuse with R_m × this (weakly)
+    disturbed_gate_rad: float = 0.35  # ... only innovations smaller than this
     recovery_exit_rad: float = 0.035  # back to magnetic once |innovation| stays below this for recovery_hold_s
     rejection_timeout_s: float = 5.0  # persistent gate rejections this long in magnetic → recovering
     # alarm
@@ -497,7 +499,7 @@ class HeadingFilter:
         fl.mag_rejected_gate = ratio > 1.0
         usable = not fl.mag_rejected_gate and not sample_bad
         # ---- mode logic (§1) ----
-        fused = False
+        fused = fused_weak = False
         if self.mode == "magnetic":
             if disturbed:
                 self._set_mode("gyro_only", "DMC says invalid" if not fl.dmc_valid else "field strength/dip off reference")
@@ -512,6 +514,13 @@ class HeadingFilter:
         elif self.mode == "gyro_only":
             if disturbed:
                 self._clear_since_t = None
+                # with no DMC verdict against it, a field that is merely off its reference may still
+                # steer the heading very weakly (§2's adaptive noise taken to its limit)
+                weak = s.disturbed_noise_gain > 0.0 and fl.dmc_valid and abs(nu) < s.disturbed_gate_rad
+                if weak:
+                    r_weak = r * s.disturbed_noise_gain
+                    S = float(Hr @ PHt[:3]) + r_weak
+                    fused_weak = True
             else:
                 if self._clear_since_t is None:
                     self._clear_since_t = t
@@ -539,6 +548,11 @@ class HeadingFilter:
                     self._inside_gate_since_t = None
                     if consistent and not sample_bad and fl.quasi_static:
                         self._slew(nu, Hr, dt_mag)
+        if fused_weak:
+            K = PHt / S
+            self._inject(K * nu)
+            self.P = self.P - np.outer(K, PHt)
+            self.P = 0.5 * (self.P + self.P.T)
         if fused:
             if s.mag_vector_fusion and self.mode == "magnetic" and fl.quasi_static and not fl.field_inconsistent:
                 self._fuse_mag_vector(m, R_m, max(var_m, s.mag_heading_noise_floor_rad**2) * h2 / strength**2)
