@@ -189,7 +189,7 @@ def run(args: argparse.Namespace) -> dict:
     unseen_layouts = [d for d in unseen if d.layout not in {t.layout for t in train}]
 
     # Table 1 / Table 2: the paper's threshold sets and the project's default
-    sets = [("paper_set%d" % (i + 1), core.Thresholds(a * 10.0, b * 10.0, c, d))
+    sets = [(f"paper_set{i + 1}", core.Thresholds(a * 10.0, b * 10.0, c, d))
             for i, (a, b, c, d) in enumerate(core.PAPER_TABLE1_SETS)]
     sets.append(("default", core.Thresholds()))
     table1, table2 = [], []
@@ -260,7 +260,7 @@ def run(args: argparse.Namespace) -> dict:
         for name, st in (("paper_form", quasistatic.QuasiStaticSettings(variance_of="components",
                                                                          dm_threshold_nt=0.0)),
                          ("default", quasistatic.QuasiStaticSettings())):
-            vs, es = zip(*(T.quasistatic_run(d, st) for d in qs_drives))
+            vs, es = zip(*(T.quasistatic_run(d, st) for d in qs_drives), strict=False)
             m = T.evaluate(np.concatenate(vs), qs_drives, err_deg=np.concatenate(es))
             qs_rows.append(_row(name, m, drives=[d.name for d in qs_drives]))
         result["quasistatic"] = qs_rows
@@ -282,7 +282,7 @@ def _i(v) -> str:
 def format_text(r: dict) -> str:
     lines = [f"DMC interference recognition — trained on {', '.join(r['drives']['train'])}; "
              f"unseen: {', '.join(r['drives']['unseen'])}",
-             "good = heading error < %.0f°; WP = RMS error of valid samples" % r["good_deg"], ""]
+             "good = heading error < {:.0f}°; WP = RMS error of valid samples".format(r["good_deg"]), ""]
 
     def table(title, rows, extra=""):
         lines.append(title)

@@ -108,7 +108,7 @@ def test_latch_hysteresis_does_not_flap():
     valid[(t > 7) & (t < 7.5)] = True  # a short valid spell inside the zone: no clear
     valid[(t > 14) & (t < 14.2)] = False  # a blip shorter than raise_after_s: no raise
     latch = core.AlarmLatch(hs)
-    transitions = [(float(ti), tr) for ti, v in zip(t, valid) if (tr := latch.update(float(ti), bool(v)))]
+    transitions = [(float(ti), tr) for ti, v in zip(t, valid, strict=False) if (tr := latch.update(float(ti), bool(v)))]
     assert [tr for _, tr in transitions] == ["raised", "cleared"]
     assert abs(transitions[0][0] - 5.32) < 0.03
     assert abs(transitions[1][0] - 12.0) < 0.05
@@ -259,3 +259,19 @@ def test_service_adopts_alarm_state_handed_over_in_a_swap():
     assert [a["state"] for a in alarms] == ["cleared"]
     clear = svc.settings.clear_after_s
     assert clear - 0.05 <= alarms[0]["t_s"] <= clear + 0.1 and alarms[0]["raised_t_s"] == 12.0
+
+
+@pytest.mark.parametrize("late_start", [400, 1333])
+def test_late_started_detector_agrees_after_warmup(late_start):
+    """What a live swap relies on: an instance started later, warmed on the same stream, publishes the
+    same dmc content for every epoch once it has seen history_s of input."""
+    t, b1, b2, _, _ = synthetic_drive(seed=10, n=2500)
+    a = core.ThresholdDetector()
+    b = core.ThresholdDetector()
+    warm = int(np.ceil(a.settings.features.history_s * 50)) + 1
+    da = [a.update(float(t[i]), b1[i], b2[i], IDENTITY, IDENTITY, 0.1) for i in range(len(t))]
+    db = [b.update(float(t[i]), b1[i], b2[i], IDENTITY, IDENTITY, 0.1) for i in range(late_start, len(t))]
+    for x, y in zip(da[late_start + warm:], db[warm:], strict=True):
+        assert (x.valid, x.stage1_pass, x.credibility) == (y.valid, y.stage1_pass, y.credibility)
+        np.testing.assert_allclose(x.dm_nt + x.ddm_nt_s + [x.dh_rad, x.ddh_rad_s, x.heading_rad],
+                                   y.dm_nt + y.ddm_nt_s + [y.dh_rad, y.ddh_rad_s, y.heading_rad], rtol=0, atol=1e-6)

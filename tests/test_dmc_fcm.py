@@ -131,7 +131,7 @@ def test_quasistatic_detects_change_not_turns():
     heading = rate * t_mag
     dist = np.clip((t_mag - 20) / 4, 0, 1) * ((t_mag < 30) | (t_mag > 60))
     # a disturbance fixed in the world (ENU), seen in the turning body frame
-    extra = np.stack([maths.body_to_enu(h).T @ (d * np.array([6000.0, 4000.0, 0.0])) for h, d in zip(heading, dist)])
+    extra = np.stack([maths.body_to_enu(h).T @ (d * np.array([6000.0, 4000.0, 0.0])) for h, d in zip(heading, dist, strict=False)])
     b = np.stack([b_h[0] * np.cos(heading), b_h[0] * np.sin(heading), np.full_like(heading, -35000.0)], 1) + extra
     p = core.CompassParams((0, 0, 0), (1, 0, 0, 0, 1, 0, 0, 0, 1), float(np.linalg.norm([33000.0, 35000.0])))
     for variance_of, turns_ok in (("magnitude", True), ("components", False)):

@@ -11,9 +11,9 @@ import time
 import tomllib
 
 import pytest
-
 from meshutil import Collector, open_router, query_status, spawn, stop, wait_alive
 from meshutil import free_port as _free_port
+
 from schemas import keys, messages
 
 pytestmark = pytest.mark.mesh
@@ -86,6 +86,6 @@ def test_dmc_alarm_raised_and_cleared_on_urban_drive_not_on_clean(tmp_path, impl
     assert a2 == [], "no alarm on the clean layout"
     states = [m["state"] for m in a1]
     assert states[:2] == ["raised", "cleared"], states
-    assert all(a != b for a, b in zip(states, states[1:])), "alarms alternate raised/cleared"
+    assert all(a != b for a, b in zip(states, states[1:], strict=False)), "alarms alternate raised/cleared"
     assert all(messages.validate(m, keys.alarm("car-1", "dmc"), "alarm") for m in a1)
     assert a1[0]["reason"].startswith("Magnetic interference suspected")

@@ -345,7 +345,7 @@ def latch_batch(t_s, valid, settings: HysteresisSettings | None = None) -> np.nd
     """Alarm state per epoch for a whole recording (loop over :class:`AlarmLatch`)."""
     latch = AlarmLatch(settings)
     out = np.zeros(len(t_s), bool)
-    for i, (t, v) in enumerate(zip(np.asarray(t_s, float), np.asarray(valid, bool))):
+    for i, (t, v) in enumerate(zip(np.asarray(t_s, float), np.asarray(valid, bool), strict=False)):
         latch.update(float(t), bool(v))
         out[i] = latch.raised
     return out
@@ -432,7 +432,7 @@ class ThresholdDetector:
 
     def _decide(self, f: Features, th: Thresholds) -> tuple[bool, dict, tuple[str, ...]]:
         r = test_ratios(f, th)[0]
-        ratios = dict(zip(TEST_NAMES, (float(x) for x in r)))
+        ratios = dict(zip(TEST_NAMES, (float(x) for x in r), strict=False))
         failed = tuple(sorted((k for k, v in ratios.items() if v >= 1.0), key=lambda k: -ratios[k]))
         return not failed, ratios, failed
 

@@ -100,7 +100,7 @@ def fcm_fit(X, c: int = 5, m: float = 2.0, tol: float = 0.01, max_iter: int = 30
     objective = []
     converged = False
     it = 0
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007 (it is the iteration count returned)
         um = u * u if m == 2.0 else u**m
         V = (um @ X) / um.sum(1)[:, None]  # centre update
         d2 = _sqdist(X, V)

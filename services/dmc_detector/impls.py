@@ -18,7 +18,6 @@ from . import core, fcm, quasistatic
 from .core import HysteresisSettings
 from .service import DmcDetectorService, Settings, ThresholdDmcDetector, VehicleState
 
-
 # ---- fcm ----------------------------------------------------------------------------------------
 
 

@@ -123,7 +123,7 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     """[start, end) index ranges where mask is True."""
     m = np.concatenate([[False], np.asarray(mask, bool), [False]])
     d = np.diff(m.astype(int))
-    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)))
+    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1), strict=False))
 
 
 def alarm_timing(t_s: np.ndarray, bad: np.ndarray, alarm: np.ndarray, disturbed: np.ndarray | None = None,
