@@ -227,7 +227,8 @@ DMC = _register(
         (
             _F("dm_nt", "floats", "field-strength error Δm_k per compass, nT", length=2),
             _F("ddm_nt_s", "floats", "rate of Δm_k, nT/s", length=2),
-            _F("dh_rad", "float", "relative heading difference Δh = h1 − h2 − Δh_r, rad"),
+            _F("dh_rad", "float", "relative heading difference Δh = h1 − h2 − Δh_r, rad (single: 0; quasistatic: "
+               "magnetometer − gyro heading change over its window)"),
             _F("ddh_rad_s", "float", "rate of Δh, rad/s"),
             _F("heading_rad", "float", "magnetic heading of compass 1 after compensation (+ declination), rad"),
             _F("stage1_pass", "bool", "all threshold tests passed"),
