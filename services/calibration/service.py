@@ -49,6 +49,7 @@ class Settings:
     ekf_heading_noise_deg: float = 2.0
     ekf_min_speed_m_s: float = 3.0
     ekf_gate_sigma: float = 3.0
+    ekf_random_walk_nt_sqrt_s: float = 30.0  # how fast the hard iron may change (process noise)
     ekf_tilt: str = "level"  # level (roll = pitch = 0, as a car's 2-D compass is read) | accel (IMU tilt)
     ekf_kinds: str = "car"  # manifest vehicle kinds whose GNSS course is their heading (comma-separated);
     #                         vehicles without a manifest kind are served too
@@ -97,7 +98,8 @@ class Calibration(Service):
             enabled=s.online_ekf, tilt_source=s.ekf_tilt,
             ekf=online_ekf.EkfSettings(prior_std_nt=s.ekf_prior_std_nt,
                                        heading_noise_rad=math.radians(s.ekf_heading_noise_deg),
-                                       min_speed_m_s=s.ekf_min_speed_m_s, gate_sigma=s.ekf_gate_sigma))
+                                       min_speed_m_s=s.ekf_min_speed_m_s, gate_sigma=s.ekf_gate_sigma,
+                                       random_walk_nt_sqrt_s=s.ekf_random_walk_nt_sqrt_s))
         self.last_msgs: dict[str, dict] = {}  # cal/params key → last message published
         self.dirty: set[tuple[str, str]] = set()
         self.saved = self._load_saved()
