@@ -75,6 +75,15 @@ class _Recorder:
         return self.counts
 
 
+def _manifest_settings(process: str) -> list[str]:
+    """``--set k=v`` arguments of a process entry of the demo manifest (the settings the demo runs with)."""
+    import tomllib
+
+    with open(MANIFEST, "rb") as f:
+        procs = {p["name"]: p for p in tomllib.load(f).get("process", [])}
+    return [a for k, v in procs[process].get("settings", {}).items() for a in ("--set", f"{k}={v}")]
+
+
 def _wait_for(cond, timeout_s: float, procs=()) -> bool:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -173,7 +182,8 @@ def test_broad_trial_through_the_mesh_gives_heading_and_alarms(tmp_path):
     path = tmp_path / "broad.mcap"
     manifest = ["--manifest", str(MANIFEST)]
     procs = [_spawn("services.ingest", endpoint, "--instance", "ingest-b"),
-             _spawn("services.dmc_detector", endpoint, "--impl", "quasistatic", "--instance", "dmc-qs", *manifest),
+             _spawn("services.dmc_detector", endpoint, "--impl", "quasistatic", "--instance", "dmc-qs", *manifest,
+                    *_manifest_settings("dmc-broad-1")),
              _spawn("services.heading_fuser", endpoint, "--instance", "heading-b", *manifest)]
     try:
         time.sleep(2.0)
