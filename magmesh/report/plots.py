@@ -204,13 +204,13 @@ def calibration_pairs(run: VehicleRun) -> list[tuple[str, np.ndarray, np.ndarray
             params[ms[-1]["sensor"]] = ms[-1]
     for sensor, (t, b) in before.items():
         p = params.get(sensor)
-        if sensor in after:
-            # what the mesh compensated, sample by sample, with the parameters of the moment
+        if p is not None and p["status"] in ("ok", "manifest"):
+            # the final fitted parameters applied to every sample: the figure the papers show
+            h = magcal.apply(b, p["offset_nt"], np.array(p["matrix"], float).reshape(3, 3))
+        elif sensor in after:
+            # no usable parameter message recorded: what the mesh compensated, sample by sample
             t_after, h = after[sensor]
             b = np.stack([np.interp(t_after, t, b[:, k]) for k in range(3)], 1) if len(t) > 1 else b
-        elif p is not None and p["status"] in ("ok", "manifest"):
-            # the final parameters applied to every sample: the figure the papers show
-            h = magcal.apply(b, p["offset_nt"], np.array(p["matrix"], float).reshape(3, 3))
         else:
             continue
         h = np.asarray(h, float)
