@@ -208,3 +208,12 @@ def test_report_command_on_a_recording(tmp_path, rendered):
     assert "magmesh/svc/geomag_matcher/geomag-1" in page and "run.mcap" in page
     s = json.loads((out / "summary.json").read_text())["vehicles"]
     assert set(s) == {"survey-1"} and s["survey-1"]["geomag"]["accepted"] == 6
+
+
+def test_heading_figure_falls_back_to_the_dmc_heading(tmp_path, rendered):
+    _, _, msgs = rendered
+    no_fused = [(k, m) for k, m in msgs if k.startswith("magmesh/car-1/") and not k.endswith("/heading")]
+    report.build_report(no_fused, tmp_path)
+    assert (tmp_path / "car-1_heading.png").exists()
+    s = json.loads((tmp_path / "summary.json").read_text())["vehicles"]["car-1"]
+    assert s["heading"] is None and s["dmc"]["all_rms_deg"] > 5.0  # 25° while disturbed

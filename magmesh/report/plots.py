@@ -130,42 +130,55 @@ def plot_dmc(run: VehicleRun) -> Figure | None:
 
 
 def plot_heading(run: VehicleRun) -> Figure | None:
+    """Fused heading vs truth on the filter's mode; without a heading stream, the DMC's magnetic heading
+    vs truth on its validity."""
     hd = run.messages("heading")
-    if not hd:
+    dmc = run.messages("dmc")
+    if not hd and not dmc:
         return None
-    t = np.array([m["t_s"] for m in hd])
-    h = np.degrees([m["heading_rad"] for m in hd])
-    sd = np.degrees([m["heading_std_rad"] for m in hd])
-    modes = [m["mode"] for m in hd]
+    fused = bool(hd)
+    src = hd if fused else dmc
+    t = np.array([m["t_s"] for m in src])
+    h = np.degrees([m["heading_rad"] for m in src])
+    if fused:
+        modes = [m["mode"] for m in hd]
+        colours = MODE_COLOURS
+    else:
+        modes = ["valid" if m["valid"] else "not valid" for m in dmc]
+        colours = {"valid": MODE_COLOURS["magnetic"], "not valid": MODE_COLOURS["gyro_only"]}
     pose = [m for m in run.truth("pose") if "heading_rad" in m]
-    err = heading_error(run)
+    err = heading_error(run, "heading" if fused else "dmc")
     fig, axes = _fig(2, 3.2)
     ax = axes[0]
-    _shade_modes(ax, t, modes)
-    ax.plot(t, h, ".", ms=1.5, color="tab:blue", label="heading (fused)")
+    _shade_modes(ax, t, modes, colours)
     if pose:
         ax.plot([m["t_s"] for m in pose], np.degrees([m["heading_rad"] for m in pose]), ".", ms=1.5,
                 color="k", alpha=0.6, label="truth")
-    dmc = run.messages("dmc")
+    if fused:
+        ax.plot(t, h, ".", ms=1.5, color="tab:blue", label="heading (fused)")
     if dmc:
         ax.plot([m["t_s"] for m in dmc], np.degrees([m["heading_rad"] for m in dmc]), ".", ms=1, color="tab:green",
-                alpha=0.5, label="magnetic heading (DMC)")
+                alpha=0.5 if fused else 0.9, label="magnetic heading (DMC)")
     ax.set_ylim(0, 360)
     ax.set_yticks(range(0, 361, 90))
     ax.set_ylabel("heading, deg")
-    ax.set_title(f"{run.vehicle}: heading and its mode")
+    ax.set_title(f"{run.vehicle}: " + ("heading and its mode" if fused else
+                                       "magnetic heading (no fused heading recorded) and its DMC validity"))
     ax.grid(alpha=0.3)
-    mode_handles = [Patch(color=c, label=f"mode: {m}") for m, c in MODE_COLOURS.items() if m in set(modes)]
+    prefix = "mode" if fused else "DMC"
+    mode_handles = [Patch(color=c, label=f"{prefix}: {m}") for m, c in colours.items() if m in set(modes)]
     _legend(ax, mode_handles + shade_alarms(ax, run))
     ax = axes[1]
-    _shade_modes(ax, t, modes)
+    _shade_modes(ax, t, modes, colours)
     if err is not None:
         te, e = err
         ed = np.degrees(e)
         ax.plot(te, ed, lw=0.8, color="tab:red", label=f"error vs truth (RMS {math.degrees(rms(e)):.1f}°)")
         lim = max(10.0, float(np.nanpercentile(np.abs(ed), 99)) * 1.2) if len(ed) else 10.0
         ax.set_ylim(-lim, lim)
-    ax.fill_between(t, -3 * sd, 3 * sd, color="tab:blue", alpha=0.15, label="±3σ (filter)")
+    if fused:
+        sd = np.degrees([m["heading_std_rad"] for m in hd])
+        ax.fill_between(t, -3 * sd, 3 * sd, color="tab:blue", alpha=0.15, label="±3σ (filter)")
     shade_alarms(ax, run)
     ax.axhline(0, color="k", lw=0.6)
     ax.set_ylabel("heading error, deg")
@@ -175,14 +188,14 @@ def plot_heading(run: VehicleRun) -> Figure | None:
     return fig
 
 
-def _shade_modes(ax, t, modes) -> None:
+def _shade_modes(ax, t, modes, colours=MODE_COLOURS) -> None:
     if len(t) == 0:
         return
     start = 0
     for i in range(1, len(modes) + 1):
         if i == len(modes) or modes[i] != modes[start]:
             end = t[i] if i < len(t) else t[-1]
-            ax.axvspan(t[start], end, color=MODE_COLOURS.get(modes[start], "#eeeeee"), lw=0, zorder=0)
+            ax.axvspan(t[start], end, color=colours.get(modes[start], "#eeeeee"), lw=0, zorder=0)
             start = i
 
 
