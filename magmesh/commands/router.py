@@ -56,7 +56,8 @@ def run(args: argparse.Namespace) -> int:
     with zenoh.open(conf) as session:
         token = session.liveliness().declare_token(keys.svc_token("router", name))
         log.info("router %s (zid %s) listening on %s, connecting to %s", name, session.info.zid(),
-                 ", ".join(args.listen or []) or "(configuration file)", ", ".join(args.connect or []) or "-")
+                 ", ".join(args.listen or []) or f"the endpoints of {args.config}",
+                 ", ".join(args.connect or []) or (f"the endpoints of {args.config}" if args.config else "-"))
         deadline = time.monotonic() + args.duration if args.duration else None
         seen: set[str] = set()
         while not stop.wait(1.0):
