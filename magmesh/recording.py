@@ -306,10 +306,14 @@ def read_records(path: str | Path, key_exprs: Sequence[str] | None = None,
 
     Service liveliness events are left out unless ``liveliness`` is true.
     """
+    selected: dict[int, bool] = {}  # per channel: one key-expression test per channel, not per message
     with open(path, "rb") as fh:
         reader = make_reader(fh)
         for schema, channel, message in reader.iter_messages(log_time_order=True):
-            if not matches_any(key_exprs, channel.topic):
+            ok = selected.get(channel.id)
+            if ok is None:
+                ok = selected[channel.id] = matches_any(key_exprs, channel.topic)
+            if not ok:
                 continue
             msg_type = channel.metadata.get("magmesh_type") or None
             if msg_type is None and schema is not None and schema.name.startswith(SCHEMA_PREFIX):

@@ -217,3 +217,12 @@ def test_heading_figure_falls_back_to_the_dmc_heading(tmp_path, rendered):
     assert (tmp_path / "car-1_heading.png").exists()
     s = json.loads((tmp_path / "summary.json").read_text())["vehicles"]["car-1"]
     assert s["heading"] is None and s["dmc"]["all_rms_deg"] > 5.0  # 25° while disturbed
+
+
+def test_plotted_keys_skip_imu_and_raw_duplicates():
+    ks = ["magmesh/c-1/raw/imu", "magmesh/c-1/clean/imu", "magmesh/c-1/raw/mag/1", "magmesh/c-1/clean/mag/1",
+          "magmesh/c-1/raw/mag/2", "magmesh/c-1/dmc", "magmesh/d-1/raw/attitude", "magmesh/svc/ingest/i-1",
+          "magmesh/d-1/track"]
+    assert rdata.plotted_keys(ks) == ["magmesh/c-1/clean/mag/1", "magmesh/c-1/dmc", "magmesh/c-1/raw/mag/2",
+                                      "magmesh/d-1/track"]
+    assert rdata.plotted_keys(ks, vehicles=["d-1"]) == ["magmesh/d-1/track"]

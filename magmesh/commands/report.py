@@ -24,6 +24,7 @@ from pathlib import Path
 from .. import zconf
 from ..paths import DEPLOY_DIR
 from ..recording import load_liveliness, load_messages, matches_any, summarize
+from ..report.data import plotted_keys
 
 log = logging.getLogger("magmesh.report")
 
@@ -97,12 +98,13 @@ def make_report(paths, out_dir: str | Path, key_exprs=None, vehicles=None, title
     liveliness: list = []
     notes = []
     for i, path in enumerate(paths):
-        got = load_messages(path, key_exprs, counts=bad, progress=progress)
+        summ = summarize(path)
+        wanted = plotted_keys([k for k in summ["keys"] if matches_any(key_exprs, k)], vehicles)
+        got = load_messages(path, wanted, counts=bad, progress=progress) if wanted else []
         if exclude and i < len(paths) - 1:
             got = [(k, m) for k, m in got if not matches_any(exclude, k)]
         msgs += got
         liveliness += load_liveliness(path)
-        summ = summarize(path)
         notes.append(f"Recording {path.name}: {summ['messages']} samples over {summ['duration_s']:.1f} s "
                      f"(receive time) on {len(summ['keys'])} keys; {len(got)} messages used.")
     found = sorted({k.split("/")[1] for k, _ in msgs})
@@ -111,8 +113,8 @@ def make_report(paths, out_dir: str | Path, key_exprs=None, vehicles=None, title
         notes.append(f"{sum(bad.values())} recorded payloads did not decode as magmesh messages and are not plotted.")
     grids, main_field = vehicle_maps(manifest, map_spec, found)
     return build_report(msgs, out_dir, title=title or f"magmesh run {path.stem}",
-                        source=", ".join(str(p) for p in paths), liveliness=sorted(liveliness), grids=grids, main_field_nt=main_field, vehicles=vehicles, progress=progress,
-                        notes=notes)
+                        source=", ".join(str(p) for p in paths), liveliness=sorted(liveliness), grids=grids,
+                        main_field_nt=main_field, vehicles=vehicles, progress=progress, notes=notes)
 
 
 def run(args: argparse.Namespace) -> int:

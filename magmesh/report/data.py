@@ -103,6 +103,27 @@ class VehicleRun:
         return bool_intervals(t, d)
 
 
+#: streams no figure uses (the report leaves them unread)
+UNPLOTTED_STREAMS = ("imu", "attitude")
+
+
+def plotted_keys(recorded: list[str], vehicles=None) -> list[str]:
+    """The recorded keys the report reads: not IMU/attitude, and ``raw/x`` only where no ``clean/x`` exists."""
+    parsed = []
+    for k in recorded:
+        try:
+            info = keys.parse(k)
+        except keys.KeyError_:
+            continue
+        if info.kind == "svc" or (vehicles and info.vehicle not in vehicles):
+            continue
+        if info.kind in ("raw", "clean") and info.stream in UNPLOTTED_STREAMS:
+            continue
+        parsed.append(info)
+    clean = {(i.vehicle, i.rest) for i in parsed if i.kind == "clean"}
+    return sorted(i.key for i in parsed if not (i.kind == "raw" and (i.vehicle, i.rest) in clean))
+
+
 def group(messages: Iterable[tuple[str, dict]]) -> dict[str, VehicleRun]:
     """Per-vehicle runs from decoded ``(key, message)`` pairs; service keys are ignored."""
     runs: dict[str, VehicleRun] = {}

@@ -13,7 +13,7 @@ from matplotlib.patches import Patch
 
 from magmesh import magcal
 
-from .data import VehicleRun, bool_intervals, heading_error, rms
+from .data import VehicleRun, heading_error, rms
 
 ALARM_COLOURS = {"dmc": "tab:red", "heading": "tab:orange", "heading_innovation": "tab:orange",
                  "track": "tab:purple", "match": "tab:brown", "mag_anomaly": "tab:pink"}
@@ -110,10 +110,8 @@ def plot_dmc(run: VehicleRun) -> Figure | None:
     ax = axes[0]
     ax.plot(t, kc, lw=0.9, color="tab:blue", label="credibility K_c")
     ax.axhline(0.8, color="tab:blue", ls=":", lw=1, label="K_c = 0.8 (valid above)")
-    for s, e in bool_intervals(t, ~valid):
-        ax.axvspan(s, e, ymin=0.96, ymax=1.0, color="tab:red", alpha=0.7, lw=0)
-    for s, e in bool_intervals(t, ~stage1):
-        ax.axvspan(s, e, ymin=0.92, ymax=0.96, color="tab:orange", alpha=0.7, lw=0)
+    _band(ax, t, ~valid, 0.96, 1.0, color="tab:red", alpha=0.7)
+    _band(ax, t, ~stage1, 0.92, 0.96, color="tab:orange", alpha=0.7)
     extra = [Patch(color="tab:red", alpha=0.7, label="heading not valid"),
              Patch(color="tab:orange", alpha=0.7, label="stage-1 thresholds failed")]
     extra += shade_alarms(ax, run)
@@ -188,15 +186,24 @@ def plot_heading(run: VehicleRun) -> Figure | None:
     return fig
 
 
-def _shade_modes(ax, t, modes, colours=MODE_COLOURS) -> None:
-    if len(t) == 0:
+def _band(ax, t, mask, y0: float = 0.0, y1: float = 1.0, zorder: float = 0, **kw) -> None:
+    """Shade the x ranges where ``mask`` holds (each sample until the next), between axes fractions y0..y1.
+
+    One artist for any number of ranges (an axvspan per range is slow for flickering flags)."""
+    t = np.asarray(t, float)
+    mask = np.asarray(mask, bool)
+    if len(t) == 0 or not mask.any():
         return
-    start = 0
-    for i in range(1, len(modes) + 1):
-        if i == len(modes) or modes[i] != modes[start]:
-            end = t[i] if i < len(t) else t[-1]
-            ax.axvspan(t[start], end, color=colours.get(modes[start], "#eeeeee"), lw=0, zorder=0)
-            start = i
+    upto_next = mask.copy()
+    upto_next[1:] |= mask[:-1]  # a sample's range runs to the next sample
+    ax.fill_between(t, y0, y1, where=upto_next, step="post", transform=ax.get_xaxis_transform(), lw=0,
+                    zorder=zorder, **kw)
+
+
+def _shade_modes(ax, t, modes, colours=MODE_COLOURS) -> None:
+    modes = np.asarray(modes)
+    for m in sorted(set(modes.tolist())):
+        _band(ax, t, modes == m, color=colours.get(m, "#eeeeee"))
 
 
 # ---- calibration ------------------------------------------------------------------------------
