@@ -96,7 +96,9 @@ def secure_mesh(tmp_path_factory):
     for c in router_cfg:
         args += ["--cfg", c]
     procs.append(subprocess.Popen(args, cwd=REPO, stdout=log, stderr=subprocess.STDOUT, start_new_session=True))
-    ingest_args = ["python", "-m", "services.ingest", "--connect", f"tls/localhost:{port}", "--instance", "ingest-s"]
+    # the service runs from the deploy file; only the test's certificate paths and port differ
+    ingest_args = ["python", "-m", "services.ingest", "--config", str(SECURE / "client-service.json5"),
+                   "--connect", f"tls/localhost:{port}", "--instance", "ingest-s"]
     for c in tls_cfg(pki, "service"):
         ingest_args += ["--cfg", c]
     procs.append(subprocess.Popen(ingest_args, cwd=REPO, stdout=open(tmp / "ingest.log", "ab"),

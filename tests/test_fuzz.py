@@ -633,9 +633,9 @@ def test_fuzz_everything_100k(capsys):
     """≥ 100,000 generated inputs over every decoder and every service; zero crashes; all refusals explained."""
     fig = Figures()
     t0 = time.monotonic()
-    run_decoders(600, 100, fig)
+    run_decoders(800, 100, fig)
     for name in SERVICE_NAMES:
-        run_service(name, 250, 100, fig)
+        run_service(name, 320, 100, fig)
     _report(fig, "every decoder and service", capsys, time.monotonic() - t0)
     assert fig.crashes == 0, fig.failures
     assert fig.inputs >= 100_000

@@ -32,7 +32,7 @@ OUTAGE_S = 3.5
 # alarms are rare in life (minutes apart); here one transition per 2 s, so that the transitions of an outage
 # and the routers' reconnection (~3-4 s) stay within the publisher's cache (runtime.ALARM_HISTORY samples)
 PERIOD_S = 2.0
-COUNT = 14
+COUNT = 10
 
 
 def _ip(*args: str, check: bool = True) -> subprocess.CompletedProcess:
@@ -157,7 +157,7 @@ def test_three_hosts_link_down_and_up_loses_no_alarm(tmp_path, capsys):
                                     "--instance", "toggler-mh", "--set", f"period_s={PERIOD_S}",
                                     "--set", f"count={COUNT}"], log)
         procs.append(toggler)
-        assert _wait(lambda: sum(e["kind"] == "alarm" for e in _events(events)) >= 4, 30), "no alarm arrived"
+        assert _wait(lambda: sum(e["kind"] == "alarm" for e in _events(events)) >= 3, 30), "no alarm arrived"
         before = sum(e["kind"] == "alarm" for e in _events(events))
         t_down = time.monotonic()
         t_down_wall = time.time()
