@@ -54,22 +54,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def sim_settings(**overrides):
-    """Fuser settings for the simulated car (automotive MEMS IMU at 100 Hz, two magnetometers at 50 Hz)."""
+    """Fuser settings for the simulated car: the core's defaults (chosen for a road vehicle)."""
     from services.heading_fuser.core import Settings
 
-    base = dict(
-        gyro_noise_rad_s_rt_hz=0.0005,
-        gyro_bias_walk_rad_s2_rt_hz=5e-5,
-        gyro_bias_init_std_rad_s=0.01,
-        init_duration_s=1.0,
-        accel_noise_m_s2=1.0,
-        mag_noise_nt=150.0,
-        quasi_static_var_nt2=0.8e6,
-        field_strength_tol_frac=0.03,
-        field_dip_tol_rad=0.035,
-    )
-    base.update(overrides)
-    return Settings(**base)
+    return Settings(**overrides)
 
 
 def variant_settings(name: str, **overrides):

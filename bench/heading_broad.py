@@ -109,6 +109,7 @@ def broad_settings(**overrides) -> Settings:
     base = dict(
         gyro_noise_rad_s_rt_hz=0.003,
         gyro_bias_walk_rad_s2_rt_hz=1e-4,
+        gyro_bias_init_std_rad_s=0.005,
         init_duration_s=1.0,
         accel_noise_m_s2=0.4,
         accel_noise_per_rate_m_s2_per_rad_s=1.0,
@@ -119,7 +120,9 @@ def broad_settings(**overrides) -> Settings:
         quasi_static_var_nt2=4e6,
         quasi_static_dip_var_rad2=0.003,
         quasi_static_heading_rad=0.1,
+        field_strength_tol_frac=0.05,
         field_dip_tol_rad=0.12,
+        recovery_slew_rad_s=0.035,
         rejection_timeout_s=20.0,
         recovery_exit_rad=0.1,
         disturbed_noise_gain=30.0,

@@ -52,7 +52,7 @@ def err_deg(h, truth):
 
 def test_aligns_and_tracks_a_turn_with_declination():
     t, g, a, m, truth = synth(30.0, 0.2, seed=1)
-    f = HeadingFilter(Settings(declination_rad=DECL))
+    f = HeadingFilter(Settings(declination_rad=DECL, init_duration_s=0.0))
     h, modes, _ = run(f, g, a, m)
     e = err_deg(h, truth)
     assert e[1] < 1.0  # aligned from the first sample, declination applied
@@ -94,18 +94,22 @@ def test_dmc_invalid_switches_to_gyro_and_back_without_a_jump():
 
 
 def test_recovery_slews_a_drifted_heading_back_at_a_bounded_rate():
-    # the gyro drifts 20° during a 100 s DMC outage (uncorrected bias); the magnetometer is clean afterwards
-    t, g, a, m, truth = synth(200.0, 0.0, seed=4, gyro_bias=(0, 0, math.radians(0.2)))
-    dmc = ~((t >= 10) & (t < 110))
-    s = Settings(declination_rad=DECL, gyro_bias_init_std_rad_s=1e-6, gyro_bias_walk_rad_s2_rt_hz=1e-9)
+    # the gyro drifts 20° during a 100 s DMC outage (a bias that appears with it and goes with it, so
+    # the filter cannot learn it); the magnetometer is clean afterwards
+    t, g, a, m, truth = synth(200.0, 0.0, seed=4)
+    outage = (t >= 10) & (t < 110)
+    g[outage, 2] += math.radians(0.2)
+    dmc = ~outage
+    s = Settings(declination_rad=DECL, recovery_slew_rad_s=0.035)
     f = HeadingFilter(s)
     h, modes, _ = run(f, g, a, m, dmc)
     assert err_deg(h, truth)[int(109 * RATE_HZ)] > 15.0  # drifted while gyro-only
     step_deg = np.degrees(np.abs(maths.angle_diff(h[1:], h[:-1])))
     rec = modes[1:] == "recovering"
     assert rec.sum() > 5 * RATE_HZ
-    # while re-acquiring: at most the slew rate (plus the uncorrected drift itself)
-    assert step_deg[rec].max() * RATE_HZ <= math.degrees(s.recovery_slew_rad_s) * 1.02 + 0.25
+    # while re-acquiring: about the slew rate at most (the heading also moves with the gyro and the
+    # bias estimate, which the corrections adjust too)
+    assert step_deg[rec].max() * RATE_HZ <= math.degrees(s.recovery_slew_rad_s) * 1.25 + 0.25
     assert step_deg[t[1:] > 110].max() < 0.1  # and no jump when it hands back to magnetic
     assert err_deg(h, truth)[-1] < 1.0
     assert modes[-1] == "magnetic"

@@ -61,24 +61,28 @@ _EYE6 = np.eye(6)
 
 @dataclass(frozen=True)
 class Settings:
-    """Filter settings. Units in the names; ranges checked in ``__post_init__``."""
+    """Filter settings. Units in the names; ranges checked in ``__post_init__``.
+
+    Defaults suit a road vehicle (automotive MEMS IMU at ~100 Hz, calibrated magnetometer at ~50 Hz);
+    ``bench/heading_broad.broad_settings`` shows the values for a handheld board.
+    """
 
     # process noise
-    gyro_noise_rad_s_rt_hz: float = 0.002  # angle random walk density (plus model error), rad/s/√Hz
+    gyro_noise_rad_s_rt_hz: float = 0.0005  # angle random walk density (plus model error), rad/s/√Hz
     gyro_rate_noise_frac_rt_hz: float = 0.0  # extra rate noise ∝ |ω| (scale-factor/misalignment), 1/√Hz
-    gyro_bias_walk_rad_s2_rt_hz: float = 2e-5  # bias random walk density, rad/s²/√Hz
-    gyro_bias_init_std_rad_s: float = 0.005  # initial 1-σ gyro bias
+    gyro_bias_walk_rad_s2_rt_hz: float = 5e-5  # bias random walk density, rad/s²/√Hz
+    gyro_bias_init_std_rad_s: float = 0.01  # initial 1-σ gyro bias
     # initial attitude uncertainty
     init_tilt_std_rad: float = 0.05
     init_heading_std_rad: float = 0.2
-    init_duration_s: float = 0.0  # average accel + mag over this long before aligning (0: first sample)
+    init_duration_s: float = 1.0  # average accel + mag over this long before aligning (0: first sample)
     # accelerometer
-    accel_noise_m_s2: float = 0.5  # 1-σ of the gravity direction, as specific force
-    accel_noise_per_rate_m_s2_per_rad_s: float = 0.0  # accel σ grows with |ω| (lever arm, centripetal)
+    accel_noise_m_s2: float = 1.0  # 1-σ of the gravity direction, as specific force
+    accel_noise_per_rate_m_s2_per_rad_s: float = 10.0  # accel σ grows with |ω| (lever arm, centripetal)
     accel_rejection_m_s2: float = 2.0  # skip the accel update when ||a| − g| exceeds this
     accel_update_period_s: float = 0.0  # at most one accel update per this period (0: every sample)
     # magnetometer
-    mag_noise_nt: float = 400.0  # 1-σ per axis of the (calibrated) field
+    mag_noise_nt: float = 150.0  # 1-σ per axis of the (calibrated) field
     mag_heading_noise_floor_rad: float = 0.01  # floor on the heading-measurement σ
     mag_gate_sigma: float = 5.0  # innovation gate, standard deviations (PX4 EKF2_MAG_GATE)
     mag_update_period_s: float = 0.0  # at most one mag update per this period (0: every sample)
@@ -86,8 +90,8 @@ class Settings:
     declination_rad: float = 0.0  # magnetic declination, east positive
     ref_field_nt: float = 0.0  # reference field strength (0: learn at alignment)
     ref_dip_rad: float = float("nan")  # reference dip, down positive (nan: learn at alignment)
-    field_strength_tol_frac: float = 0.05  # window-mean |(|m| − B0)| / B0 above this: disturbed
-    field_dip_tol_rad: float = 0.052  # window-mean |dip − dip0| above this: disturbed (3°)
+    field_strength_tol_frac: float = 0.03  # window-mean |(|m| − B0)| / B0 above this: disturbed
+    field_dip_tol_rad: float = 0.06  # window-mean |dip − dip0| above this: disturbed (3.4°)
     sample_strength_tol_frac: float = 0.15  # one sample this far off is not fused
     sample_dip_tol_rad: float = 0.26  # one sample this far off is not fused (15°)
     use_field_check: bool = True
@@ -104,7 +108,7 @@ class Settings:
     use_dmc: bool = True
     clear_hold_s: float = 1.0  # disturbance must be absent this long before leaving gyro_only
     recovery_hold_s: float = 2.0  # consistency needed before the mag may steer; then inside the gate
-    recovery_slew_rad_s: float = 0.035  # max heading correction rate while re-acquiring (≈ 2°/s)
+    recovery_slew_rad_s: float = 0.07  # max heading correction rate while re-acquiring (≈ 4°/s)
     recovery_noise_gain: float = 10.0  # R_m multiplier while recovering
     disturbed_noise_gain: float = 0.0  # >0: in gyro_only without a DMC veto, fuse with R_m × this (weakly)
     disturbed_gate_rad: float = 0.35  # ... only innovations smaller than this
@@ -244,8 +248,12 @@ class HeadingFilter:
         self.flags = Flags()
         self.ref_field_nt = s.ref_field_nt
         self.ref_dip_rad = s.ref_dip_rad
-        self._init_acc: list = []
-        self._init_mag: list = []
+        # alignment averages: samples rotated by the gyro into the frame of the first one, so that a
+        # body turning during the averaging is aligned at the end of it, not half-way through
+        self._init_q = (1.0, 0.0, 0.0, 0.0)
+        self._init_acc = np.zeros(3)
+        self._init_mag = np.zeros(3)
+        self._init_n = [0, 0]
         self._init_t0: float | None = None
         self._window = _Window(s.quasi_static_window_s)
         self._history: deque = deque(maxlen=512)  # (t_s, q) for delayed magnetometer samples
@@ -343,7 +351,11 @@ class HeadingFilter:
         s = self.settings
         self.t_s += dt_s
         if self.mode == "initialising":
-            self._init_acc.append(np.asarray(accel_m_s2, float))
+            if self._init_n[0] or self._init_n[1]:
+                g = gyro_rad_s
+                self._init_q = _qmul(self._init_q, _quat_exp(g[0] * dt_s, g[1] * dt_s, g[2] * dt_s))
+            self._init_acc += _qmat(self._init_q) @ np.asarray(accel_m_s2, float)
+            self._init_n[0] += 1
             return
         self._predict(gyro_rad_s, dt_s)
         if s.mag_delay_s > 0.0:
@@ -431,10 +443,11 @@ class HeadingFilter:
         if self.mode == "initialising":
             if self._init_t0 is None:
                 self._init_t0 = self.t_s
-            self._init_mag.append(m)
-            if self.t_s - self._init_t0 >= s.init_duration_s - 1e-9 and self._init_acc:
-                self.align(np.mean(self._init_acc, axis=0), np.mean(self._init_mag, axis=0))
-                self._init_acc, self._init_mag = [], []
+            self._init_mag += _qmat(self._init_q) @ m
+            self._init_n[1] += 1
+            if self.t_s - self._init_t0 >= s.init_duration_s - 1e-9 and self._init_n[0]:
+                Rt = _qmat(self._init_q).T  # first frame → current body frame
+                self.align(Rt @ (self._init_acc / self._init_n[0]), Rt @ (self._init_mag / self._init_n[1]))
                 fl.initialising = False
             return False
         if self.t_s - self._last_mag_t < s.mag_update_period_s - 1e-9:
