@@ -21,7 +21,6 @@ import sys
 import time
 
 import pytest
-
 from meshutil import REPO
 
 pytestmark = [pytest.mark.netns, pytest.mark.mesh]
