@@ -110,6 +110,7 @@ class Figures:
     unreported_with_vehicle: int = 0  # ... of which the key still named a valid vehicle id
     outputs: int = 0
     by_code: Counter = field(default_factory=Counter)
+    example: dict = field(default_factory=dict)  # code → one reason published for it
     by_service: Counter = field(default_factory=Counter)
     by_spoil: Counter = field(default_factory=Counter)
     failures: list = field(default_factory=list)
@@ -121,6 +122,7 @@ class Figures:
                  f"(of which naming a valid vehicle: {self.unreported_with_vehicle})",
                  f"outputs published (all valid): {self.outputs}",
                  "rejections by code: " + ", ".join(f"{k} {v}" for k, v in sorted(self.by_code.items())),
+                 *(f"  e.g. {k}: {r[:150]}" for k, r in sorted(self.example.items())),
                  "inputs by spoiling: " + ", ".join(f"{k} {v}" for k, v in sorted(self.by_spoil.items())),
                  "inputs by service: " + ", ".join(f"{k} {v}" for k, v in sorted(self.by_service.items()))]
         return "\n".join(lines)
@@ -192,6 +194,7 @@ class Harness:
                 return self._fail(key, payload, spoil, f"reject without a reason: {m}")
             fig.rejected += 1
             fig.by_code[m["code"]] += 1
+            fig.example.setdefault(m["code"], m["reason"])
             return "rejected"
         if r.drops.get(key, {}).get("rejected:key", 0) == n_unroutable + 1 and _oracle_key(key) is not None:
             # a key outside the grammar: the runner counts it and logs it; it reports on rejects only when
@@ -521,7 +524,9 @@ def check_decoder(gen: Gen, fig: Figures) -> None:
     except SchemaError as e:
         assert e.field and e.problem and str(e).startswith(f"field '{e.field}'")
         fig.rejected += 1
-        fig.by_code["decode" if e.field == "<payload>" else ("version" if e.field == "version" else "schema")] += 1
+        code = "decode" if e.field == "<payload>" else ("version" if e.field == "version" else "schema")
+        fig.by_code[code] += 1
+        fig.example.setdefault(code, str(e))
         return
     except Exception as e:  # noqa: BLE001 - anything but SchemaError is a crash
         fig.crashes += 1
