@@ -13,7 +13,6 @@ import sys
 import time
 
 import msgpack
-import numpy as np
 
 
 def vehicle_ids(n: int) -> list[str]:

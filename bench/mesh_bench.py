@@ -208,7 +208,7 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
             statuses["dmc_detector"] = _status(router, "dmc_detector", "b-dmc")
         drops = {}
         for name, st in statuses.items():
-            for key, reasons in st.get("drops", {}).items():
+            for _key, reasons in st.get("drops", {}).items():
                 for r, c in reasons.items():
                     if r != "alarm_state_unchanged":
                         drops[f"{name}:{r}"] = drops.get(f"{name}:{r}", 0) + c

@@ -30,7 +30,8 @@ import time
 import tomllib
 import traceback
 from collections import defaultdict
-from typing import Any, Callable, Iterator
+from collections.abc import Callable, Iterator
+from typing import Any
 
 import msgpack
 

@@ -14,8 +14,8 @@ import time
 
 import msgpack
 import pytest
-
 from meshutil import REPO, Collector, endpoint, free_port, open_client, query_status, stop, wait_alive
+
 from schemas import keys, messages
 
 pytestmark = pytest.mark.mesh
@@ -91,7 +91,7 @@ def test_bridge_raises_and_clears_dmc_alarm(bridge_run):
     assert cleared, f"alarm/dmc not cleared within 15 s after the bridge ended at {b1:.1f} s"
     # alternation: never two raises or two clears in a row, seq contiguous
     states = [m["state"] for m in dmc_alarms]
-    assert all(a != b for a, b in zip(states, states[1:])), states
+    assert all(a != b for a, b in zip(states, states[1:], strict=False)), states
     seqs = [m["seq"] for m in dmc_alarms]
     assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
 

@@ -8,8 +8,8 @@ import sys
 import time
 
 import pytest
-
 from meshutil import REPO, Collector, endpoint, free_port, open_client, query_status, stop, wait_alive
+
 from schemas import keys
 
 pytestmark = pytest.mark.mesh
@@ -61,13 +61,13 @@ def test_swap_threshold_to_fcm_and_back_loses_nothing(tmp_path):
     ts = [m["t_s"] for m in items]
     impls = [m["impl"] for m in items]
     assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), "dmc seq: gap or duplicate across the swaps"
-    assert all(b > a for a, b in zip(ts, ts[1:])), "dmc epochs out of order or repeated"
-    gaps = [b - a for a, b in zip(ts, ts[1:])]
+    assert all(b > a for a, b in zip(ts, ts[1:], strict=False)), "dmc epochs out of order or repeated"
+    gaps = [b - a for a, b in zip(ts, ts[1:], strict=False)]
     assert max(gaps) < 0.1, f"an epoch went missing: largest gap {max(gaps):.3f} s"
-    order = [impls[0]] + [b for a, b in zip(impls, impls[1:]) if a != b]
+    order = [impls[0]] + [b for a, b in zip(impls, impls[1:], strict=False) if a != b]
     assert order == ["threshold", "fcm", "threshold"], order
     states = [m["state"] for _, m in alarms.items]
-    assert all(a != b for a, b in zip(states, states[1:])), f"spurious raise/clear: {states}"
+    assert all(a != b for a, b in zip(states, states[1:], strict=False)), f"spurious raise/clear: {states}"
     aseq = [m["seq"] for _, m in alarms.items]
     assert aseq == list(range(aseq[0], aseq[0] + len(aseq))) if aseq else True
     print(f"\nswap: {len(items)} dmc samples, seq {seqs[0]}..{seqs[-1]} contiguous, implementations {order}, "

@@ -64,7 +64,7 @@ def render(result: dict) -> str:
                      str(st.get("rejects", "?")), str(st.get("drops_total", "?")),
                      ",".join(st.get("vehicles", []))[:30], note[:80]))
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    return "\n".join("  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows)
+    return "\n".join("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=False)).rstrip() for r in rows)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from magmesh.runtime import Service
 from schemas import keys, messages
-from schemas.messages import SchemaError
 
 from .core import IngestSettings, Rejection, StreamState, VehicleState, accept, check_order, check_ranges
 
@@ -17,9 +16,9 @@ class Ingest(Service):
     role = "ingest"
     impl = "ingest"
     Settings = IngestSettings
-    CONSUMES = ("raw/mag/{sensor}", "raw/imu", "raw/gnss", "raw/ins", "raw/route")
-    PRODUCES = ("clean/mag/{sensor}", "clean/imu", "clean/gnss", "clean/ins", "clean/route", "rejects")
-    DECODE_INPUTS = False  # we decode ourselves to report every problem with its field
+    CONSUMES = ("raw/mag/{sensor}", "raw/imu", "raw/gnss", "raw/ins", "raw/route", "raw/attitude")
+    PRODUCES = ("clean/mag/{sensor}", "clean/imu", "clean/gnss", "clean/ins", "clean/route", "clean/attitude",
+                "rejects")
 
     def subscriptions(self) -> list[str]:
         return [keys.raw_all(self.vehicle_pattern)]
@@ -27,18 +26,10 @@ class Ingest(Service):
     def new_vehicle(self, vehicle: str) -> VehicleState:
         return VehicleState()
 
-    def on_message(self, info, payload: bytes, state: VehicleState) -> None:
+    def on_message(self, info, msg: dict, state: VehicleState) -> None:
+        # the runtime has decoded the payload against the contract (schema, version, finite values, vehicle id
+        # matching the key) and reported anything that failed on rejects; here: physics, time order, duplicates
         key = info.key
-        try:
-            msg = messages.decode(payload, where=key, expected_type=messages.type_for_key(key))
-        except SchemaError as e:
-            code = "version" if e.field == "version" else ("decode" if e.field == "<payload>" else "schema")
-            self.reject(key, code, str(e), e.field, len(payload), info.vehicle, None, messages.peek_type(payload))
-            return
-        if msg["vehicle"] != info.vehicle:
-            self.reject(key, "key", f"field 'vehicle' of {key} is {msg['vehicle'][:64]!r}, but the key names "
-                        f"vehicle {info.vehicle!r}", "vehicle", len(payload), info.vehicle, msg["t_s"], msg["type"])
-            return
         st = state.streams.get(key)
         if st is None:
             st = state.streams[key] = StreamState()
@@ -46,7 +37,8 @@ class Ingest(Service):
             check_ranges(msg, self.settings, key)
             check_order(msg, st, self.settings, key)
         except Rejection as r:
-            self.reject(key, r.code, r.reason, r.field, len(payload), info.vehicle, msg["t_s"], msg["type"])
+            self.reject(key, r.code, r.reason, r.field, len(messages.encode(msg, check=False)), info.vehicle,
+                        msg["t_s"], msg["type"])
             return
         accept(msg, st)
         self.republish(keys.raw_to_clean(key), msg)
