@@ -133,7 +133,9 @@ def _html(title, source, runs: dict[str, VehicleRun], summaries, images, has_tim
                  "<th>heading RMS vs truth</th><th>rejects</th></tr>")
     for v, s in summaries.items():
         h = s["heading"] or {}
-        hr = f"{h['rms_deg']:.2f}°" if h.get("rms_deg") is not None else "–"
+        d = s["dmc"] or {}
+        hr = (f"{h['rms_deg']:.2f}°" if h.get("rms_deg") is not None else
+              f"DMC {d['all_rms_deg']:.2f}°" if d.get("all_rms_deg") is not None else "–")
         al = ", ".join(f"{k} ×{n}" for k, n in s["alarms"].items()) or "none"
         parts.append(f"<tr><td><a href='#{_safe(v)}'>{e(v)}</a></td><td>{s['duration_s']:.1f}</td>"
                      f"<td>{s['messages']}</td><td>{e(al)}</td><td>{hr}</td><td>{s['rejects']}</td></tr>")

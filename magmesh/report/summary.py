@@ -191,8 +191,9 @@ def summary_rows(s: dict) -> list[tuple[str, str]]:
         rows.append((f"DMC ({', '.join(d['impl'])})", txt))
     for c in s["calibration"]:
         rmse = f", rmse {c['rmse_nt']:.0f} nT" if c["rmse_nt"] is not None else ""
+        how = f"{c['method']} {c['status']}" if c["method"] else "the cal/mag stream (no parameters recorded)"
         rows.append((f"calibration sensor {c['sensor']}",
-                     f"{c['model']} {c['method'] or 'cal/mag'} {c['status'] or ''}{rmse}; |field| spread "
+                     f"{c['model']} {how}{rmse}; |field| spread "
                      f"{c['spread_before_pct']:.1f}% → {c['spread_after_pct']:.1f}%"))
     g = s["geomag"]
     if g:
