@@ -347,9 +347,11 @@ class HeadingFilter:
             self.update_mag(mag_nt, dmc_valid)
         return self.mode
 
-    def update_imu(self, gyro_rad_s, accel_m_s2, dt_s: float) -> None:
+    def update_imu(self, gyro_rad_s, accel_m_s2, dt_s: float, t_s: float | None = None) -> None:
+        """One gyro + accelerometer step of ``dt_s``; ``t_s`` (optional) sets the filter's clock to
+        the sample's own time, e.g. a stream's timestamps, which ``update_mag``'s ``t_s`` then shares."""
         s = self.settings
-        self.t_s += dt_s
+        self.t_s = self.t_s + dt_s if t_s is None else float(t_s)
         if self.mode == "initialising":
             if self._init_n[0] or self._init_n[1]:
                 g = gyro_rad_s
@@ -435,26 +437,33 @@ class HeadingFilter:
         P = A @ self.P @ A.T + (sig * sig) * (K @ K.T)
         self.P = 0.5 * (P + P.T)
 
-    def update_mag(self, mag_nt, dmc_valid: bool | None = None) -> bool:
-        """Fuse one calibrated magnetometer sample (nT, body FLU). Returns whether it was fused."""
+    def update_mag(self, mag_nt, dmc_valid: bool | None = None, t_s: float | None = None) -> bool:
+        """Fuse one calibrated magnetometer sample (nT, body FLU). Returns whether it was fused.
+
+        ``t_s`` is the sample's own time on the clock of ``update_imu``'s ``dt_s`` sum (default: the
+        filter's current time); the windows, rates and hold times of the checks run on it, so samples
+        handed over in bursts are timed right. Feed samples in time order, after the IMU step of
+        their time.
+        """
         s = self.settings
         m = np.asarray(mag_nt, float)
         fl, st = self.flags, self.states
+        t = self.t_s if t_s is None else float(t_s)
         if self.mode == "initialising":
             if self._init_t0 is None:
-                self._init_t0 = self.t_s
+                self._init_t0 = t
             self._init_mag += _qmat(self._init_q) @ m
             self._init_n[1] += 1
-            if self.t_s - self._init_t0 >= s.init_duration_s - 1e-9 and self._init_n[0]:
+            if t - self._init_t0 >= s.init_duration_s - 1e-9 and self._init_n[0]:
                 Rt = _qmat(self._init_q).T  # first frame → current body frame
                 self.align(Rt @ (self._init_acc / self._init_n[0]), Rt @ (self._init_mag / self._init_n[1]))
+                self._last_mag_t = t
                 fl.initialising = False
             return False
-        if self.t_s - self._last_mag_t < s.mag_update_period_s - 1e-9:
+        if t - self._last_mag_t < s.mag_update_period_s - 1e-9:
             return fl.mag_fused
-        dt_mag = min(self.t_s - self._last_mag_t, 1.0)
-        self._last_mag_t = self.t_s
-        t = self.t_s
+        dt_mag = max(0.0, min(t - self._last_mag_t, 1.0))
+        self._last_mag_t = t
         R = _qmat(self.q)
         # a delayed sample is levelled with the attitude at its own time (PX4 EKF2_MAG_DELAY); the
         # heading error about the nav vertical is the same then and now, so H below uses R of now

@@ -17,7 +17,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass
+from collections import deque
+from dataclasses import dataclass, field
 
 from magmesh.magcal import MagParams
 from magmesh.runtime import Service
@@ -25,6 +26,9 @@ from schemas import keys
 from services.physical import refuse_unphysical
 
 from . import core
+
+
+MAX_PENDING_MAG = 500
 
 
 @dataclass(frozen=True)
@@ -53,6 +57,7 @@ class VehicleState:
     n_transitions_logged: int = 0
     alarm_raised: bool = False
     alarm_raised_t: float | None = None
+    pending_mag: deque = field(default_factory=deque)  # (t_s, b_nt, key) waiting for the IMU to reach t_s
 
 
 class HeadingFuser(Service):
@@ -124,11 +129,16 @@ class HeadingFuser(Service):
                                  info.vehicle, dt, t)
                 f.reset()
                 st.n_transitions_logged = 0
+                st.pending_mag.clear()
                 dt = 0.0
         else:
             dt = 0.0
         st.last_imu_t = t
-        f.update_imu(msg["gyro_rad_s"], msg["accel_m_s2"], dt)
+        f.update_imu(msg["gyro_rad_s"], msg["accel_m_s2"], dt, t_s=t)
+        # magnetometer samples are fused in time order, after the IMU step of their time
+        while st.pending_mag and st.pending_mag[0][0] <= t + 1e-6:
+            tm, b, _ = st.pending_mag.popleft()
+            self._fuse_mag(info.vehicle, tm, b, st)
         self._log_transitions(info.vehicle, st)
         if f.aligned:
             self._check_alarm(info.vehicle, t, st)
@@ -140,9 +150,17 @@ class HeadingFuser(Service):
         if st.last_imu_t is None:
             self.count_drop(info.key, "no IMU sample yet")
             return
-        dmc = st.dmc_valid if t - st.dmc_t <= self.settings.dmc_timeout_s else None
-        st.filter.update_mag(b_nt, dmc)
-        self._log_transitions(info.vehicle, st)
+        if t > st.last_imu_t + 1e-6:  # the IMU has not reached this sample's time yet: wait for it
+            st.pending_mag.append((t, b_nt, info.key))
+            if len(st.pending_mag) > MAX_PENDING_MAG:
+                self.count_drop(st.pending_mag.popleft()[2], "no IMU sample reached its time")
+            return
+        self._fuse_mag(info.vehicle, t, b_nt, st)
+
+    def _fuse_mag(self, vehicle: str, t: float, b_nt, st: VehicleState) -> None:
+        dmc = st.dmc_valid if abs(t - st.dmc_t) <= self.settings.dmc_timeout_s else None
+        st.filter.update_mag(b_nt, dmc, t_s=t)
+        self._log_transitions(vehicle, st)
 
     # ---- outputs ------------------------------------------------------------------------------
     def _publish(self, vehicle: str, t: float, st: VehicleState) -> None:
