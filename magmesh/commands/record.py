@@ -44,6 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("key_exprs", nargs="*", metavar="KEYEXPR", help=f"key expressions (default {keys.everything()})")
     p.add_argument("-o", "--output", required=True, help="MCAP file to write")
     p.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: until Ctrl-C)")
+    p.add_argument("--exclude", nargs="+", default=(), metavar="KEYEXPR", help="receive but do not write these keys")
     p.add_argument("--no-liveliness", action="store_true", help="do not record service liveliness events")
     p.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress line")
@@ -60,13 +61,18 @@ def record(
     stop: threading.Event | None = None,
     on_progress: Callable[[dict], None] | None = None,
     ready: threading.Event | None = None,
+    exclude: Sequence[str] = (),
 ) -> dict:
-    """Record until ``stop`` is set or ``duration_s`` passes; return the counts (also stored in the file)."""
+    """Record until ``stop`` is set or ``duration_s`` passes; return the counts (also stored in the file).
+
+    Samples on keys matching ``exclude`` are received but not written, and counted as such.
+    """
     import zenoh
 
     exprs = list(key_exprs) or [keys.everything()]
     stop = stop or threading.Event()
-    info = {"key_exprs": exprs, "started_unix_s": time.time(), "tool": "magmesh record"}
+    info = {"key_exprs": exprs, "exclude": list(exclude), "started_unix_s": time.time(), "tool": "magmesh record"}
+    excluded: dict[str, bool] = {}
     with zenoh.open(conf) as session, RecordingWriter(output, info=info, compression=compression) as writer:
         subs = [(e, session.declare_subscriber(e, zenoh.handlers.FifoChannel(FIFO_CAPACITY))) for e in exprs]
         live = None
@@ -77,6 +83,12 @@ def record(
             ready.set()
         t_end = time.monotonic() + duration_s if duration_s > 0 else None
         last_report = time.monotonic()
+
+        def _excluded(key: str) -> bool:
+            hit = excluded.get(key)
+            if hit is None:
+                hit = excluded[key] = any(keyexpr_matches(e, key) for e in exclude)
+            return hit
 
         def drain_once() -> int:
             n = 0
@@ -92,6 +104,8 @@ def record(
                         writer.skip(key, "delete sample")
                     elif any(keyexpr_matches(prev, key) for prev, _ in subs[:i]):
                         writer.skip(key, "duplicate (overlapping key expressions)")
+                    elif exclude and _excluded(key):
+                        writer.skip(key, "excluded")
                     else:
                         writer.write(key, sample.payload.to_bytes(), now_ns)
             if live is not None:
@@ -158,7 +172,7 @@ def run(args: argparse.Namespace) -> int:
                   end="", file=sys.stderr, flush=True)
 
     counts = record(conf, args.output, args.key_exprs, args.duration, not args.no_liveliness, args.compression,
-                    stop, progress)
+                    stop, progress, exclude=args.exclude)
     if tty:
         print(file=sys.stderr)
     print(format_counts(counts, args.output))
