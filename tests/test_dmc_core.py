@@ -275,3 +275,24 @@ def test_late_started_detector_agrees_after_warmup(late_start):
         assert (x.valid, x.stage1_pass, x.credibility) == (y.valid, y.stage1_pass, y.credibility)
         np.testing.assert_allclose(x.dm_nt + x.ddm_nt_s + [x.dh_rad, x.ddh_rad_s, x.heading_rad],
                                    y.dm_nt + y.ddm_nt_s + [y.dh_rad, y.ddh_rad_s, y.heading_rad], rtol=0, atol=1e-6)
+
+
+
+def test_2d_cal_params_do_not_replace_a_3d_set():
+    from services.dmc_detector.service import ThresholdDmcDetector
+
+    t, b1, b2, _, _ = synthetic_drive(seed=12, n=100, source_at_s=None)
+    cal2d = messages.make("cal_params", "car-1", 0.0, 0, sensor="1", param_id="fit-2d", status="ok", model="2d",
+                          method="arls", offset_nt=[0.0, 0.0, 0.0], matrix=[1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0],
+                          field_radius_nt=float(np.hypot(B_ENU[0], B_ENU[1])), rmse_nt=10.0, coverage_frac=1.0,
+                          n_samples=500, n_gross_rejected=0, observable=[True, True, False], fit_t_s=0.0,
+                          fit_duration_ms=1.0)
+    svc = ThresholdDmcDetector(vehicles_config=_vehicles_config())
+    rt, state = _run_service(svc, t, b1, b2, cal=cal2d)
+    assert state.params["1"].param_id == "manifest" and state.ignored_2d == {"1": "fit-2d"}
+    # with no 3-D set held, a 2-D set is used (horizontal field strength)
+    table = dict(_vehicles_config()["car-1"]["mag_params"]["2"])
+    svc = ThresholdDmcDetector(vehicles_config={"car-1": {"mag_params": {"2": table}}})
+    rt, state = _run_service(svc, t, b1, b2, cal=cal2d)
+    assert state.params["1"].param_id == "fit-2d" and state.params["1"].model == "2d"
+    assert len([1 for k, _ in rt.out if k == keys.dmc("car-1")]) == len(t)

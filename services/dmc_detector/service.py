@@ -7,7 +7,9 @@ Produces  magmesh/{vehicle}/dmc                        features, credibility and
 
 Until ``cal/params`` arrive, the compensation comes from the mesh manifest's vehicle table
 (``mag_params.{sensor}`` with offset_nt, matrix, field_radius_nt; ``declination_rad``; optional
-``dh_ref_rad``). A vehicle with neither has its epochs counted as dropped, never guessed at.
+``dh_ref_rad``). A 2-D (horizontal) ``cal/params`` set does not replace a 3-D one already held: its
+field strength is the horizontal one, which pitch and roll move by hundreds of nT. A vehicle with no
+parameters has its epochs counted as dropped, never guessed at.
 This module holds the ``threshold`` implementation; the other implementations of the role subclass
 :class:`DmcDetectorService` in ``impls.py``.
 """
@@ -67,6 +69,8 @@ class VehicleState:
     declination_rad: float = 0.0
     params: dict[str, CompassParams] = field(default_factory=dict)
     param_origin: dict[str, str] = field(default_factory=dict)  # sensor → "manifest" | "cal"
+    ignored_2d: dict[str, str] = field(default_factory=dict)  # sensor → 2-D cal/params id not used (3-D held)
+    warned_2d: bool = False
     epochs: int = 0
     n_valid: int = 0
     warned_no_params: bool = False
@@ -145,7 +149,18 @@ class DmcDetectorService(Service):
             self.count_drop(info.key, "unusable_params")
             self.log.error("vehicle %s sensor %s: unusable cal/params: %s", info.vehicle, info.sensor, e)
             return
-        if state.params.get(info.sensor) == p:
+        current = state.params.get(info.sensor)
+        if p.model == "2d" and current is not None and current.model == "3d":
+            # a horizontal fit leaves z uncalibrated, so its Δm can only be the horizontal field strength,
+            # which moves with every bit of pitch and roll (B_v sin θ ≈ 300 nT per half degree) and
+            # raises false alarms; the 3-D set already held is the better reference for these tests
+            state.ignored_2d[info.sensor] = p.param_id
+            if not state.warned_2d:
+                state.warned_2d = True
+                self.log.info("vehicle %s: 2-D cal/params (%s) kept out of the interference tests: a 3-D set is "
+                              "held", info.vehicle, p.param_id)
+            return
+        if current == p:
             return
         state.params[info.sensor] = p
         state.param_origin[info.sensor] = "cal" if msg["status"] == "ok" else "manifest"
@@ -212,8 +227,9 @@ class DmcDetectorService(Service):
                 continue
             det = st.detector
             out[v] = {"epochs": st.epochs, "valid_frac": round(st.n_valid / st.epochs, 4) if st.epochs else None,
-                      "params": {s: {"origin": st.param_origin.get(s), "param_id": p.param_id}
+                      "params": {s: {"origin": st.param_origin.get(s), "param_id": p.param_id, "model": p.model}
                                  for s, p in st.params.items()},
+                      "cal_params_2d_not_used": dict(st.ignored_2d),
                       "flags": det.flags, "internal_states": det.internal_states}
         return {"detector": out}
 
