@@ -105,10 +105,17 @@ def secure_mesh(tmp_path_factory):
                                   stderr=subprocess.STDOUT, start_new_session=True))
     sessions = []
     try:
-        time.sleep(0.5)
-        operator = open_tls_client(port, pki, "operator")
+        operator = None
+        deadline = time.monotonic() + 30
+        while operator is None:  # the router may take seconds to start on a busy machine
+            try:
+                operator = open_tls_client(port, pki, "operator")
+            except Exception:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.3)
         sessions.append(operator)
-        assert wait_alive(operator, keys.svc_token("ingest", "ingest-s"), 30), "ingest never came up over TLS"
+        assert wait_alive(operator, keys.svc_token("ingest", "ingest-s"), 60), "ingest never came up over TLS"
         yield dict(port=port, pki=pki, foreign=foreign, operator=operator, sessions=sessions, tmp=tmp)
     finally:
         for s in sessions:

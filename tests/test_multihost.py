@@ -47,6 +47,10 @@ def _netns_usable() -> str | None:
     try:
         if _ip("netns", "add", probe, check=False).returncode != 0:
             return "ip netns add failed"
+        if _ip("-n", probe, "link", "add", "pa", "type", "veth", "peer", "name", "pb", check=False).returncode != 0:
+            return "cannot create veth pairs"
+        if _ip("-n", probe, "link", "add", "br0", "type", "bridge", check=False).returncode != 0:
+            return "cannot create a bridge"
     finally:
         _ip("netns", "del", probe, check=False)
     return None
