@@ -193,12 +193,13 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         out, _ = fleet.communicate(timeout=duration_s + 120)
         fl = json.loads(out.strip().splitlines()[-1])
         expected = fl["sent"]["mag"] // 2  # one DMC epoch (or relayed mag/2) per magnetometer pair
-        deadline = time.time() + 60
+        # drain: wait for every output, or until nothing has arrived for 10 s (at most 180 s)
+        deadline = time.time() + 180
         while sink.n < expected and time.time() < deadline:
-            last = sink.n
             time.sleep(0.5)
-            if sink.n == last and time.time() - sink.t_last > 5:
+            if time.time() - max(sink.t_last, t_start + duration_s) > 10:
                 break
+        drained = sink.n >= expected
         t_end = sink.t_last
         cpu1 = {k: _cpu_s(p.pid) for k, p in procs.items()}
         wall = max(t_end - t_start, 1e-6)
@@ -222,7 +223,7 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
             "kind": kind, "vehicles": n, "max_mode": max_mode, "duration_s": duration_s,
             "offered_samples_s": fl["offered_rate"], "published_samples_s": round(fl["rate"], 1),
             "sustained_samples_s": round(samples_done / wall, 1),
-            "outputs": sink.n, "expected_outputs": expected, "lost": int(lost), "drops": drops,
+            "outputs": sink.n, "expected_outputs": expected, "drained": drained, "lost": int(lost), "drops": drops,
             "latency_ms_p50": round(float(np.nanpercentile(lat, 50)), 2),
             "latency_ms_p99": round(float(np.nanpercentile(lat, 99)), 2),
             "cpu_pct": {k: round(100 * (cpu1[k] - cpu0[k]) / wall, 1) for k in procs}
