@@ -8,7 +8,11 @@ Three measurements:
   message must come back, and the receive times must keep the original spacing divided by the rate
   (error percentiles in ms, about the constant end-to-end latency);
 - ``burst``: the same with ``--burst`` messages replayed as fast as possible (``--rate max``): messages
-  per second end to end, and none lost (reliable publishers with blocking congestion control).
+  per second end to end, and none lost (reliable publishers with blocking congestion control);
+- ``broad`` (``--broad``): every bundled BROAD trial (Laidig et al. 2021, CC-BY-4.0) replayed with
+  ``magmesh rerun`` through the demo's BROAD services (quasi-static DMC detector with the manifest's
+  settings, heading fuser): heading error against the optical truth, share of magnetic mode, DMC alarms
+  against the recording's disturbance truth.
 """
 
 from __future__ import annotations
@@ -37,6 +41,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--burst", type=int, default=20000, help="messages in the as-fast-as-possible run")
     p.add_argument("--codec-n", type=int, default=50000, help="messages in the codec measurement")
     p.add_argument("--no-mesh", action="store_true", help="only the codec measurement")
+    p.add_argument("--broad", action="store_true", help="also replay every BROAD trial through the mesh")
+    p.add_argument("--broad-dmc-set", nargs="+", default=[], metavar="NAME=VALUE",
+                   help="override settings of the manifest's dmc-broad-1 entry for the BROAD run")
     p.add_argument("--seed", type=int, default=1)
 
 
@@ -175,10 +182,75 @@ def measure_mesh(seconds: float, rate: float, burst: int, seed: int) -> dict:
     return {"timing": timing, "burst": burst_res}
 
 
+def broad_clean_recording(trial: str, path: Path, rate_hz: float = 50.0) -> int:
+    """A BROAD trial as ingest would publish it (clean keys, truth), for ``magmesh rerun``."""
+    from sim_publishers.replay import core
+
+    rec = core.load(f"broad:{trial}", rate_hz=rate_hz)
+    seq: dict[str, int] = {}
+    with rc.RecordingWriter(path) as w:
+        for t, key, mtype, fields in core.stream(rec, "broad-1"):
+            key = keys.raw_to_clean(key) if keys.parse(key).kind == "raw" else key
+            n = seq.get(key, 0)
+            seq[key] = n + 1
+            w.write_message(key, messages.make(mtype, "broad-1", t, n, **fields), int(1.8e18 + t * 1e9))
+    return sum(seq.values())
+
+
+def measure_broad(progress: bool = True, dmc_overrides: dict | None = None) -> list[dict]:
+    import tomllib
+
+    from magmesh.commands.rerun import rerun
+    from magmesh.paths import DEPLOY_DIR
+    from magmesh.report.data import group
+    from magmesh.report.summary import vehicle_summary
+    from sim_publishers.replay.core import broad_trials
+
+    manifest = DEPLOY_DIR / "mesh.toml"
+    with open(manifest, "rb") as f:
+        procs = {p["name"]: p for p in tomllib.load(f).get("process", [])}
+    dmc = procs["dmc-broad-1"]
+    settings = {**dmc.get("settings", {}), **(dmc_overrides or {})}
+    dmc_cmd = " ".join(["services.dmc_detector", *dmc.get("args", []),
+                        *[f"--set {k}={v}" for k, v in settings.items()]])
+    rows = []
+    trials = broad_trials()
+    if progress:
+        from tqdm import tqdm
+
+        trials = tqdm(trials, desc="BROAD trials", unit="trial", file=sys.stderr)
+    for trial in trials:
+        with tempfile.TemporaryDirectory() as d:
+            src, out = Path(d) / "clean.mcap", Path(d) / "out.mcap"
+            broad_clean_recording(trial, src)
+            res = rerun(src, [dmc_cmd, "services.heading_fuser"], out, manifest=manifest)
+            msgs = rc.load_messages(src, [keys.truth("*", "*")]) + rc.load_messages(out)
+        s = vehicle_summary(group(msgs)["broad-1"])
+        h, a = s["heading"] or {}, s["alarms_vs_truth"] or {}
+        rows.append({
+            "trial": trial,
+            "replayed": res["replay"]["published"],
+            "heading_msgs": (h or {}).get("epochs", 0),
+            "heading_rms_deg": h.get("rms_deg"),
+            "heading_p95_deg": h.get("p95_deg"),
+            "magnetic_mode_frac": (h.get("mode_frac") or {}).get("magnetic", 0.0),
+            "dmc_alarms": s["alarms"].get("dmc", 0),
+            "disturbed_episodes": a.get("episodes"),
+            "episodes_alarmed": a.get("detected"),
+            "median_alarm_delay_s": a.get("median_delay_s"),
+            "alarms_outside_disturbance": a.get("false_alarms"),
+        })
+    return rows
+
+
 def run(args: argparse.Namespace) -> dict:
     out = {"codec": measure_codec(args.codec_n, args.seed)}
     if not args.no_mesh:
         out.update(measure_mesh(args.seconds, args.rate, args.burst, args.seed))
+    if getattr(args, "broad", False):
+        overrides = dict(kv.split("=", 1) for kv in args.broad_dmc_set)
+        out["broad"] = measure_broad(dmc_overrides=overrides)
+        out["broad_dmc_overrides"] = overrides
     return out
 
 
@@ -203,4 +275,15 @@ def format_text(r: dict) -> str:
             f"replay as fast as possible ({b['messages']} messages)",
             f"  {b['msgs_per_s']:,.0f} msg/s end to end, received {b['received']} (lost {b['lost']})",
         ]
+    if "broad" in r:
+        lines += ["BROAD trials through the mesh (rerun: quasi-static DMC + heading fuser; Laidig et al. 2021)",
+                  f"  {'trial':<36} {'heading RMS':>11} {'p95':>6} {'magnetic':>8} {'alarms':>6} "
+                  f"{'episodes alarmed':>16} {'delay':>6} {'outside':>7}"]
+        for row in r["broad"]:
+            def f(v, fmt):
+                return format(v, fmt) if v is not None else "–"
+            lines.append(f"  {row['trial']:<36} {f(row['heading_rms_deg'], '10.1f')}° {f(row['heading_p95_deg'], '5.1f')}° "
+                         f"{100 * row['magnetic_mode_frac']:7.0f}% {row['dmc_alarms']:6d} "
+                         f"{f(row['episodes_alarmed'], 'd'):>7} of {f(row['disturbed_episodes'], 'd'):<5} "
+                         f"{f(row['median_alarm_delay_s'], '5.1f'):>5}s {f(row['alarms_outside_disturbance'], 'd'):>7}")
     return "\n".join(lines)
