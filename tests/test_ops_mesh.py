@@ -255,3 +255,32 @@ def test_rerun_a_recording_through_a_detector_in_a_private_mesh(tmp_path):
     assert res["recorded"]["skipped"] == res["replay"]["published"]
     alarms = [m for k, m in rc.load_messages(out) if k == keys.alarm("broad-1", "dmc")]
     assert alarms and alarms[0]["state"] == "raised" and 37.0 < alarms[0]["t_s"] < 42.0
+
+
+def test_record_command_stops_on_sigint_and_prints_its_counts(tmp_path):
+    zenoh = pytest.importorskip("zenoh")
+    from magmesh.zconf import build_config
+
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    out = tmp_path / "cli.mcap"
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen([sys.executable, "-m", "magmesh", "record", "magmesh/t-1/**", "-o", str(out),
+                             "--mode", "peer", "--listen", endpoint, "-q"], cwd=REPO, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        with zenoh.open(build_config(connect=[endpoint])) as s:
+            pub = s.declare_publisher(keys.raw_mag("t-1", "1"), congestion_control=zenoh.CongestionControl.BLOCK,
+                                      reliability=zenoh.Reliability.RELIABLE)
+            assert _wait_for(lambda: pub.matching_status.matching, 15), "recorder did not subscribe"
+            for i in range(200):
+                pub.put(messages.encode(messages.make("mag", "t-1", i * 0.01, i, sensor="1", b_nt=[1.0, 2.0, 3.0])))
+            pub.put(b"not msgpack")
+            s.put(keys.raw_mag("t-2", "1"), b"other vehicle: not subscribed")
+            time.sleep(0.5)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=20)
+    assert proc.returncode == 0, stderr.decode()[-2000:]
+    text = stdout.decode()
+    assert "recorded 200 messages on 1 keys" in text and "not valid magmesh messages: 1" in text
+    assert rc.summarize(out)["keys"] == {"magmesh/t-1/raw/mag/1": 201}
