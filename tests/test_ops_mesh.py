@@ -284,3 +284,38 @@ def test_record_command_stops_on_sigint_and_prints_its_counts(tmp_path):
     text = stdout.decode()
     assert "recorded 200 messages on 1 keys" in text and "not valid magmesh messages: 1" in text
     assert rc.summarize(out)["keys"] == {"magmesh/t-1/raw/mag/1": 201}
+
+
+def test_overlapping_key_expressions_keep_each_sample_once(tmp_path):
+    zenoh = pytest.importorskip("zenoh")
+    from magmesh.commands.record import record
+    from magmesh.zconf import build_config
+
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    router = zenoh.open(build_config(mode="router", listen=[endpoint]))
+    stop, ready, out = threading.Event(), threading.Event(), tmp_path / "o.mcap"
+    res = {}
+    th = threading.Thread(target=lambda: res.update(c=record(
+        build_config(connect=[endpoint]), out, ["magmesh/**", "magmesh/*/dmc"], stop=stop, ready=ready,
+        exclude=["magmesh/*/raw/**"])), daemon=True)
+    th.start()
+    try:
+        assert ready.wait(10)
+        with zenoh.open(build_config(connect=[endpoint])) as s:
+            time.sleep(1.0)
+            for i in range(50):
+                m = messages.make("dmc", "v-1", i * 0.1, i, dm_nt=[0.0, 0.0], ddm_nt_s=[0.0, 0.0], dh_rad=0.0,
+                                  ddh_rad_s=0.0, heading_rad=0.0, stage1_pass=True, credibility=1.0, valid=True,
+                                  impl="threshold", param_source="manifest")
+                s.put(keys.dmc("v-1"), messages.encode(m))
+                s.put(keys.raw_mag("v-1", "1"), messages.encode(
+                    messages.make("mag", "v-1", i * 0.1, i, sensor="1", b_nt=[1.0, 2.0, 3.0])))
+            time.sleep(1.0)
+        stop.set()
+        th.join(15)
+    finally:
+        router.close()
+    c = res["c"]
+    assert c["per_key"] == {"magmesh/v-1/dmc": 50}
+    assert c["skipped_per_reason"] == {"duplicate (overlapping key expressions): magmesh/v-1/dmc": 50,
+                                       "excluded: magmesh/v-1/raw/mag/1": 50}

@@ -84,6 +84,15 @@ def record(
         t_end = time.monotonic() + duration_s if duration_s > 0 else None
         last_report = time.monotonic()
 
+        earlier: dict[tuple[int, str], bool] = {}
+
+        def _earlier(i: int, key: str) -> bool:
+            """An earlier key expression also matches: that subscription keeps the sample."""
+            hit = earlier.get((i, key))
+            if hit is None:
+                hit = earlier[(i, key)] = any(keyexpr_matches(prev, key) for prev, _ in subs[:i])
+            return hit
+
         def _excluded(key: str) -> bool:
             hit = excluded.get(key)
             if hit is None:
@@ -102,7 +111,7 @@ def record(
                     key = str(sample.key_expr)
                     if sample.kind != zenoh.SampleKind.PUT:
                         writer.skip(key, "delete sample")
-                    elif any(keyexpr_matches(prev, key) for prev, _ in subs[:i]):
+                    elif i and _earlier(i, key):
                         writer.skip(key, "duplicate (overlapping key expressions)")
                     elif exclude and _excluded(key):
                         writer.skip(key, "excluded")
