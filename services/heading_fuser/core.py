@@ -256,7 +256,8 @@ class HeadingFilter:
         self._init_n = [0, 0]
         self._init_t0: float | None = None
         self._window = _Window(s.quasi_static_window_s)
-        self._history: deque = deque(maxlen=512)  # (t_s, q) for delayed magnetometer samples
+        self._history: deque = deque(maxlen=1024)  # (t_s, gyro-only q, gyro yaw) for late mag samples
+        self._qg = (1.0, 0.0, 0.0, 0.0)  # attitude integrated from the gyro alone (never corrected)
         self._gyro_yaw = 0.0  # integrated gyro heading (CCW yaw), for the §2 heading-change test
         self._last_accel_t = -1e9
         self._last_mag_t = -1e9
@@ -360,8 +361,7 @@ class HeadingFilter:
             self._init_n[0] += 1
             return
         self._predict(gyro_rad_s, dt_s)
-        if s.mag_delay_s > 0.0:
-            self._history.append((self.t_s, self.q))
+        self._history.append((self.t_s, self._qg, self._gyro_yaw))
         if self.t_s - self._last_accel_t >= s.accel_update_period_s - 1e-9:
             self._last_accel_t = self.t_s
             self._fuse_accel(accel_m_s2, math.sqrt(gyro_rad_s[0] ** 2 + gyro_rad_s[1] ** 2 + gyro_rad_s[2] ** 2))
@@ -378,6 +378,9 @@ class HeadingFilter:
         b = self.bias
         w0, w1, w2 = gyro[0] - b[0], gyro[1] - b[1], gyro[2] - b[2]
         dq = _quat_exp(w0 * dt, w1 * dt, w2 * dt)
+        qg = _qmul(self._qg, dq)
+        ng = math.sqrt(qg[0] * qg[0] + qg[1] * qg[1] + qg[2] * qg[2] + qg[3] * qg[3])
+        self._qg = (qg[0] / ng, qg[1] / ng, qg[2] / ng, qg[3] / ng)
         q = _qmul(self.q, dq)
         n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
         self.q = (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
@@ -467,7 +470,9 @@ class HeadingFilter:
         R = _qmat(self.q)
         # a delayed sample is levelled with the attitude at its own time (PX4 EKF2_MAG_DELAY); the
         # heading error about the nav vertical is the same then and now, so H below uses R of now
-        R_m = _qmat(self._attitude_at(t - s.mag_delay_s)) if s.mag_delay_s > 0.0 else R
+        t_att = t - s.mag_delay_s  # the attitude at the sample's own time (late or lagging samples)
+        q_m, gyro_yaw_m = self._attitude_at(t_att) if t_att < self.t_s - 1e-9 else (self.q, self._gyro_yaw)
+        R_m = _qmat(q_m)
         mn = R_m @ m
         x, y = mn[0], mn[1]
         h2 = x * x + y * y
@@ -483,8 +488,8 @@ class HeadingFilter:
         fl.dmc_valid = True if (dmc_valid is None or not s.use_dmc) else bool(dmc_valid)
         # magnetometer yaw = estimated yaw + azimuth error of the field (the innovation below)
         nu = math.remainder(azimuth - s.declination_rad, 2 * math.pi)
-        mag_yaw = math.atan2(R[1, 0], R[0, 0]) + nu
-        self._window.add(t, strength, dip, math.remainder(mag_yaw - self._gyro_yaw, 2 * math.pi))
+        mag_yaw = math.atan2(R_m[1, 0], R_m[0, 0]) + nu
+        self._window.add(t, strength, dip, math.remainder(mag_yaw - gyro_yaw_m, 2 * math.pi))
         gain = 1.0
         fl.quasi_static = True
         window_bad = False
@@ -616,10 +621,18 @@ class HeadingFilter:
         self.P = 0.5 * (P + P.T)
 
     def _attitude_at(self, t: float) -> tuple:
-        for tq, q in reversed(self._history):
-            if tq <= t + 1e-9:
-                return q
-        return self._history[0][1] if self._history else self.q
+        """(quaternion, integrated gyro yaw) at an earlier time t: the current estimate (with every
+        correction so far) turned back by the gyro's own motion since t, q_t = q ⊗ q_g,now⁻¹ ⊗ q_g,t."""
+        entry = self._history[0] if self._history else None
+        for e in reversed(self._history):
+            if e[0] <= t + 1e-9:
+                entry = e
+                break
+        if entry is None:
+            return self.q, self._gyro_yaw
+        gw, gx, gy_, gz = self._qg
+        rel = _qmul((gw, -gx, -gy_, -gz), entry[1])
+        return _qmul(self.q, rel), entry[2]
 
     def _slew(self, nu: float, Hr: np.ndarray, dt: float) -> None:
         """Rate-limited heading correction towards a consistent magnetometer outside the gate."""

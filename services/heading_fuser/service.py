@@ -28,7 +28,7 @@ from services.physical import refuse_unphysical
 from . import core
 
 
-MAX_PENDING_MAG = 500
+MAX_PENDING = 2000
 
 
 @dataclass(frozen=True)
@@ -39,6 +39,8 @@ class Settings(core.Settings):
     publish_period_s: float = 0.1  # heading messages at most this often (sample time; 0: every IMU sample)
     cal_timeout_s: float = 1.0  # without cal/mag for this long, fall back to clean/mag + parameters
     dmc_timeout_s: float = 2.0  # a DMC verdict older than this is ignored (the filter's own checks remain)
+    mag_wait_s: float = 0.2  # the IMU waits at most this long (sample time) for the magnetometer stream;
+    # later samples are levelled with the attitude of their own time (kept for a few seconds)
     max_imu_gap_s: float = 1.0  # a longer gap in the IMU stream restarts the filter
     alarm_clear_frac: float = 0.8  # clear the alarm below this fraction of heading_alarm_std_rad
 
@@ -52,12 +54,16 @@ class VehicleState:
     dmc_valid: bool | None = None
     dmc_credibility: float | None = None
     dmc_t: float = -math.inf
+    dmc_hist: deque = field(default_factory=lambda: deque(maxlen=4096))  # (t_s, valid) of recent verdicts
     params: MagParams | None = None
     param_source: str = "none"
     n_transitions_logged: int = 0
     alarm_raised: bool = False
     alarm_raised_t: float | None = None
-    pending_mag: deque = field(default_factory=deque)  # (t_s, b_nt, key) waiting for the IMU to reach t_s
+    pending_mag: deque = field(default_factory=deque)  # (t_s, b_nt, key) waiting for the IMU / DMC verdict
+    pending_imu: deque = field(default_factory=deque)  # (t_s, gyro, accel) not yet stepped
+    newest_imu_t: float | None = None
+    newest_mag_t: float | None = None
 
 
 class HeadingFuser(Service):
@@ -96,8 +102,16 @@ class HeadingFuser(Service):
         if refuse_unphysical(self, info, msg):
             return
         kind, stream = info.kind, info.stream
+        if info.sensor is not None and info.sensor != self.settings.sensor:
+            self.count_drop(info.key, f"not the fused magnetometer (sensor {self.settings.sensor})")
+            return
         if kind == "clean" and stream == "imu":
-            self._on_imu(info, msg, state)
+            if state.newest_imu_t is not None and msg["t_s"] <= state.newest_imu_t:
+                self.count_drop(info.key, "IMU sample not after the previous one")
+                return
+            state.newest_imu_t = msg["t_s"]
+            state.pending_imu.append((msg["t_s"], msg["gyro_rad_s"], msg["accel_m_s2"]))
+            self._drain(info.vehicle, state)
         elif kind == "cal" and stream == "mag":
             state.last_cal_t = msg["t_s"]
             self._on_mag(info, msg["t_s"], msg["b_nt"], state)
@@ -115,52 +129,80 @@ class HeadingFuser(Service):
                 self.count_drop(info.key, f"parameters with status {msg['status']!r} not used")
         elif kind == "dmc":
             state.dmc_valid, state.dmc_credibility, state.dmc_t = msg["valid"], msg["credibility"], msg["t_s"]
-
-    def _on_imu(self, info, msg: dict, st: VehicleState) -> None:
-        t = msg["t_s"]
-        f = st.filter
-        if st.last_imu_t is not None:
-            dt = t - st.last_imu_t
-            if dt <= 0.0:
-                self.count_drop(info.key, "IMU sample not after the previous one")
-                return
-            if dt > self.settings.max_imu_gap_s:
-                self.log.warning("vehicle %s: IMU gap of %.2f s at t=%.2f s: restarting the heading filter",
-                                 info.vehicle, dt, t)
-                f.reset()
-                st.n_transitions_logged = 0
-                st.pending_mag.clear()
-                dt = 0.0
-        else:
-            dt = 0.0
-        st.last_imu_t = t
-        f.update_imu(msg["gyro_rad_s"], msg["accel_m_s2"], dt, t_s=t)
-        # magnetometer samples are fused in time order, after the IMU step of their time
-        while st.pending_mag and st.pending_mag[0][0] <= t + 1e-6:
-            tm, b, _ = st.pending_mag.popleft()
-            self._fuse_mag(info.vehicle, tm, b, st)
-        self._log_transitions(info.vehicle, st)
-        if f.aligned:
-            self._check_alarm(info.vehicle, t, st)
-            if t - st.last_pub_t >= self.settings.publish_period_s - 1e-9:
-                st.last_pub_t = t
-                self._publish(info.vehicle, t, st)
+            state.dmc_hist.append((msg["t_s"], msg["valid"]))
+            self._drain(info.vehicle, state)
 
     def _on_mag(self, info, t: float, b_nt, st: VehicleState) -> None:
-        if st.last_imu_t is None:
+        if st.newest_imu_t is None:
             self.count_drop(info.key, "no IMU sample yet")
             return
-        if t > st.last_imu_t + 1e-6:  # the IMU has not reached this sample's time yet: wait for it
-            st.pending_mag.append((t, b_nt, info.key))
-            if len(st.pending_mag) > MAX_PENDING_MAG:
-                self.count_drop(st.pending_mag.popleft()[2], "no IMU sample reached its time")
-            return
-        self._fuse_mag(info.vehicle, t, b_nt, st)
+        st.newest_mag_t = t if st.newest_mag_t is None else max(st.newest_mag_t, t)
+        st.pending_mag.append((t, b_nt, info.key))
+        if len(st.pending_mag) > MAX_PENDING:
+            self.count_drop(st.pending_mag.popleft()[2], "neither the IMU nor the DMC verdict reached its time")
+        self._drain(info.vehicle, st)
 
-    def _fuse_mag(self, vehicle: str, t: float, b_nt, st: VehicleState) -> None:
-        dmc = st.dmc_valid if abs(t - st.dmc_t) <= self.settings.dmc_timeout_s else None
-        st.filter.update_mag(b_nt, dmc, t_s=t)
+    def _drain(self, vehicle: str, st: VehicleState) -> None:
+        """Advance the filter through the waiting IMU and magnetometer samples in time order.
+
+        The streams arrive on separate subscriptions, in bursts when the mesh runs faster than real
+        time; the filter must see them interleaved by time (a field sample levelled with an attitude
+        seconds off would be wrong). A magnetometer sample waits until the IMU has reached its time and,
+        while a DMC stream is alive, until the DMC verdict for its time has arrived; a verdict more than
+        ``dmc_timeout_s`` behind the newest IMU sample is not waited for.
+        """
+        while True:
+            mag = st.pending_mag[0] if st.pending_mag else None
+            if mag is not None and st.last_imu_t is not None and mag[0] <= st.last_imu_t + 1e-6:
+                t = mag[0]
+                dmc, ready = None, True
+                if st.dmc_hist:
+                    if st.dmc_hist[-1][0] >= t - 1e-6:
+                        dmc = self._verdict_at(st, t)
+                    elif st.newest_imu_t - st.dmc_hist[-1][0] <= self.settings.dmc_timeout_s:
+                        ready = False  # the verdict for this time is on its way
+                if ready:
+                    st.pending_mag.popleft()
+                    st.filter.update_mag(mag[1], dmc, t_s=t)  # levelled with the attitude of its own time
+                    continue
+            imu = st.pending_imu[0] if st.pending_imu else None
+            if imu is None:
+                break
+            if mag is not None and mag[0] < imu[0] - 1e-9 and st.last_imu_t is not None and mag[0] <= st.last_imu_t + 1e-6:
+                # that magnetometer sample waits for its DMC verdict: the IMU goes on (up to the timeout)
+                if st.newest_imu_t - mag[0] <= self.settings.dmc_timeout_s and len(st.pending_imu) < MAX_PENDING:
+                    break
+            elif (st.newest_mag_t is not None and imu[0] > st.newest_mag_t + 1e-6
+                    and st.newest_imu_t - st.newest_mag_t <= self.settings.mag_wait_s
+                    and len(st.pending_imu) < MAX_PENDING):
+                break  # the magnetometer stream has not reached this time yet: wait a little for it
+            st.pending_imu.popleft()
+            self._step_imu(vehicle, imu, st)
         self._log_transitions(vehicle, st)
+
+    def _step_imu(self, vehicle: str, imu: tuple, st: VehicleState) -> None:
+        t, gyro, accel = imu
+        f = st.filter
+        dt = 0.0 if st.last_imu_t is None else t - st.last_imu_t
+        if dt > self.settings.max_imu_gap_s:
+            self.log.warning("vehicle %s: IMU gap of %.2f s at t=%.2f s: restarting the heading filter", vehicle, dt, t)
+            f.reset()
+            st.n_transitions_logged = 0
+            dt = 0.0
+        st.last_imu_t = t
+        f.update_imu(gyro, accel, dt, t_s=t)
+        if f.aligned:
+            self._check_alarm(vehicle, t, st)
+            if t - st.last_pub_t >= self.settings.publish_period_s - 1e-9:
+                st.last_pub_t = t
+                self._publish(vehicle, t, st)
+
+    @staticmethod
+    def _verdict_at(st: VehicleState, t: float) -> bool | None:
+        for tv, valid in reversed(st.dmc_hist):
+            if tv <= t + 1e-6:
+                return valid
+        return None
 
     # ---- outputs ------------------------------------------------------------------------------
     def _publish(self, vehicle: str, t: float, st: VehicleState) -> None:
@@ -182,7 +224,7 @@ class HeadingFuser(Service):
         if not st.alarm_raised and f.flags.heading_uncertain:
             st.alarm_raised, st.alarm_raised_t = True, t
             self.alarm(vehicle, "heading", "raised", "warning",
-                       f"heading uncertainty {math.degrees(h_std):.1f}° after {f.internal_states.gyro_only_duration_s:.0f} s "
+                       f"heading uncertainty {math.degrees(h_std):.1f}° after {f.internal_states.time_since_mag_fused_s:.0f} s "
                        f"without a usable magnetometer (mode {f.mode})",
                        h_std, s.heading_alarm_std_rad, t, unit="rad")
         elif st.alarm_raised and (f.mode == "magnetic" or h_std < s.alarm_clear_frac * s.heading_alarm_std_rad):
