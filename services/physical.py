@@ -19,6 +19,8 @@ _DEFAULT = IngestSettings()
 MAX_MATRIX_ENTRY = 100.0
 #: |det M| below this: M is singular, the compensated field would collapse or explode
 MIN_MATRIX_DET = 1e-6
+#: a route leg shorter than this (horizontally) has no direction to measure a cross-track distance from
+MIN_ROUTE_LENGTH_M = 0.01
 
 
 def _det3(m: list[float]) -> float:
@@ -42,12 +44,23 @@ def check_params(msg: dict, s: IngestSettings, where: str) -> None:
         raise bad("matrix", f"is singular (|det| = {abs(_det3(m)):.3g})")
 
 
+def check_route(msg: dict, where: str) -> None:
+    """Raise :class:`Rejection` when a route leg has no length."""
+    a, b = msg["a_enu_m"], msg["b_enu_m"]
+    d = math.hypot(b[0] - a[0], b[1] - a[1])
+    if not d >= MIN_ROUTE_LENGTH_M:
+        raise Rejection("range", "b_enu_m", f"field 'b_enu_m' of {where} is {d:.3g} m from a_enu_m horizontally: "
+                        f"a route leg needs two points at least {MIN_ROUTE_LENGTH_M:g} m apart")
+
+
 def problem(msg: dict, key: str, settings: IngestSettings = _DEFAULT) -> Rejection | None:
     """The reason ``msg`` (decoded, valid under the contract) is not physical, or None."""
     try:
         check_ranges(msg, settings, key)  # ingest's ranges and reasons
         if msg["type"] == "cal_params":
             check_params(msg, settings, key)
+        elif msg["type"] == "route":
+            check_route(msg, key)
     except Rejection as r:
         return r
     return None
