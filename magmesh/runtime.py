@@ -311,7 +311,15 @@ class Runner:
     def publish(self, key: str, msg_type: str, vehicle: str, t_s: float, fields: dict) -> dict | None:
         if msg_type == "alarm":
             self.alarm_declared[key] = fields.get("state")
-        if self.mode != "active" and msg_type != "reject":
+        if self.mode == "active" and self.cut and msg_type != "reject":
+            # just took the role over: epochs before the cut were published by the previous holder
+            cut = self.cut.get(vehicle)
+            if cut is not None:
+                if t_s < cut:
+                    self.suppressed += 1
+                    return None
+                del self.cut[vehicle]
+        elif self.mode != "active" and msg_type != "reject":
             cut = self.cut.get(vehicle)
             if self.mode == "standby":
                 if cut is not None and t_s >= cut:
@@ -615,7 +623,7 @@ class Runner:
             held, self.held = self.held, []
             for item in held:
                 self.publish(*item)
-            self.cut = {}
+            # the cut stays until this instance's own outputs pass it (it may still lag behind the old holder)
             self.svc.log.info("took over the role: %d held outputs published", len(held))
         elif op == "release":  # old instance: the new one has taken over; publish nothing more
             self.mode = "retired"

@@ -39,10 +39,11 @@ class SwapError(RuntimeError):
 
 
 class Swapper:
-    def __init__(self, sup: Any, warmup_s: float = 3.0, lead_s: float = 0.5):
+    def __init__(self, sup: Any, warmup_s: float = 3.0, lead_s: float = 0.5, stall_s: float = 3.0):
         self.sup = sup
         self.warmup_s = warmup_s
         self.lead_s = lead_s
+        self.stall_s = stall_s
 
     def _control(self, role: str, instance: str, req: dict, timeout: float = 3.0) -> dict:
         payload = msgpack.packb(req, use_bin_type=True)
@@ -114,14 +115,26 @@ class Swapper:
             self._control(role, new_inst, {"op": "arm", "cut": cut})
             self._control(role, old_inst, {"op": "retire", "cut": cut})
             retired = True
-            # 5: wait for the old one to pass the cut everywhere (or for a vehicle's stream to stop)
+            # 5: wait for the old one to pass the cut on every vehicle; a vehicle whose input stopped advancing for
+            # stall_s counts as done (nothing more will come before the cut). A lagging old instance is waited for.
             hand = None
-            stalled_after = time.monotonic() + max(3.0, 4 * self.lead_s)
+            progress: dict[str, tuple[float, float]] = {}
+            hand_deadline = time.monotonic() + max(timeout_s, 30.0)
             while True:
                 if not new_child.alive:
                     raise SwapError(f"{new_inst} exited with code {new_child.proc.returncode} during the hand-over")
+                if time.monotonic() > hand_deadline:
+                    raise SwapError(f"{old_inst} did not reach the cut-over point in time")
                 hand = self._control(role, old_inst, {"op": "state"})
-                if hand.get("ready") or time.monotonic() > stalled_after:
+                if hand.get("ready"):
+                    break
+                now = time.monotonic()
+                waiting = [v for v in cut if v not in hand.get("passed_cut", [])]
+                for v in waiting:
+                    t = hand["last_in_t"].get(v)
+                    if v not in progress or progress[v][0] != t:
+                        progress[v] = (t, now)
+                if all(now - progress[v][1] >= self.stall_s for v in waiting):
                     break
                 time.sleep(0.05)
             res = self._control(role, new_inst, {"op": "takeover", "seqs": hand["seqs"], "alarms": hand["alarms"],

@@ -34,7 +34,8 @@ def test_swap_threshold_to_fcm_and_back_loses_nothing(tmp_path):
         dmc = Collector(client, keys.dmc("car-1"))
         alarms = Collector(client, keys.alarm("car-1", "dmc"))
         assert wait_alive(client, keys.svc_token("dmc_detector", "dmc-1"), 60)
-        assert dmc.wait_for(lambda k, m: m["t_s"] > 10, 60)
+        # swap while the detector holds alarm/dmc raised: the hand-over must neither repeat nor lose a transition
+        assert alarms.wait_for(lambda k, m: m["state"] == "raised", 120), "no alarm raised on the urban drive"
         r1 = swap(port, "dmc_detector", "fcm")
         assert r1.returncode == 0, r1.stdout + r1.stderr
         st = query_status(client, keys.svc_status("dmc_detector", "dmc-1-fcm"))
@@ -68,6 +69,7 @@ def test_swap_threshold_to_fcm_and_back_loses_nothing(tmp_path):
     assert order == ["threshold", "fcm", "threshold"], order
     states = [m["state"] for _, m in alarms.items]
     assert all(a != b for a, b in zip(states, states[1:], strict=False)), f"spurious raise/clear: {states}"
+    assert len(states) >= 2 and states[0] == "raised", states
     aseq = [m["seq"] for _, m in alarms.items]
     assert aseq == list(range(aseq[0], aseq[0] + len(aseq))) if aseq else True
     print(f"\nswap: {len(items)} dmc samples, seq {seqs[0]}..{seqs[-1]} contiguous, implementations {order}, "
