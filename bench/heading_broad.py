@@ -126,6 +126,8 @@ def broad_settings(**overrides) -> Settings:
         rejection_timeout_s=20.0,
         recovery_exit_rad=0.1,
         disturbed_noise_gain=30.0,
+        hard_iron_tracking=True,
+        hard_iron_noise_gain=2.0,
     )
     base.update(overrides)
     return Settings(**base)

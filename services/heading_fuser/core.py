@@ -112,6 +112,9 @@ class Settings:
     recovery_noise_gain: float = 10.0  # R_m multiplier while recovering
     disturbed_noise_gain: float = 0.0  # >0: in gyro_only without a DMC veto, fuse with R_m × this (weakly)
     disturbed_gate_rad: float = 0.35  # ... only innovations smaller than this
+    hard_iron_tracking: bool = False  # in gyro_only without a DMC veto: track a new body-fixed magnet
+    hard_iron_tau_s: float = 10.0  # its averaging time constant
+    hard_iron_noise_gain: float = 10.0  # R_m multiplier for the field with the tracked magnet removed
     recovery_exit_rad: float = 0.035  # back to magnetic once |innovation| stays below this for recovery_hold_s
     rejection_timeout_s: float = 5.0  # persistent gate rejections this long in magnetic → recovering
     # alarm
@@ -258,6 +261,8 @@ class HeadingFilter:
         self._window = _Window(s.quasi_static_window_s)
         self._history: deque = deque(maxlen=1024)  # (t_s, gyro-only q, gyro yaw) for late mag samples
         self._qg = (1.0, 0.0, 0.0, 0.0)  # attitude integrated from the gyro alone (never corrected)
+        self._hard_iron = np.zeros(3)  # tracked extra hard iron while the field is off its reference
+        self._hard_iron_t = 0.0
         self._gyro_yaw = 0.0  # integrated gyro heading (CCW yaw), for the §2 heading-change test
         self._last_accel_t = -1e9
         self._last_mag_t = -1e9
@@ -311,6 +316,8 @@ class HeadingFilter:
             self._gyro_only_since_t = self.t_s
         elif mode == "magnetic":
             self._gyro_only_since_t = None
+            self._hard_iron = np.zeros(3)
+            self._hard_iron_t = 0.0
         self.mode = mode
         self._mode_since_t = self.t_s
         self._consistent_since_t = None
@@ -543,9 +550,17 @@ class HeadingFilter:
                 self._clear_since_t = None
                 # with no DMC verdict against it, a field that is merely off its reference may still
                 # steer the heading very weakly (§2's adaptive noise taken to its limit)
-                weak = s.disturbed_noise_gain > 0.0 and fl.dmc_valid and abs(nu) < s.disturbed_gate_rad
+                gain_weak = s.disturbed_noise_gain
+                if s.hard_iron_tracking and fl.dmc_valid:
+                    # a magnet that moves with the sensor adds a constant body-frame field: track it
+                    # as the slow mean of (measured − expected) field and fuse what remains when that
+                    # is consistent with the reference (the vehicle's rotation separates the two)
+                    nu_c = self._hard_iron_innovation(m, R_m, dt_mag)
+                    if nu_c is not None:
+                        nu, gain_weak = nu_c, s.hard_iron_noise_gain
+                weak = gain_weak > 0.0 and fl.dmc_valid and abs(nu) < s.disturbed_gate_rad
                 if weak:
-                    r_weak = r * s.disturbed_noise_gain
+                    r_weak = r * gain_weak
                     S = float(Hr @ PHt[:3]) + r_weak
                     fused_weak = True
             else:
@@ -619,6 +634,25 @@ class HeadingFilter:
         A = _EYE6 - K @ H
         P = A @ self.P @ A.T + var_unit * (K @ K.T)
         self.P = 0.5 * (P + P.T)
+
+    def _hard_iron_innovation(self, m: np.ndarray, R_m: np.ndarray, dt: float) -> float | None:
+        """Heading innovation of the field with the tracked extra hard iron removed, or None while the
+        compensated field is not yet consistent with the reference."""
+        s = self.settings
+        D, dip = s.declination_rad, self.ref_dip_rad
+        b_ref = self.ref_field_nt * np.array([math.cos(dip) * math.sin(D), math.cos(dip) * math.cos(D), -math.sin(dip)])
+        a = min(1.0, dt / s.hard_iron_tau_s)
+        self._hard_iron = (1.0 - a) * self._hard_iron + a * (m - R_m.T @ b_ref)
+        self._hard_iron_t += dt
+        if self._hard_iron_t < s.hard_iron_tau_s:
+            return None
+        mn = R_m @ (m - self._hard_iron)
+        h = math.hypot(mn[0], mn[1])
+        strength = math.sqrt(h * h + mn[2] * mn[2])
+        if (abs(strength / self.ref_field_nt - 1.0) > s.sample_strength_tol_frac
+                or abs(math.atan2(-mn[2], h) - dip) > s.sample_dip_tol_rad):
+            return None
+        return math.remainder(math.atan2(mn[0], mn[1]) - D, 2 * math.pi)
 
     def _attitude_at(self, t: float) -> tuple:
         """(quaternion, integrated gyro yaw) at an earlier time t: the current estimate (with every
