@@ -14,9 +14,9 @@ import tomllib
 
 import numpy as np
 import pytest
-
 from meshutil import Collector, open_router, query_status, spawn, stop, wait_alive
 from meshutil import free_port as _free_port
+
 from schemas import keys, messages
 
 pytestmark = pytest.mark.mesh

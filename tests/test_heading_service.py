@@ -37,7 +37,7 @@ def drive_messages():
         if info.stream in ("imu", "mag"):
             msgs.append((t, keys.parse(keys.raw_to_clean(key)), validate(make(typ, "car-1", t, 0, **fields))))
     dmc_key = keys.parse(keys.dmc("car-1"))
-    for t, v in zip(d.t_mag_s, valid):
+    for t, v in zip(d.t_mag_s, valid, strict=True):
         msgs.append((float(t), dmc_key, validate(make(
             "dmc", "car-1", float(t), 0, dm_nt=[0.0, 0.0], ddm_nt_s=[0.0, 0.0], dh_rad=0.0, ddh_rad_s=0.0,
             heading_rad=0.0, stage1_pass=bool(v), credibility=1.0 if v else 0.0, valid=bool(v), impl="fcm",

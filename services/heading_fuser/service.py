@@ -27,7 +27,6 @@ from services.physical import refuse_unphysical
 
 from . import core
 
-
 MAX_PENDING = 2000
 
 
