@@ -42,7 +42,7 @@ from schemas.messages import SchemaError
 from . import __version__, zconf
 
 QUEUE_CAPACITY = 65536
-ALARM_HISTORY = 4  # alarm / cal-params samples each publisher keeps for late joiners and miss recovery
+ALARM_HISTORY = 64  # alarm / cal-params samples each publisher keeps for late joiners and miss recovery
 _HEADER_NAMES = frozenset(("type", "version", "vehicle", "t_s", "seq"))
 FIFO_CAPACITY = 4096
 STOP_GRACE_S = 1.5

@@ -56,6 +56,8 @@ class Manifest:
     status_period_s: float
     vehicles: dict
     processes: list[ProcessSpec]
+    connect: list[str] = field(default_factory=list)  # other routers (other hosts) to link to
+    zenoh_config: str | None = None  # a Zenoh JSON5 file for the router (TLS, access control, ...)
 
 
 def load_manifest(path: str | os.PathLike) -> Manifest:
@@ -77,8 +79,12 @@ def load_manifest(path: str | os.PathLike) -> Manifest:
             keys.check_id(spec.vehicle)
         names.add(spec.name)
         procs.append(spec)
+    zcfg = mesh.get("zenoh_config")
+    if zcfg and not Path(zcfg).is_absolute():
+        zcfg = str((p.parent / zcfg).resolve())
     return Manifest(p, mesh.get("endpoint", zconf.DEFAULT_ENDPOINT), list(mesh.get("restart_backoff_s", [0.2, 0.5, 1, 2, 5])),
-                    float(mesh.get("status_period_s", 1.0)), raw.get("vehicles", {}), procs)
+                    float(mesh.get("status_period_s", 1.0)), raw.get("vehicles", {}), procs,
+                    list(mesh.get("connect", [])), zcfg)
 
 
 def _setting_arg(k: str, v: Any) -> str:
@@ -187,7 +193,10 @@ class Supervisor:
     def open(self) -> None:
         import zenoh
 
-        conf = zconf.build_config(mode="router", listen=[self.endpoint])
+        if self.m.zenoh_config:
+            conf = zconf.build_config(config_file=self.m.zenoh_config)
+        else:
+            conf = zconf.build_config(mode="router", listen=[self.endpoint], connect=self.m.connect or None)
         self.session = zenoh.open(conf)
         self.token = self.session.liveliness().declare_token(keys.svc_token("supervisor", self.name))
         self.q_status = self.session.declare_queryable(keys.svc_status("supervisor", self.name),
