@@ -107,7 +107,7 @@ def broad_settings(**overrides) -> Settings:
     (measured with the optical attitude: dip 61–76° for 5–95 % of the fast trial), so the field
     checks are wider and the magnetometer trusted less than on a car."""
     base = dict(
-        gyro_noise_rad_s_rt_hz=0.003,
+        gyro_noise_rad_s_rt_hz=0.002,
         gyro_bias_walk_rad_s2_rt_hz=1e-4,
         gyro_bias_init_std_rad_s=0.005,
         init_duration_s=1.0,
