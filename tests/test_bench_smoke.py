@@ -8,7 +8,7 @@ pytestmark = pytest.mark.mesh
 
 
 def test_bench_mesh_smoke():
-    res = bench([2], duration_s=3.0, repeat=1, stages=("ingest", "dmc_detector"), limit_vehicles=2)
+    res = bench([2], duration_s=2.0, repeat=1, stages=("ingest", "dmc_detector"), limit_vehicles=2)
     row = res["scaling"][0]
     assert row["lost"] == 0, row
     assert row["outputs"] >= 0.99 * row["expected_outputs"] > 0
