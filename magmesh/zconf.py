@@ -56,6 +56,9 @@ def build_config(mode=None, connect=None, listen=None, config_file=None, cfg=Non
         # notice frozen peers within ~1 s instead of ~10 s
         conf.insert_json5("transport/link/tx/lease", "1000")
         conf.insert_json5("transport/link/tx/keep_alive", "4")
+        # back-pressure, not loss: Zenoh closes a link whose blocking publisher waited 5 s (its default);
+        # give an overloaded consumer 30 s to catch up (any loss after that shows as seq gaps in status)
+        conf.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close", "30000000")
     for item in cfg or []:
         k, _, v = item.partition(":")
         if not k or not v:
