@@ -106,7 +106,8 @@ class Sink:
 
 
 def _spawn(args: list[str], port: int, log: Path) -> subprocess.Popen:
-    env = dict(os.environ, PYTHONUNBUFFERED="1", MAGMESH_LOG_LEVEL="WARNING")
+    # the benchmark's vehicles must not leave calibration sets or alarm states in the user's state directory
+    env = dict(os.environ, PYTHONUNBUFFERED="1", MAGMESH_LOG_LEVEL="WARNING", MAGMESH_STATE_DIR=str(log.parent / "state"))
     return subprocess.Popen([sys.executable, *args, "--connect", f"tcp/127.0.0.1:{port}"], cwd=paths.REPO,
                             stdout=open(log, "ab"), stderr=subprocess.STDOUT, env=env, start_new_session=True)
 

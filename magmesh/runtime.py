@@ -425,7 +425,6 @@ class Runner:
                           reason=f"cleared after a restart of {self.svc.instance}: the condition is no longer seen")
             t = self.last_in_t.get(msg["vehicle"], msg["t_s"])
             self.publish(key, "alarm", msg["vehicle"], max(t, msg["t_s"]), fields)
-        return msg
 
     def reject(self, key: str, code: str, reason: str, field: str | None, payload_len: int,
                vehicle: str | None, t_s: float | None, input_type: str | None) -> None:
