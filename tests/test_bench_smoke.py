@@ -15,3 +15,12 @@ def test_bench_mesh_smoke():
     assert res["saturation"]["limit"]["sustained_samples_s"] > 0 and res["ratio_to_limit"] > 0
     assert set(row["cpu_pct"]) >= {"ingest", "dmc_detector", "fleet"}
     print("\n" + format_text(res))
+
+
+def test_bench_cores_smoke():
+    from bench import cores_bench
+
+    iv = cores_bench.ingest_validation(n=500, repeats=1)
+    assert iv["decode_validate_us"] > iv["msgpack_unpack_only_us"] > 0
+    cf = cores_bench.calibration_fit(repeats=1)
+    assert cf["arls_ms"] > 0 and cf["scipy_least_squares_ms"] > 0

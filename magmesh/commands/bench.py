@@ -20,7 +20,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--stages", default=None, help="comma-separated stages (default: all available)")
     m.add_argument("--json", action="store_true")
     m.set_defaults(func=run_mesh)
+    c = bsub.add_parser("cores", help="each pure core against its Python peer on the same input")
+    c.add_argument("--json", action="store_true")
+    c.set_defaults(func=run_cores)
     p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
+
+
+def run_cores(args: argparse.Namespace) -> int:
+    from bench.cores_bench import run_all
+
+    res = run_all(progress=lambda s: print(s, file=sys.stderr, flush=True))
+    print(json.dumps(res) if args.json else json.dumps(res, indent=2, default=str))
+    return 0
 
 
 def run_mesh(args: argparse.Namespace) -> int:
