@@ -358,7 +358,7 @@ class Runner:
     def republish(self, key: str, msg: dict) -> dict | None:
         """Publish the fields of an already validated input message on another key (no re-validation)."""
         fields = {k: v for k, v in msg.items() if k not in _HEADER_NAMES}
-        if self.mode != "active":
+        if self.mode != "active" or self.cut:  # hand-over in progress: the gated path
             return self.publish(key, msg["type"], msg["vehicle"], msg["t_s"], fields)
         return self._send(key, msg["type"], msg["vehicle"], msg["t_s"], fields, trusted=True)
 
