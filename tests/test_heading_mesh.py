@@ -54,8 +54,10 @@ def test_heading_switches_to_gyro_at_the_bridge_and_back(tmp_path):
                            log_path=tmp_path / "heading.log"))
         for role, inst in (("ingest", "ingest-h"), ("dmc_detector", "dmc-h"), ("heading_fuser", "heading-h")):
             assert wait_alive(router, keys.svc_token(role, inst)), (tmp_path / "heading.log").read_text()[-3000:]
+        # 5× real time: the fuser waits for late DMC verdicts up to dmc_timeout_s of sample time, which an
+        # as-fast-as-possible replay can exceed
         procs.append(spawn("sim_publishers.car", port, "--vehicle", "car-1", "--instance", "sim-h",
-                           "--set", "speed=0", "--set", f"duration_s={duration}", "--set", "layout=urban_a",
+                           "--set", "speed=5", "--set", f"duration_s={duration}", "--set", "layout=urban_a",
                            log_path=tmp_path / "sim.log"))
         deadline = time.monotonic() + 240.0
         while time.monotonic() < deadline:
