@@ -129,20 +129,15 @@ class GridMap:
         return spline(gi, gj, grid=False)
 
 
-_SPLINES: dict[int, object] = {}
-
-
 def _spline_cache(m: GridMap):
-    from scipy.interpolate import RectBivariateSpline
-
-    key = id(m.values_nt)
-    s = _SPLINES.get(key)
+    """The map's bicubic spline, built once and kept on the map itself (it lives and dies with the map)."""
+    s = m.__dict__.get("_spline")
     if s is None:
+        from scipy.interpolate import RectBivariateSpline
+
         nx, ny = m.shape
         s = RectBivariateSpline(np.arange(nx), np.arange(ny), m.values_nt, kx=3, ky=3, s=0)
-        if len(_SPLINES) > 16:
-            _SPLINES.clear()
-        _SPLINES[key] = s
+        object.__setattr__(m, "_spline", s)  # a cache, not a field: frozen dataclasses allow it this way
     return s
 
 

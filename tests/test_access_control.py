@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import os
 import subprocess
+import sys
 import threading
 import time
 
@@ -91,13 +92,13 @@ def secure_mesh(tmp_path_factory):
         ("root_ca_certificate", "ca.pem"), ("listen_certificate", "router.pem"), ("listen_private_key", "router.key"))]
     procs = []
     log = open(tmp / "router.log", "ab")
-    args = ["python", "-m", "magmesh", "router", "--config", str(SECURE / "router.json5"),
+    args = [sys.executable, "-m", "magmesh", "router", "--config", str(SECURE / "router.json5"),
             "--listen", f"tls/127.0.0.1:{port}", "--name", "secure"]
     for c in router_cfg:
         args += ["--cfg", c]
     procs.append(subprocess.Popen(args, cwd=REPO, stdout=log, stderr=subprocess.STDOUT, start_new_session=True))
     # the service runs from the deploy file; only the test's certificate paths and port differ
-    ingest_args = ["python", "-m", "services.ingest", "--config", str(SECURE / "client-service.json5"),
+    ingest_args = [sys.executable, "-m", "services.ingest", "--config", str(SECURE / "client-service.json5"),
                    "--connect", f"tls/localhost:{port}", "--instance", "ingest-s"]
     for c in tls_cfg(pki, "service"):
         ingest_args += ["--cfg", c]

@@ -220,3 +220,25 @@ def test_demean_survives_an_unknown_constant_bias(grid):
         hits_plain += bool(plain.found and np.hypot(*(plain.start_ij - true0)) < 1.0)
         hits_demean += bool(np.hypot(*(dem.start_ij - true0)) < 1.0)
     assert hits_demean == 5 and hits_plain <= 2
+
+
+def test_spline_cache_belongs_to_its_map_after_other_maps_are_freed():
+    """The bicubic surface of a map is its own, even after maps freed earlier leave their ids to be reused."""
+    import gc
+
+    import numpy as np
+
+    from magmesh.geomap import GridMap
+
+    rng = np.random.default_rng(11)
+    for _ in range(20):
+        m = GridMap(rng.normal(0, 50, (30, 30)))
+        m.cubic(3.0, 4.0)
+        del m
+        gc.collect()
+    for k in range(5):
+        vals = rng.normal(0, 50, (30, 30))
+        m = GridMap(vals)
+        assert float(m.cubic(3.0, 4.0)) == pytest.approx(vals[3, 4], abs=1e-9), k
+        del m
+        gc.collect()

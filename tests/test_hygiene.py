@@ -1,0 +1,48 @@
+"""Repository hygiene that a clean machine depends on.
+
+A clean machine has only what the project installs: every subprocess that a test or command starts must use the
+project's interpreter (``sys.executable``), never whatever ``python`` happens to be on PATH.
+"""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+SKIP = {".venv", ".git", ".magmesh", "node_modules", "__pycache__"}
+# argv[0] given as a bare interpreter name: "python", 'python3', "python3.11", ...
+BARE = re.compile(r"""[\[(,]\s*["']python(?:3(?:\.\d+)?)?["']""")
+SHELL_BARE = re.compile(r"^\s*(?:exec\s+)?python3?\s", re.M)
+
+
+def _files(*suffixes: str):
+    for p in REPO.rglob("*"):
+        if p.suffix in suffixes and not (SKIP & set(p.relative_to(REPO).parts)) and p.is_file():
+            yield p
+
+
+def test_no_subprocess_uses_a_bare_python():
+    found = []
+    for p in _files(".py"):
+        for n, line in enumerate(p.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
+            if BARE.search(line) and "test_hygiene" not in p.name:
+                found.append(f"{p.relative_to(REPO)}:{n}: {line.strip()}")
+    assert not found, "use sys.executable, not a bare python:\n" + "\n".join(found)
+
+
+def test_no_shell_script_runs_a_bare_python():
+    found = []
+    for p in _files(".sh", ""):
+        if p.suffix == "" and not p.read_bytes().startswith(b"#!"):
+            continue
+        text = p.read_text(encoding="utf-8", errors="replace")
+        for m in SHELL_BARE.finditer(text):
+            found.append(f"{p.relative_to(REPO)}: {m.group(0).strip()}")
+    assert not found, "scripts must run the project's interpreter:\n" + "\n".join(found)
+
+
+def test_the_guard_sees_a_bare_python():
+    assert BARE.search('args = ["python", "-m", "magmesh"]')
+    assert BARE.search("Popen(('python3', '-c', 'x'))")
+    assert not BARE.search("args = [sys.executable, '-m', 'magmesh']")
+    assert SHELL_BARE.search("exec python -m x\n")
