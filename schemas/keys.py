@@ -18,9 +18,9 @@ ROOT = "magmesh"
 SVC = "svc"
 
 # vehicle ids and sensor/source names: one key chunk, no wildcards or Zenoh specials
-_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$")
+_ID_RE = re.compile(r"\A[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}\Z")  # \Z: "$" would let a trailing newline in
 # patterns additionally allow Zenoh wildcards inside one chunk
-_PATTERN_RE = re.compile(r"^(\*|\*\*|[A-Za-z0-9_.\-$*]{1,64})$")
+_PATTERN_RE = re.compile(r"\A(\*|\*\*|[A-Za-z0-9_.\-$*]{1,64})\Z")
 
 #: per-vehicle stream kinds and how many further chunks they take
 KINDS = {
@@ -39,6 +39,15 @@ KINDS = {
 #: sub-streams of raw/ and clean/
 RAW_STREAMS = ("mag", "imu", "gnss", "ins", "route", "attitude")
 
+#: chunks that can never be a vehicle id: ``svc`` starts the service keys, ``magmesh`` is the root
+RESERVED_VEHICLES = frozenset((SVC, ROOT))
+
+#: the longest key the contract allows (ROOT + vehicle + kind + two chunks of at most 64 characters each)
+MAX_KEY_LEN = 400
+
+#: the bucket under which counters file keys that do not parse (so made-up keys cannot grow a table)
+BAD_KEY = "<bad key>"
+
 
 class KeyError_(ValueError):
     """A key or key part that does not follow the magmesh key grammar."""
@@ -53,6 +62,15 @@ def check_id(value: str, what: str = "vehicle id") -> str:
     return value
 
 
+def check_vehicle(value: str) -> str:
+    """A vehicle id: :func:`check_id`, and not one of :data:`RESERVED_VEHICLES`."""
+    check_id(value, "vehicle id")
+    if value in RESERVED_VEHICLES:
+        raise KeyError_(f"vehicle id {value!r} is reserved ({', '.join(sorted(RESERVED_VEHICLES))} cannot name a "
+                        "vehicle)")
+    return value
+
+
 def check_pattern(value: str, what: str = "vehicle pattern") -> str:
     if not isinstance(value, str) or not _PATTERN_RE.match(value):
         raise KeyError_(f"{what} {value!r} is not a single key chunk or chunk pattern")
@@ -61,8 +79,8 @@ def check_pattern(value: str, what: str = "vehicle pattern") -> str:
 
 def _v(vehicle: str) -> str:
     """Accept an id or a pattern (for subscriptions)."""
-    if _ID_RE.match(vehicle or ""):
-        return vehicle
+    if isinstance(vehicle, str) and _ID_RE.match(vehicle):
+        return check_vehicle(vehicle)
     return check_pattern(vehicle)
 
 
@@ -252,17 +270,21 @@ def parse(key: str) -> KeyInfo:
 
 @lru_cache(maxsize=65536)
 def _parse(key: str) -> KeyInfo:
+    if len(key) > MAX_KEY_LEN:
+        raise KeyError_(f"key {_short(key)} is {len(key)} characters long (max {MAX_KEY_LEN})")
     parts = key.split("/")
     if len(parts) < 3 or parts[0] != ROOT:
-        raise KeyError_(f"key {key!r} does not start with '{ROOT}/<vehicle>/<kind>'")
+        raise KeyError_(f"key {_short(key)} does not start with '{ROOT}/<vehicle>/<kind>'")
     if parts[1] == SVC:
         if len(parts) not in (4, 5) or (len(parts) == 5 and parts[4] not in ("status", "control")):
-            raise KeyError_(f"service key {key!r} must be {ROOT}/svc/<role>/<instance>[/status|/control]")
+            raise KeyError_(f"service key {_short(key)} must be {ROOT}/svc/<role>/<instance>[/status|/control]")
+        check_id(parts[2], "role")
+        check_id(parts[3], "instance")
         return KeyInfo(key, "", "svc", tuple(parts[2:]))
     vehicle, kind, rest = parts[1], parts[2], tuple(parts[3:])
-    check_id(vehicle)
+    check_vehicle(vehicle)
     if kind not in KINDS:
-        raise KeyError_(f"key {key!r}: unknown kind {kind!r} (expected one of {', '.join(KINDS)})")
+        raise KeyError_(f"key {_short(key)}: unknown kind {kind!r} (expected one of {', '.join(KINDS)})")
     n = KINDS[kind]
     if n is not None and len(rest) != n:
         raise KeyError_(f"key {key!r}: kind {kind!r} takes {n} further part(s), got {len(rest)}")
@@ -278,3 +300,36 @@ def _parse(key: str) -> KeyInfo:
     for r in rest:
         check_id(r, "key part")
     return KeyInfo(key, vehicle, kind, rest)
+
+
+def _short(key: str) -> str:
+    return repr(key if len(key) <= 120 else key[:117] + "...")
+
+
+def parse_data(key: str) -> KeyInfo:
+    """Parse a key a service received as data: a per-vehicle key of the contract, never a service key.
+
+    A subscription such as ``magmesh/*/raw/**`` also matches ``magmesh/svc/raw/imu``; that key parses as a
+    service key, which is not data. Raise :class:`KeyError_` for it and for anything :func:`parse` refuses.
+    """
+    info = parse(key)
+    if info.kind == SVC:
+        raise KeyError_(f"key {_short(key)} is under {ROOT}/{SVC}/ (service keys), not a vehicle's data key: "
+                        f"'{SVC}' is reserved and cannot name a vehicle")
+    return info
+
+
+#: which message type a per-vehicle key carries, by kind (raw/clean/cal: by stream)
+_STREAM_TYPES = {"mag": "mag", "imu": "imu", "gnss": "gnss", "ins": "ins", "route": "route", "attitude": "attitude"}
+_KIND_TYPES = {"rejects": "reject", "dmc": "dmc", "heading": "heading", "fix": "geomag_fix", "track": "track",
+               "alarm": "alarm", "truth": "truth"}
+
+
+def message_type(key: str) -> str:
+    """The message type name a data key carries; :class:`KeyError_` for anything else (never another error)."""
+    info = parse_data(key)
+    if info.kind in ("raw", "clean"):
+        return _STREAM_TYPES[info.rest[0]]
+    if info.kind == "cal":
+        return "mag" if info.rest[0] == "mag" else "cal_params"
+    return _KIND_TYPES[info.kind]

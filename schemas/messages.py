@@ -524,21 +524,8 @@ def make(msg_type: str, vehicle: str, t_s: float, seq: int, **fields: Any) -> di
     return {"type": msg_type, "version": mt.version, "vehicle": vehicle, "t_s": float(t_s), "seq": int(seq), **fields}
 
 
-#: which message type a key carries (by kind/stream)
+#: which message type a key carries (by kind/stream); the mapping lives with the key grammar
 @lru_cache(maxsize=65536)
 def type_for_key(key: str) -> str:
-    info = _keys.parse(key)
-    if info.kind in ("raw", "clean"):
-        return {"mag": "mag", "imu": "imu", "gnss": "gnss", "ins": "ins", "route": "route",
-                "attitude": "attitude"}[info.rest[0]]
-    if info.kind == "cal":
-        return "mag" if info.rest[0] == "mag" else "cal_params"
-    return {
-        "rejects": "reject",
-        "dmc": "dmc",
-        "heading": "heading",
-        "fix": "geomag_fix",
-        "track": "track",
-        "alarm": "alarm",
-        "truth": "truth",
-    }[info.kind]
+    """Message type of a data key; raises only :class:`schemas.keys.KeyError_` (service keys included)."""
+    return _keys.message_type(key)
