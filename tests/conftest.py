@@ -6,6 +6,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import os
 import tempfile
 
-# every test run gets its own state directory (persisted calibration, alarm states, ...), shared with the
-# processes the tests start
+import pytest
+
+# a fallback for code that runs at import time (collection); every test gets its own directory below
 os.environ.setdefault("MAGMESH_STATE_DIR", tempfile.mkdtemp(prefix="magmesh-test-state-"))
+
+
+@pytest.fixture(autouse=True)
+def _own_state_dir(tmp_path_factory, monkeypatch):
+    """Each test gets its own MAGMESH_STATE_DIR (persisted calibration, alarm states, swap records, ...).
+
+    It is set in os.environ, so every process the test starts (services, the supervisor and its children)
+    inherits it: no state is carried from one test, or from another run beside this one, to the next.
+    """
+    d = tmp_path_factory.mktemp("state")
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(d))
+    return d

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import fcntl
 import os
 import queue
+import random
 import signal
 import socket
 import subprocess
@@ -18,10 +20,51 @@ import msgpack
 REPO = Path(__file__).resolve().parent.parent
 
 
-def free_port() -> int:
+# Ports are drawn below the kernel's ephemeral range (so no outgoing connection takes one between the check and
+# the bind) and reserved across processes with a lock file held open for the life of this process: test runs
+# started side by side never get the same port, and a crashed run's reservations vanish with it.
+_PORT_RANGE = (20000, 32000)
+_PORT_LOCK_DIR = Path(os.environ.get("MAGMESH_TEST_PORT_DIR", "/tmp/magmesh-test-ports"))
+_held: dict[int, Any] = {}
+_port_rng = random.Random(os.getpid() ^ time.monotonic_ns())
+
+
+def _reserve(port: int) -> bool:
+    _PORT_LOCK_DIR.mkdir(parents=True, exist_ok=True)
+    f = open(_PORT_LOCK_DIR / str(port), "a")
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        f.close()
+        return False
+    _held[port] = f
+    return True
+
+
+def _bindable(port: int) -> bool:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def free_port() -> int:
+    """A loopback TCP/UDP port that no other test of any concurrent run holds; the one port helper of the tests."""
+    for _ in range(2000):
+        port = _port_rng.randrange(*_PORT_RANGE)
+        if port in _held or not _reserve(port):
+            continue
+        if _bindable(port):
+            return port
+        _held.pop(port).close()
+    raise RuntimeError(f"no free port in {_PORT_RANGE} after 2000 tries")
 
 
 def endpoint(port: int) -> str:

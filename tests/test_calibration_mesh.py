@@ -8,7 +8,6 @@ parameters by query, and that a restarted service answers at once from its saved
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
 import threading
@@ -18,17 +17,12 @@ from pathlib import Path
 import msgpack
 import numpy as np
 import pytest
+from meshutil import free_port, wait_alive
 
 from schemas import keys, messages
 
 REPO = Path(__file__).resolve().parent.parent
 pytestmark = pytest.mark.mesh
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _spawn(module: str, endpoint: str, env_extra: dict, *args: str) -> subprocess.Popen:
@@ -62,7 +56,7 @@ def test_car_parameters_converge_are_queryable_and_survive_a_restart(tmp_path):
 
     vehicle = "car-t"
     truth = car.true_mag_params(car.CarSimSettings(vehicle_seed=7), 50_000.0)
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = zenoh.open(build_config(mode="router", listen=[endpoint]))
     env = {"MAGMESH_STATE_DIR": str(tmp_path), "OPENBLAS_NUM_THREADS": "1"}
     params: list[dict] = []
@@ -84,7 +78,8 @@ def test_car_parameters_converge_are_queryable_and_survive_a_restart(tmp_path):
     procs = [_spawn("services.ingest", endpoint, env, "--instance", "ingest-t"),
              _spawn("services.calibration", endpoint, env, *cal_args)]
     try:
-        time.sleep(2.5)  # services subscribed before the source starts
+        for role, inst in (("ingest", "ingest-t"), ("calibration", "cal-t")):  # services subscribed before the source starts
+            assert wait_alive(router, keys.svc_token(role, inst), timeout=60.0), f"{role}/{inst} never came up"
         procs.append(_spawn("sim_publishers.car", endpoint, env, "--vehicle", vehicle, "--instance", "sim-t",
                             "--set", "speed=8", "--set", "duration_s=150", "--set", "truth=false"))
         deadline = time.monotonic() + 60.0
@@ -104,10 +99,14 @@ def test_car_parameters_converge_are_queryable_and_survive_a_restart(tmp_path):
             err = np.linalg.norm(np.array(m["offset_nt"][:2]) - truth[sid].offset_nt[:2])
             assert err < 1500, (sid, m["offset_nt"], truth[sid].offset_nt)  # 3% of the field or better
         # cal/mag: calibrated, tagged with a published parameter set
-        time.sleep(1.0)
-        with lock:
-            tagged = [m for m in calmag if m.get("param_id") in {p["param_id"] for p in params}]
-        assert tagged and all(m["calibrated"] for m in tagged)
+        tagged: list[dict] = []
+        deadline = time.monotonic() + 30.0
+        while not tagged and time.monotonic() < deadline:
+            time.sleep(0.2)
+            with lock:
+                tagged = [m for m in calmag if m.get("param_id") in {p["param_id"] for p in params}]
+        assert tagged, "no cal/mag sample tagged with a published parameter set"
+        assert all(m["calibrated"] for m in tagged)
         _stop(procs[2])  # source stopped: the sets in use stay put from here on
         time.sleep(1.0)
         # a late joiner: the query answers with the current set of each sensor
@@ -121,11 +120,15 @@ def test_car_parameters_converge_are_queryable_and_survive_a_restart(tmp_path):
         _stop(procs[1])
         assert list(tmp_path.glob("calibration/*.json")), "no parameter set saved"
         procs[1] = _spawn("services.calibration", endpoint, env, *cal_args)
-        time.sleep(3.0)
+        assert wait_alive(router, keys.svc_token("calibration", "cal-t"), timeout=60.0), "restart never came up"
+        got: dict[str, str] = {}
+        deadline = time.monotonic() + 30.0
         with zenoh.open(build_config(mode="client", connect=[endpoint])) as late:
-            replies = [messages.decode(bytes(b)) for b in _query(late, keys.cal_params(vehicle, "*"))]
-        got = {r["sensor"]: r["param_id"] for r in replies}
-        assert got and all(got[s] == saved_before_restart[s] for s in got), (got, saved_before_restart)
+            while set(got) != {"1", "2"} and time.monotonic() < deadline:
+                replies = [messages.decode(bytes(b)) for b in _query(late, keys.cal_params(vehicle, "*"))]
+                got = {r["sensor"]: r["param_id"] for r in replies}
+                time.sleep(0.2)
+        assert got == saved_before_restart, (got, saved_before_restart)
     finally:
         for p in procs:
             _stop(p)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -15,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from meshutil import free_port, wait_alive
 
 from magmesh import recording as rc
 from schemas import keys, messages
@@ -22,12 +22,6 @@ from schemas import keys, messages
 REPO = Path(__file__).resolve().parent.parent
 MANIFEST = REPO / "deploy" / "mesh.toml"
 pytestmark = pytest.mark.mesh
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _spawn(module: str, endpoint: str, *args: str) -> subprocess.Popen:
@@ -84,6 +78,11 @@ def _manifest_settings(process: str) -> list[str]:
     return [a for k, v in procs[process].get("settings", {}).items() for a in ("--set", f"{k}={v}")]
 
 
+def _wait_services(router, *role_instance: tuple[str, str]) -> None:
+    for role, inst in role_instance:  # liveliness is declared after the service's subscriptions
+        assert wait_alive(router, keys.svc_token(role, inst), timeout=60.0), f"{role}/{inst} never came up"
+
+
 def _wait_for(cond, timeout_s: float, procs=()) -> bool:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -113,7 +112,7 @@ def test_record_replay_through_a_swapped_detector_and_report(tmp_path):
     from magmesh.commands.report import make_report
     from magmesh.zconf import build_config
 
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = zenoh.open(build_config(mode="router", listen=[endpoint]))
     drive, rerun = tmp_path / "drive.mcap", tmp_path / "rerun.mcap"
     manifest = ["--manifest", str(MANIFEST)]
@@ -121,7 +120,7 @@ def test_record_replay_through_a_swapped_detector_and_report(tmp_path):
              _spawn("services.dmc_detector", endpoint, "--impl", "threshold", "--instance", "dmc-threshold",
                     *manifest)]
     try:
-        time.sleep(2.0)
+        _wait_services(router, ("ingest", "ingest-t"), ("dmc_detector", "dmc-threshold"))
         rec = _Recorder(endpoint, drive)
         sim = _spawn("sim_publishers.car", endpoint, "--vehicle", "car-1", "--instance", "sim-t",
                      "--set", "speed=8", "--set", "duration_s=30", *manifest)
@@ -146,7 +145,7 @@ def test_record_replay_through_a_swapped_detector_and_report(tmp_path):
         _stop([old])
         procs.append(_spawn("services.dmc_detector", endpoint, "--impl", "single", "--instance", "dmc-single",
                             *manifest))
-        time.sleep(2.0)
+        _wait_services(router, ("dmc_detector", "dmc-single"))
         rec2 = _Recorder(endpoint, rerun, [keys.dmc("car-1"), keys.alarms_all("car-1")])
         stats = replay_to_mesh(build_config(connect=[endpoint]), drive, rate=0.0,
                                key_exprs=[keys.clean_all("car-1")], wait_subscribers_s=5.0)
@@ -177,7 +176,7 @@ def test_broad_trial_through_the_mesh_gives_heading_and_alarms(tmp_path):
     from magmesh.report.data import group, heading_error
     from magmesh.zconf import build_config
 
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = zenoh.open(build_config(mode="router", listen=[endpoint]))
     path = tmp_path / "broad.mcap"
     manifest = ["--manifest", str(MANIFEST)]
@@ -186,7 +185,7 @@ def test_broad_trial_through_the_mesh_gives_heading_and_alarms(tmp_path):
                     *_manifest_settings("dmc-broad-1")),
              _spawn("services.heading_fuser", endpoint, "--instance", "heading-b", *manifest)]
     try:
-        time.sleep(2.0)
+        _wait_services(router, ("ingest", "ingest-b"), ("dmc_detector", "dmc-qs"), ("heading_fuser", "heading-b"))
         rec = _Recorder(endpoint, path)
         # the 1 cm magnet trial from 20 s to 60 s (the magnet is attached at about 38 s), 8× real time
         sim = _spawn("sim_publishers.replay", endpoint, "--vehicle", "broad-1", "--instance", "replay-b",
@@ -261,7 +260,7 @@ def test_record_command_stops_on_sigint_and_prints_its_counts(tmp_path):
     zenoh = pytest.importorskip("zenoh")
     from magmesh.zconf import build_config
 
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     out = tmp_path / "cli.mcap"
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     proc = subprocess.Popen([sys.executable, "-m", "magmesh", "record", "magmesh/t-1/**", "-o", str(out),
@@ -291,7 +290,7 @@ def test_overlapping_key_expressions_keep_each_sample_once(tmp_path):
     from magmesh.commands.record import record
     from magmesh.zconf import build_config
 
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = zenoh.open(build_config(mode="router", listen=[endpoint]))
     stop, ready, out = threading.Event(), threading.Event(), tmp_path / "o.mcap"
     res = {}

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
 import threading
@@ -12,17 +11,12 @@ from pathlib import Path
 
 import msgpack
 import pytest
+from meshutil import free_port as _free_port
 
 from schemas import keys, messages
 
 REPO = Path(__file__).resolve().parent.parent
 pytestmark = pytest.mark.mesh
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _spawn(endpoint: str, *args: str) -> subprocess.Popen:

@@ -7,7 +7,6 @@ the track stream must carry the cross-track deviation and detector states.
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
 import threading
@@ -15,17 +14,12 @@ import time
 from pathlib import Path
 
 import pytest
+from meshutil import free_port, wait_alive
 
 from schemas import keys, messages
 
 REPO = Path(__file__).resolve().parent.parent
 pytestmark = pytest.mark.mesh
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _spawn(module: str, endpoint: str, env_extra: dict, *args: str) -> subprocess.Popen:
@@ -50,7 +44,7 @@ def test_slow_ramp_raises_mag_anomaly_within_the_goal(tmp_path):
 
     vehicle = "drone-t"
     onset = 60.0
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = zenoh.open(build_config(mode="router", listen=[endpoint]))
     env = {"MAGMESH_STATE_DIR": str(tmp_path), "OPENBLAS_NUM_THREADS": "1"}
     alarms: list[dict] = []
@@ -70,7 +64,8 @@ def test_slow_ramp_raises_mag_anomaly_within_the_goal(tmp_path):
     procs = [_spawn("services.ingest", endpoint, env, "--instance", "ingest-t"),
              _spawn("services.track_monitor", endpoint, env, "--instance", "track-t")]
     try:
-        time.sleep(2.5)  # services subscribed before the source starts
+        for role, inst in (("ingest", "ingest-t"), ("track_monitor", "track-t")):  # services subscribed before the source starts
+            assert wait_alive(router, keys.svc_token(role, inst), timeout=60.0), f"{role}/{inst} never came up"
         procs.append(_spawn("sim_publishers.multirotor", endpoint, env, "--vehicle", vehicle, "--instance", "sim-t",
                             "--set", "speed=8", "--set", "duration_s=75", "--set", "truth=false",
                             "--set", "disturbance=slow_ramp", "--set", f"onset_s={onset}"))
