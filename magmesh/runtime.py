@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import heapq
 import json
 import logging
 import os
@@ -44,8 +45,37 @@ from . import __version__, zconf
 QUEUE_CAPACITY = 65536
 ALARM_HISTORY = 64  # alarm / cal-params samples each publisher keeps for late joiners and miss recovery
 _HEADER_NAMES = frozenset(("type", "version", "vehicle", "t_s", "seq"))
+#: the contract's field names per message type (anything else in an input is an unknown extra field)
+_KNOWN_FIELDS = {name: _HEADER_NAMES | {f.name for f in mt.fields} for name, mt in messages.MESSAGES.items()}
 FIFO_CAPACITY = 4096
 STOP_GRACE_S = 1.5
+
+# ---- the input path's bounds (see Runner.handle_sample) ---------------------------------------
+#: largest payload accepted per message type, checked before decoding (a contract-legal message is far smaller)
+MAX_PAYLOAD_BYTES = {"truth": 1 << 20, "cal_params": 64 << 10, "reject": 64 << 10, "alarm": 64 << 10}
+MAX_PAYLOAD_DEFAULT = 32 << 10
+#: unknown extra fields (forward compatibility) are kept up to this many encoded bytes in all, else all dropped
+MAX_EXTRA_BYTES = 1024
+#: a seq jump beyond this is a re-base of the publisher's counter (counted once), not that many lost samples
+SEQ_JUMP_MAX = 10_000
+#: per-vehicle and per-key state is freed after this long without input (services may set ``evict_idle_s``)
+EVICT_IDLE_S = 600.0
+#: status replies list at most this many keys per table (the largest), plus totals over all keys
+STATUS_TOP_KEYS = 50
+#: the same kind of log line at most once per this many seconds (the rest are counted in the next one)
+LOG_EVERY_S = 10.0
+#: drop reasons that are loss: what could not be delivered or recovered. ``rejected:*`` are refusals; every
+#: other reason is a skip by design (e.g. a stream not used, an alarm state unchanged)
+LOST_REASONS = frozenset(("upstream_gap", "handler_error", "queue_overflow", "invalid_output"))
+
+
+def drop_category(reason: str) -> str:
+    """``lost`` | ``rejected`` | ``skipped`` for a drop reason (see :data:`LOST_REASONS`)."""
+    if reason in LOST_REASONS:
+        return "lost"
+    if reason.startswith("rejected:"):
+        return "rejected"
+    return "skipped"
 
 
 class Service:
@@ -238,6 +268,22 @@ def _plain(v: Any) -> Any:
 # ---- the runner -------------------------------------------------------------------------------
 
 
+def _n(c: Any) -> int:
+    return c.n
+
+
+def _sum(d: dict) -> int:
+    return sum(d.values())
+
+
+def _top(d: dict, weight: Callable[[Any], int], n: int = STATUS_TOP_KEYS) -> list:
+    """The ``n`` largest entries of a per-key table (status replies stay bounded however many keys there are)."""
+    items = list(d.items())
+    if len(items) <= n:
+        return items
+    return heapq.nlargest(n, items, key=lambda kv: weight(kv[1]))
+
+
 class _Counter:
     __slots__ = ("n", "n_prev", "rate")
 
@@ -285,6 +331,19 @@ class Runner:
         self.reconcile_at: float | None = None
         self.first_in_t: dict[str, float] = {}
         self.last_in_t: dict[str, float] = {}
+        # input-path bookkeeping: what the sample being handled did, when keys and vehicles were last heard
+        self._cur_key: str | None = None
+        self._cur_rejected = False
+        self.key_seen: dict[str, float] = {}
+        self.vehicle_seen: dict[str, float] = {}
+        self._out_idle: dict[str, tuple[int, float]] = {}
+        self.evicted: dict[str, int] = defaultdict(int)  # what eviction freed: vehicles, keys
+        self.evicted_drops: dict[str, int] = defaultdict(int)  # drop counts of evicted keys, by reason
+        self.evicted_in = 0
+        self.evicted_out = 0
+        self.rebases: dict[str, int] = defaultdict(int)  # seq / clock re-bases, each counted once
+        self._next_evict = time.monotonic() + 1.0
+        self._log_last: dict[str, tuple[float, int]] = {}
         service._rt = self
 
     # ---- output ---------------------------------------------------------------------------
@@ -429,19 +488,27 @@ class Runner:
     def reject(self, key: str, code: str, reason: str, field: str | None, payload_len: int,
                vehicle: str | None, t_s: float | None, input_type: str | None) -> None:
         self.rejects_total += 1
-        self.drops[key][f"rejected:{code}"] += 1
+        if key == self._cur_key:
+            self._cur_rejected = True  # the sample being handled was refused: it moves no stream's seq or clock
+        parsed = True
+        try:
+            info = keys.parse_data(key)
+        except keys.KeyError_:
+            parsed = False
+        # a key outside the contract is counted in one bucket: made-up keys cannot grow the table
+        self.drops[key if parsed else keys.BAD_KEY][f"rejected:{code}"] += 1
         if vehicle is None:
-            try:
-                vehicle = keys.parse(key).vehicle
-            except keys.KeyError_:
+            if parsed:
+                vehicle = info.vehicle
+            else:
                 # a malformed key may still name a valid vehicle: report it there
                 parts = key.split("/") if isinstance(key, str) else []
                 try:
-                    vehicle = keys.check_id(parts[1]) if len(parts) > 1 and parts[0] == keys.ROOT else None
+                    vehicle = keys.check_vehicle(parts[1]) if len(parts) > 1 and parts[0] == keys.ROOT else None
                 except keys.KeyError_:
                     vehicle = None
         if not vehicle:
-            self.svc.log.warning("rejected input on %s (%s): %s", key[:200], code, reason)
+            self.log_limited("reject-unroutable", "rejected input on %s (%s): %s", str(key)[:200], code, reason)
             return
         try:
             self.publish(keys.rejects(vehicle), "reject", vehicle, t_s if t_s is not None else time.time(),
@@ -453,12 +520,28 @@ class Runner:
     def count_drop(self, key: str, reason: str, n: int = 1) -> None:
         self.drops[key][reason] += n
 
+    def count_rebase(self, what: str) -> None:
+        """A stream's seq or clock was re-based (one event, however large the jump)."""
+        self.rebases[what] += 1
+
+    def log_limited(self, what: str, fmt: str, *args: Any) -> None:
+        """Log a warning of kind ``what`` at most once per :data:`LOG_EVERY_S`; the rest are counted."""
+        now = time.monotonic()
+        last, n = self._log_last.get(what, (float("-inf"), 0))
+        if now - last >= LOG_EVERY_S:
+            more = f" (+{n} more like it in the last {LOG_EVERY_S:g} s)" if n else ""
+            self.svc.log.warning(fmt + more, *args)
+            self._log_last[what] = (now, 0)
+        else:
+            self._log_last[what] = (last, n + 1)
+
     def state_for(self, vehicle: str) -> Any:
         st = self.vehicle_state.get(vehicle, _MISSING)
         if st is _MISSING:
             st = self.svc.new_vehicle(vehicle)
             self.vehicle_state[vehicle] = st
-            self.svc.log.info("new vehicle %s", vehicle)
+            if len(self.vehicle_state) <= 100 or len(self.vehicle_state) % 1000 == 0:
+                self.svc.log.info("new vehicle %s (%d served)", vehicle, len(self.vehicle_state))
         return st
 
     # ---- input ----------------------------------------------------------------------------
@@ -491,48 +574,191 @@ class Runner:
         self.threads.append(t)
 
     def handle_sample(self, key: str, payload: bytes) -> None:
-        svc = self.svc
-        self.count_in[key].n += 1
+        """One received sample, end to end; nothing an input causes reaches the service's loop.
+
+        A batch path calls this once per sample (or :meth:`check_input` then :meth:`dispatch`).
+        """
+        self._cur_key, self._cur_rejected = key, False
         try:
-            info = keys.parse(key)
+            got = self.check_input(key, payload)
+            if got is not None:
+                self.dispatch(*got)
+        except Exception as e:  # noqa: BLE001 - a failure met on an input is counted as lost, never fatal
+            self._handler_failed(key, e)
+        finally:
+            self._cur_key = None
+
+    def _handler_failed(self, key: str, e: Exception) -> None:
+        self.last_error = f"{type(e).__name__}: {e}"[:500]
+        self.log_limited("handler-error", "handling a sample on %s failed: %s\n%s", str(key)[:200], e,
+                         traceback.format_exc(limit=4))
+        try:
+            k = keys.parse_data(key).key
+        except Exception:  # noqa: BLE001
+            k = keys.BAD_KEY
+        self.count_drop(k, "handler_error")
+
+    @property
+    def seq_jump_max(self) -> int:
+        return int(getattr(self.svc.settings, "seq_jump_max", SEQ_JUMP_MAX) or SEQ_JUMP_MAX)
+
+    @property
+    def evict_idle_s(self) -> float:
+        return float(getattr(self.svc.settings, "evict_idle_s", EVICT_IDLE_S) or EVICT_IDLE_S)
+
+    def check_input(self, key: str, payload: bytes) -> tuple[KeyInfo, Any] | None:
+        """Key, size, decoding and header checks of one input; a refusal is reported and gives None."""
+        try:
+            info = keys.parse_data(key)
+            mtype = keys.message_type(key)
         except keys.KeyError_ as e:
+            self.count_in[keys.BAD_KEY].n += 1
             self.reject(key, "key", str(e), None, len(payload), None, None, None)
-            return
-        if svc.DECODE_INPUTS:
-            try:
-                msg = messages.decode(payload, where=key, expected_type=messages.type_for_key(key))
-            except SchemaError as e:
-                code = "version" if e.field == "version" else ("decode" if e.field == "<payload>" else "schema")
-                self.reject(key, code, str(e), e.field, len(payload), info.vehicle, None, messages.peek_type(payload))
-                return
-            if msg["vehicle"] != info.vehicle:
-                self.reject(key, "key", f"field 'vehicle' of {key} is {msg['vehicle'][:64]!r}, "
-                            f"but the key names vehicle {info.vehicle!r}", "vehicle", len(payload),
-                            info.vehicle, msg["t_s"], msg["type"])
-                return
-            last = self.in_seq.get(key)
-            sq = msg["seq"]
-            if last is not None and sq > last + 1:
-                self.drops[key]["upstream_gap"] += sq - last - 1  # lost before it reached us: visible, not silent
-            self.in_seq[key] = sq
-            t = msg["t_s"]
-            if info.vehicle not in self.first_in_t:
-                self.first_in_t[info.vehicle] = t
-            if t > self.last_in_t.get(info.vehicle, float("-inf")):
-                self.last_in_t[info.vehicle] = t
-        else:
-            msg = payload
+            return None
+        now = time.monotonic()
+        self.count_in[key].n += 1
+        self.key_seen[key] = now
+        self.vehicle_seen[info.vehicle] = now
+        limit = MAX_PAYLOAD_BYTES.get(mtype, MAX_PAYLOAD_DEFAULT)
+        if len(payload) > limit:
+            self.reject(key, "decode", f"payload of {key} is {len(payload)} bytes, more than the {limit} bytes a "
+                        f"{mtype} message may take: not decoded", "<payload>", len(payload), info.vehicle, None, None)
+            return None
+        if not self.svc.DECODE_INPUTS:
+            return info, payload
+        try:
+            msg = messages.decode(payload, where=key, expected_type=mtype)
+        except SchemaError as e:
+            code = "version" if e.field == "version" else ("decode" if e.field == "<payload>" else "schema")
+            self.reject(key, code, str(e), e.field, len(payload), info.vehicle, None, messages.peek_type(payload))
+            return None
+        if msg["vehicle"] != info.vehicle:
+            self.reject(key, "key", f"field 'vehicle' of {key} is {msg['vehicle'][:64]!r}, "
+                        f"but the key names vehicle {info.vehicle!r}", "vehicle", len(payload),
+                        info.vehicle, msg["t_s"], msg["type"])
+            return None
+        known = _KNOWN_FIELDS.get(mtype)
+        extra = [k for k in msg if k not in known] if known is not None else []
+        if extra and len(msgpack.packb({k: msg[k] for k in extra}, use_bin_type=True)) > MAX_EXTRA_BYTES:
+            for k in extra:  # forward-compatible extras are kept only while small: never amplified downstream
+                del msg[k]
+            self.count_drop(key, "extra_fields_dropped")
+        return info, msg
+
+    def dispatch(self, info: KeyInfo, msg: Any) -> None:
+        """Hand one checked input to the service; an accepted sample then moves its stream's seq tracking."""
+        svc = self.svc
         state = self.state_for(info.vehicle)
         try:
             svc.on_message(info, msg, state)
         except SchemaError as e:
-            self.last_error = f"{type(e).__name__}: {e}"
-            svc.log.error("output failed validation while handling %s: %s", key, e)
-            self.count_drop(key, "handler_error")
-        except Exception as e:
-            self.last_error = f"{type(e).__name__}: {e}"
-            svc.log.error("handler failed on %s: %s\n%s", key, e, traceback.format_exc(limit=4))
-            self.count_drop(key, "handler_error")
+            self.last_error = f"{type(e).__name__}: {e}"[:500]
+            self.log_limited("output-invalid", "output failed validation while handling %s: %s", info.key, e)
+            self.count_drop(info.key, "handler_error")
+        except Exception as e:  # noqa: BLE001
+            self._handler_failed(info.key, e)
+        if not self._cur_rejected and isinstance(msg, dict):
+            self._accepted(info, msg)
+
+    def _accepted(self, info: KeyInfo, msg: dict) -> None:
+        """Seq and time bookkeeping of an accepted input (a refused one never moves them)."""
+        key, sq = info.key, msg["seq"]
+        last = self.in_seq.get(key)
+        if last is not None:
+            gap = sq - last - 1
+            if gap > self.seq_jump_max:
+                # one forged or reset counter is one event, not a billion lost samples
+                self.count_rebase("seq_jump")
+                self.log_limited("seq-rebase", "seq of %s jumped from %d to %d: re-based, not counted as loss",
+                                 key, last, sq)
+            elif gap > 0:
+                self.drops[key]["upstream_gap"] += gap  # lost before it reached us: visible, not silent
+            elif gap < 0:
+                self.count_rebase("seq_back")  # a publisher that restarted its counter (or a repeat)
+        self.in_seq[key] = sq
+        t, v = msg["t_s"], info.vehicle
+        if v not in self.first_in_t:
+            self.first_in_t[v] = t
+        if t > self.last_in_t.get(v, float("-inf")):
+            self.last_in_t[v] = t
+
+    # ---- bounded state ----------------------------------------------------------------------
+    def _protected(self, key: str) -> bool:
+        """Alarm and calibration-parameter publishers are never evicted (late joiners read their history)."""
+        parts = key.split("/")
+        return len(parts) > 2 and (parts[2] == "alarm" or (parts[2] == "cal" and len(parts) > 3 and parts[3] == "params"))
+
+    def _fold_drops(self, key: str) -> None:
+        d = self.drops.pop(key, None)
+        for r, n in (d or {}).items():
+            self.evicted_drops[r] += n
+
+    def evict_idle(self, now: float | None = None) -> int:
+        """Free the state of keys and vehicles silent for ``evict_idle_s``; their counts go to the totals."""
+        now = time.monotonic() if now is None else now
+        cutoff = now - self.evict_idle_s
+        n0 = sum(self.evicted.values())
+        for k in [k for k, t in list(self.key_seen.items()) if t < cutoff]:
+            del self.key_seen[k]
+            c = self.count_in.pop(k, None)
+            self.evicted_in += c.n if c is not None else 0
+            self.in_seq.pop(k, None)
+            self._fold_drops(k)
+            hook = getattr(self.svc, "evict_key", None)
+            if hook is not None:
+                hook(k)
+            self.evicted["keys"] += 1
+        with self.lock:
+            raised_vehicles = {k.split("/")[1] for k in self.raised}
+        # a vehicle with a raised alarm keeps its state however long it is silent
+        for v in [v for v, t in list(self.vehicle_seen.items()) if t < cutoff and v not in raised_vehicles]:
+            del self.vehicle_seen[v]
+            st = self.vehicle_state.pop(v, _MISSING)
+            self.first_in_t.pop(v, None)
+            self.last_in_t.pop(v, None)
+            if st is not _MISSING:
+                hook = getattr(self.svc, "evict_vehicle", None)
+                if hook is not None:
+                    hook(v, st)
+                self.evicted["vehicles"] += 1
+        for k, c in list(self.count_out.items()):
+            n_then, since = self._out_idle.get(k, (-1, now))
+            if c.n != n_then:
+                self._out_idle[k] = (c.n, now)
+                continue
+            if since >= cutoff or self._protected(k):
+                continue
+            pub = self.publishers.pop(k, None)
+            if pub is not None and hasattr(pub, "undeclare"):
+                try:
+                    pub.undeclare()
+                except Exception:  # noqa: BLE001 - a closing session
+                    pass
+            self.evicted_out += c.n
+            del self.count_out[k]
+            self.seq.pop(k, None)
+            self._out_idle.pop(k, None)
+            self._fold_drops(k)
+            self.evicted["publishers"] += 1
+        n = sum(self.evicted.values()) - n0
+        if n:
+            self.svc.log.info("freed the state of %d idle key(s)/vehicle(s) (silent for %g s)", n, self.evict_idle_s)
+        return n
+
+    def counters(self) -> dict:
+        """Drops by category: lost, rejected, skipped (each by reason, with totals), evicted keys included."""
+        cats: dict[str, dict[str, int]] = {"lost": defaultdict(int), "rejected": defaultdict(int),
+                                           "skipped": defaultdict(int)}
+        for v in list(self.drops.values()):
+            for r, n in list(v.items()):
+                cats[drop_category(r)][r] += n
+        for r, n in list(self.evicted_drops.items()):
+            cats[drop_category(r)][r] += n
+        out: dict = {}
+        for c in ("lost", "rejected", "skipped"):
+            out[f"{c}_total"] = sum(cats[c].values())
+            out[c] = {r.removeprefix("rejected:"): n for r, n in sorted(cats[c].items())}
+        return out
 
     # ---- queries --------------------------------------------------------------------------
     def status(self) -> dict:
@@ -555,14 +781,22 @@ class Runner:
                 "magmesh_version": __version__,
                 "uptime_s": round(now - self.started_mono, 3),
                 "vehicle_pattern": self.svc.vehicle_pattern,
-                "vehicles": sorted(self.vehicle_state),
+                **self.counters(),
+                "rebases": dict(self.rebases),
+                "evicted": dict(self.evicted),
+                "vehicles": sorted(self.vehicle_state)[:STATUS_TOP_KEYS],
+                "vehicles_total": len(self.vehicle_state),
                 "consumes": list(self.svc.CONSUMES),
                 "produces": list(self.svc.PRODUCES),
-                "in": {k: {"n": c.n, "rate_hz": round(c.rate, 2)} for k, c in list(self.count_in.items())},
-                "out": {k: {"n": c.n, "rate_hz": round(c.rate, 2)} for k, c in list(self.count_out.items())},
+                "in": {k: {"n": c.n, "rate_hz": round(c.rate, 2)} for k, c in _top(self.count_in, _n)},
+                "out": {k: {"n": c.n, "rate_hz": round(c.rate, 2)} for k, c in _top(self.count_out, _n)},
+                "in_keys": len(self.count_in),
+                "out_keys": len(self.count_out),
+                "in_total": sum(c.n for c in list(self.count_in.values())) + self.evicted_in,
+                "out_total": sum(c.n for c in list(self.count_out.values())) + self.evicted_out,
                 "rejects": self.rejects_total,
-                "drops": {k: dict(v) for k, v in list(self.drops.items())},
-                "drops_total": sum(sum(v.values()) for v in list(self.drops.values())),
+                "drops": {k: dict(v) for k, v in _top(self.drops, _sum)},
+                "drops_total": sum(sum(v.values()) for v in list(self.drops.values())) + sum(self.evicted_drops.values()),
                 "queue_depth": self.q.qsize(),
                 "last_error": self.last_error,
                 "settings": _plain(self.svc.settings) if self.svc.settings is not None else {},
@@ -729,6 +963,12 @@ class Runner:
                 self._safe_tick()
             if self.reconcile_at is not None and time.monotonic() >= self.reconcile_at and self.mode == "active":
                 self.reconcile_alarms()
+            if time.monotonic() >= self._next_evict:
+                self._next_evict = time.monotonic() + min(5.0, max(0.2, self.evict_idle_s / 4))
+                try:
+                    self.evict_idle()
+                except Exception as e:  # noqa: BLE001 - freeing memory must never stop the service
+                    self.last_error = f"eviction failed: {type(e).__name__}: {e}"
 
     def _safe_tick(self) -> None:
         try:

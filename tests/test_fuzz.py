@@ -38,7 +38,7 @@ from hypothesis import HealthCheck, given, seed, settings
 from hypothesis import strategies as st
 
 from magmesh.paths import DEPLOY_DIR
-from magmesh.runtime import Runner
+from magmesh.runtime import MAX_EXTRA_BYTES, Runner
 from schemas import keys, messages
 from schemas.messages import MESSAGES, SchemaError
 
@@ -57,15 +57,13 @@ def _service_classes() -> dict[str, type]:
                             "track_monitor": TrackMonitorService}
     for name, cls in IMPLEMENTATIONS.items():
         out[f"dmc_detector.{name}"] = cls
-    try:  # services still being written join the fuzzing as soon as they exist
-        mod = importlib.import_module("services.heading_fuser.service")
-        from magmesh.runtime import Service
+    from magmesh.runtime import Service
 
-        for obj in vars(mod).values():
-            if isinstance(obj, type) and issubclass(obj, Service) and obj is not Service and obj.__module__ == mod.__name__:
-                out[f"heading_fuser.{obj.impl}"] = obj
-    except ImportError:
-        pass
+    mod = importlib.import_module("services.heading_fuser.service")  # an import error fails the suite, loudly
+    for obj in vars(mod).values():
+        if isinstance(obj, type) and issubclass(obj, Service) and obj is not Service and obj.__module__ == mod.__name__:
+            out[f"heading_fuser.{obj.impl}"] = obj
+    assert any(n.startswith("heading_fuser.") for n in out), "no heading fuser implementation found to fuzz"
     return out
 
 
@@ -165,20 +163,23 @@ class Harness:
         fig.by_spoil[spoil] += 1
         n_sent = len(self.session.sent)
         n_rej = r.rejects_total
-        n_err = r.drops.get(key, {}).get("handler_error", 0)
-        n_unroutable = r.drops.get(key, {}).get("rejected:key", 0)
+        n_err = _handler_errors(r)
+        n_unroutable = r.drops.get(keys.BAD_KEY, {}).get("rejected:key", 0)
         try:
             r.handle_sample(key, payload)
         except BaseException as e:  # noqa: BLE001 - anything escaping is a crash
             return self._fail(key, payload, spoil, f"{type(e).__name__}: {e}")
-        if r.drops.get(key, {}).get("handler_error", 0) != n_err:
+        if _handler_errors(r) != n_err:
             return self._fail(key, payload, spoil, f"handler failed: {r.last_error}")
         new = self.session.sent[n_sent:]
         for k, b in new:
             try:
-                messages.decode(b, where=k, expected_type=messages.type_for_key(k))
-            except SchemaError as e:
+                out = messages.decode(b, where=k, expected_type=messages.type_for_key(k))
+            except (SchemaError, keys.KeyError_) as e:
                 return self._fail(key, payload, spoil, f"published an invalid message on {k}: {e}")
+            extra = len(msgpack.packb({f: v for f, v in out.items() if f not in _KNOWN[out["type"]]}))
+            if extra > MAX_EXTRA_BYTES + 1:
+                return self._fail(key, payload, spoil, f"republished {extra} bytes of unknown fields on {k}")
         fig.outputs += len(new)
         oracle = _oracle(key, payload, self.svc.DECODE_INPUTS)
         if r.rejects_total == n_rej:
@@ -196,7 +197,7 @@ class Harness:
             fig.by_code[m["code"]] += 1
             fig.example.setdefault(m["code"], m["reason"])
             return "rejected"
-        if r.drops.get(key, {}).get("rejected:key", 0) == n_unroutable + 1 and _oracle_key(key) is not None:
+        if r.drops.get(keys.BAD_KEY, {}).get("rejected:key", 0) == n_unroutable + 1 and _oracle_key(key) is not None:
             # a key outside the grammar: the runner counts it and logs it; it reports on rejects only when
             # the key names a usable vehicle, and today's runner reports none of these (see _oracle_key)
             fig.rejected_unroutable += 1
@@ -216,17 +217,25 @@ class Harness:
         return "crash"
 
 
+def _handler_errors(r: Runner) -> int:
+    return sum(d.get("handler_error", 0) for d in list(r.drops.values()))
+
+
+_KNOWN = {name: {f.name for f in messages.HEADER + mt.fields} for name, mt in MESSAGES.items()}
+
+
 def _vehicle_ok(key: str) -> bool:
     parts = key.split("/")
     try:
-        return len(parts) > 1 and bool(keys.check_id(parts[1]))
+        return len(parts) > 1 and parts[0] == keys.ROOT and bool(keys.check_vehicle(parts[1]))
     except keys.KeyError_:
         return False
 
 
 def _oracle_key(key: str) -> str | None:
+    """Why the key is not a data key of the contract (service keys and reserved names included), or None."""
     try:
-        keys.parse(key)
+        keys.parse_data(key)
     except keys.KeyError_ as e:
         return str(e)
     return None
@@ -246,7 +255,7 @@ def _physical_oracle(key: str, payload: bytes) -> str | None:
 def _oracle(key: str, payload: bytes, strict_decode: bool) -> str | None:
     """Why the contract refuses this input (independently of the service), or None."""
     try:
-        info = keys.parse(key)
+        info = keys.parse_data(key)
         msg = messages.decode(payload, where=key, expected_type=messages.type_for_key(key))
     except (keys.KeyError_, SchemaError) as e:
         return str(e)[:200]

@@ -9,23 +9,49 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from schemas.streams import LIMIT_DEFAULTS, limit_problem
+
+#: how far (s of sample time) a sample may run ahead of its stream's clock, by stream kind; see
+#: :func:`ahead_limit_s`. A route is sent once per leg, so it may legitimately come much later in sample time.
+MAX_AHEAD_S = {"mag": 10.0, "imu": 10.0, "gnss": 60.0, "ins": 60.0, "attitude": 30.0, "route": 600.0}
+
 
 @dataclass(frozen=True)
 class IngestSettings:
-    max_field_nt: float = 2.0e6  # |b| above this is not a magnetometer reading (sensor full scale ~0.8–8 mT)
-    max_gyro_rad_s: float = 40.0  # ~2300 °/s
-    max_accel_m_s2: float = 300.0  # ~30 g
-    max_speed_m_s: float = 400.0
-    alt_range_m: tuple = (-1000.0, 60000.0)
-    max_pdop: float = 100.0
-    max_pos_m: float = 1.0e7  # local ENU coordinates
+    # physical ranges: defaults from the streams table (schemas/streams.py LIMITS / LIMIT_DEFAULTS)
+    max_field_nt: float = LIMIT_DEFAULTS["max_field_nt"]
+    max_gyro_rad_s: float = LIMIT_DEFAULTS["max_gyro_rad_s"]
+    max_accel_m_s2: float = LIMIT_DEFAULTS["max_accel_m_s2"]
+    max_speed_m_s: float = LIMIT_DEFAULTS["max_speed_m_s"]
+    alt_range_m: tuple = LIMIT_DEFAULTS["alt_range_m"]
+    max_pdop: float = LIMIT_DEFAULTS["max_pdop"]
+    max_pos_m: float = LIMIT_DEFAULTS["max_pos_m"]
     max_time_jump_s: float = 3600.0  # a sample this far ahead of the previous one on its stream is refused
+    # a sample further ahead of its stream's clock than this (s, by stream kind; a JSON object overrides the
+    # kinds it names) is refused; the clock runs at the stream's own learned rate (replays run faster)
+    max_ahead_s: dict = field(default_factory=lambda: dict(MAX_AHEAD_S))
+    max_clock_rate: float = 10000.0  # fastest sample-time-per-wall-time rate a stream's clock is believed to run
+    rebase_after: int = 10  # this many consecutive, mutually consistent refusals on time: the clock really jumped
+    seq_jump_max: int = 10_000  # a seq jump beyond this is a counter re-base, not that many lost samples
+    evict_idle_s: float = 600.0  # state of a key or vehicle silent this long is freed (counted)
     tick_s: float = 1.0
 
     def __post_init__(self) -> None:
-        for name in ("max_field_nt", "max_gyro_rad_s", "max_accel_m_s2", "max_speed_m_s", "max_time_jump_s"):
+        for name in ("max_field_nt", "max_gyro_rad_s", "max_accel_m_s2", "max_speed_m_s", "max_time_jump_s",
+                     "max_clock_rate", "rebase_after", "seq_jump_max", "evict_idle_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0")
+        if not isinstance(self.max_ahead_s, dict):
+            raise ValueError(f"max_ahead_s must be a map of stream kind to seconds, got {self.max_ahead_s!r}")
+        unknown = sorted(set(self.max_ahead_s) - set(MAX_AHEAD_S))
+        if unknown:
+            raise ValueError(f"max_ahead_s: unknown stream kind(s) {', '.join(map(str, unknown))}; "
+                             f"known: {', '.join(MAX_AHEAD_S)}")
+        merged = {**MAX_AHEAD_S, **self.max_ahead_s}
+        for k, v in merged.items():
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
+                raise ValueError(f"max_ahead_s[{k!r}] must be a number of seconds > 0, got {v!r}")
+        object.__setattr__(self, "max_ahead_s", {k: float(v) for k, v in merged.items()})
 
 
 @dataclass
@@ -34,6 +60,16 @@ class StreamState:
     last_seq: int | None = None
     accepted: int = 0
     upstream_gaps: int = 0  # samples missing according to the publisher's seq
+    seq_rebases: int = 0  # seq jumps beyond the bound (or backwards): counted once each, not as loss
+    # the stream's clock: receive time (monotonic s) of the last accepted sample and its learned rate
+    last_wall: float | None = None
+    rate: float = 1.0
+    win_t_s: float | None = None
+    win_wall: float | None = None
+    # consecutive refusals on time that agree with each other (a clock that really jumped)
+    contra_n: int = 0
+    contra_last_t_s: float | None = None
+    clock_rebases: int = 0
 
 
 @dataclass
@@ -62,39 +98,29 @@ def check_ranges(msg: dict, s: IngestSettings, where: str) -> None:
 
     if msg["t_s"] < 0:
         raise bad("t_s", f"must be ≥ 0, got {msg['t_s']:g}")
-    if t == "mag":
-        n = _norm(msg["b_nt"])
-        if n > s.max_field_nt:
-            raise bad("b_nt", f"has |b| = {n:.4g} nT, beyond the {s.max_field_nt:.4g} nT a magnetometer can read")
-        if msg["sensor"] != where.rsplit("/", 1)[-1]:
-            raise Rejection("key", "sensor", f"field 'sensor' of {where} is {msg['sensor'][:64]!r}, "
-                            "but the key names another sensor")
-    elif t == "imu":
-        g = _norm(msg["gyro_rad_s"])
-        if g > s.max_gyro_rad_s:
-            raise bad("gyro_rad_s", f"has |ω| = {g:.4g} rad/s, beyond {s.max_gyro_rad_s:g} rad/s")
-        a = _norm(msg["accel_m_s2"])
-        if a > s.max_accel_m_s2:
-            raise bad("accel_m_s2", f"has |a| = {a:.4g} m/s², beyond {s.max_accel_m_s2:g} m/s²")
-    elif t == "gnss":
-        if not (s.alt_range_m[0] <= msg["alt_m"] <= s.alt_range_m[1]):
-            raise bad("alt_m", f"is {msg['alt_m']:.4g} m, outside {s.alt_range_m[0]:g}..{s.alt_range_m[1]:g} m")
-        if msg["speed_m_s"] > s.max_speed_m_s:
-            raise bad("speed_m_s", f"is {msg['speed_m_s']:.4g} m/s, beyond {s.max_speed_m_s:g} m/s")
-        if _norm(msg["vel_enu_m_s"]) > s.max_speed_m_s * 1.5:
-            raise bad("vel_enu_m_s", f"has a speed beyond {s.max_speed_m_s * 1.5:g} m/s")
-        if msg["pdop"] > s.max_pdop:
-            raise bad("pdop", f"is {msg['pdop']:.4g}, beyond {s.max_pdop:g}")
-        if "pos_enu_m" in msg and max(abs(x) for x in msg["pos_enu_m"]) > s.max_pos_m:
-            raise bad("pos_enu_m", f"is beyond ±{s.max_pos_m:.3g} m")
-    elif t in ("ins", "route"):
-        for fld in ("pos_enu_m", "a_enu_m", "b_enu_m", "vel_enu_m_s"):
-            if fld in msg and max(abs(x) for x in msg[fld]) > s.max_pos_m:
-                raise bad(fld, f"is beyond ±{s.max_pos_m:.3g}")
+    if t == "mag" and msg["sensor"] != where.rsplit("/", 1)[-1]:
+        raise Rejection("key", "sensor", f"field 'sensor' of {where} is {msg['sensor'][:64]!r}, "
+                        "but the key names another sensor")
+    p = limit_problem(msg, s)  # the ranges of the streams table
+    if p is not None:
+        raise bad(p[0], p[1])
 
 
-def check_order(msg: dict, st: StreamState, s: IngestSettings, where: str) -> None:
-    """Raise :class:`Rejection` for duplicates and time going backwards on one stream."""
+def ahead_limit_s(msg_type: str, st: StreamState, s: IngestSettings, now: float) -> float:
+    """How far past the stream's last accepted sample a sample received at ``now`` may be dated.
+
+    The stream's clock runs at its learned rate (sample seconds per wall second, at least 1: a replay at 10×
+    runs 10 s per s) since the last accepted sample was received; a sample may lead it by the kind's
+    ``max_ahead_s`` plus twice the elapsed wall time and half a second of jitter at that rate.
+    """
+    dt = max(0.0, now - st.last_wall) if st.last_wall is not None else 0.0
+    rate = min(max(st.rate, 1.0), s.max_clock_rate)
+    return s.max_ahead_s.get(msg_type, 10.0) + rate * (2.0 * dt + 0.5)
+
+
+def check_order(msg: dict, st: StreamState, s: IngestSettings, where: str, now: float | None = None) -> None:
+    """Raise :class:`Rejection` for duplicates, time going backwards, and (given the receive time ``now``) a
+    sample too far ahead of its stream's clock. Nothing here changes the stream's state."""
     t = msg["t_s"]
     if st.last_t_s is not None:
         if t == st.last_t_s:
@@ -105,13 +131,60 @@ def check_order(msg: dict, st: StreamState, s: IngestSettings, where: str) -> No
         if t - st.last_t_s > s.max_time_jump_s:
             raise Rejection("time_order", "t_s", f"field 't_s' of {where} jumped {t - st.last_t_s:.4g} s ahead "
                             f"(more than {s.max_time_jump_s:g} s)")
+        if now is not None and st.last_wall is not None:
+            lim = ahead_limit_s(msg["type"], st, s, now)
+            if t - st.last_t_s > lim:
+                raise Rejection("time_order", "t_s", f"field 't_s' of {where} is {t - st.last_t_s:.4g} s after the "
+                                f"stream's last sample, {now - st.last_wall:.3g} s of receive time later (at most "
+                                f"{lim:.4g} s for {msg['type']} samples): dated ahead of the stream's clock")
 
 
-def accept(msg: dict, st: StreamState) -> None:
-    """Record an accepted sample; count publisher-side gaps from seq."""
+def note_refusal(msg: dict, st: StreamState, s: IngestSettings) -> bool:
+    """Record a sample refused on time; True when the stream has contradicted its clock ``rebase_after`` times
+    in a row with samples that agree with each other — its clock really jumped and should be re-based."""
+    t = msg["t_s"]
+    prev = st.contra_last_t_s
+    consistent = prev is not None and 0.0 < t - prev <= s.max_ahead_s.get(msg["type"], 10.0)
+    st.contra_n = st.contra_n + 1 if consistent else 1
+    st.contra_last_t_s = t
+    return st.contra_n >= s.rebase_after
+
+
+def rebase(st: StreamState) -> None:
+    """Forget the stream's clock (the next accepted sample starts it again); counted."""
+    st.last_t_s = None
+    st.last_wall = None
+    st.rate = 1.0
+    st.win_t_s = st.win_wall = None
+    st.contra_n = 0
+    st.contra_last_t_s = None
+    st.clock_rebases += 1
+
+
+def accept(msg: dict, st: StreamState, now: float | None = None, s: IngestSettings | None = None) -> None:
+    """Record an accepted sample: its time (and receive time ``now``, which teaches the stream's clock rate);
+    count publisher-side gaps from seq, a jump beyond ``seq_jump_max`` counted once as a re-base."""
     seq = msg["seq"]
-    if st.last_seq is not None and seq > st.last_seq + 1:
-        st.upstream_gaps += seq - st.last_seq - 1
+    jump_max = s.seq_jump_max if s is not None else 10_000
+    if st.last_seq is not None:
+        gap = seq - st.last_seq - 1
+        if gap > jump_max or gap < -1:
+            st.seq_rebases += 1
+        elif gap > 0:
+            st.upstream_gaps += gap
     st.last_seq = seq
-    st.last_t_s = msg["t_s"]
+    t = msg["t_s"]
+    st.last_t_s = t
     st.accepted += 1
+    st.contra_n = 0
+    st.contra_last_t_s = None
+    if now is not None:
+        st.last_wall = now
+        if st.win_wall is None:
+            st.win_t_s, st.win_wall = t, now
+        elif now - st.win_wall >= 1.0:
+            r = (t - st.win_t_s) / (now - st.win_wall)
+            hi = s.max_clock_rate if s is not None else 10000.0
+            # a faster clock is believed at once, a slower one by halves (bursts of delivery are not a slow-down)
+            st.rate = min(max(r, 0.5 * st.rate, 1.0), hi)
+            st.win_t_s, st.win_wall = t, now

@@ -6,10 +6,13 @@ reason on ``magmesh/{vehicle}/rejects`` and counted; nothing crashes the service
 
 from __future__ import annotations
 
+import time
+
 from magmesh.runtime import Service
 from schemas import keys, messages
 
-from .core import IngestSettings, Rejection, StreamState, VehicleState, accept, check_order, check_ranges
+from .core import (IngestSettings, Rejection, StreamState, VehicleState, accept, check_order, check_ranges,
+                   note_refusal, rebase)
 
 
 class Ingest(Service):
@@ -33,17 +36,40 @@ class Ingest(Service):
         st = state.streams.get(key)
         if st is None:
             st = state.streams[key] = StreamState()
+        now = time.monotonic()
         try:
             check_ranges(msg, self.settings, key)
-            check_order(msg, st, self.settings, key)
+            check_order(msg, st, self.settings, key, now)
         except Rejection as r:
-            self.reject(key, r.code, r.reason, r.field, len(messages.encode(msg, check=False)), info.vehicle,
-                        msg["t_s"], msg["type"])
-            return
-        accept(msg, st)
+            if r.code == "time_order" and note_refusal(msg, st, self.settings):
+                # the stream kept contradicting its clock with samples that agree with each other: the clock
+                # really jumped (a restarted source, a GNSS time step); start it again from this sample
+                self.log.warning("%s: clock re-based at t_s = %.6f s after %d consistent samples refused on time",
+                                 key, msg["t_s"], self.settings.rebase_after)
+                rebase(st)
+                self._rt.count_rebase("clock")
+            else:
+                self.reject(key, r.code, r.reason, r.field, len(messages.encode(msg, check=False)), info.vehicle,
+                            msg["t_s"], msg["type"])
+                return
+        accept(msg, st, now, self.settings)
         self.republish(keys.raw_to_clean(key), msg)
 
+    def evict_key(self, key: str) -> None:
+        """The runtime freed an idle key: its stream's clock and seq go too."""
+        vehicle = key.split("/")[1]
+        vs = self.vehicle_states.get(vehicle)
+        if vs is not None:
+            vs.streams.pop(key, None)
+
     def status_extra(self) -> dict:
-        gaps = {k: st.upstream_gaps for vs in list(self.vehicle_states.values()) if vs
-                for k, st in list(vs.streams.items()) if st.upstream_gaps}
-        return {"upstream_gaps": gaps}
+        gaps, seq_rebases, clock_rebases = {}, 0, 0
+        for vs in list(self.vehicle_states.values()):
+            for k, st in list((vs.streams if vs else {}).items()):
+                if st.upstream_gaps:
+                    gaps[k] = st.upstream_gaps
+                seq_rebases += st.seq_rebases
+                clock_rebases += st.clock_rebases
+        top = dict(sorted(gaps.items(), key=lambda kv: -kv[1])[:50])  # bounded: the largest 50
+        return {"upstream_gaps": top, "upstream_gap_keys": len(gaps), "seq_rebases": seq_rebases,
+                "clock_rebases": clock_rebases}
