@@ -1,15 +1,17 @@
-"""Render the contract table (``schemas/README.md``) from :mod:`schemas.messages`.
+"""Render the contract table (``schemas/README.md``) from :mod:`schemas.streams` and :mod:`schemas.messages`.
 
 ``python -m schemas.doc > schemas/README.md``; a test checks the file is up to date.
 """
 
 from __future__ import annotations
 
+from . import batch, streams
 from .messages import HEADER, MESSAGES
 
 INTRO = """# The magmesh wire contract
 
-Generated from `schemas/messages.py` by `python -m schemas.doc`; do not edit by hand.
+Generated from the streams table `schemas/streams.py` (keys, encodings, ranges) and `schemas/messages.py`
+(fields) by `python -m schemas.doc`; do not edit by hand.
 
 Every message is a **msgpack map**. Keys are built and parsed only by `schemas/keys.py`.
 A subscriber outside this repository needs nothing but this page and a msgpack decoder.
@@ -27,30 +29,20 @@ A subscriber outside this repository needs nothing but this page and a msgpack d
 - **Reliability.** Every magmesh publisher is reliable with blocking congestion control: a slow consumer slows
   the producer instead of losing data. Services answer queries on `magmesh/{vehicle}/alarm/**` with the alarms
   they currently hold raised, so a late joiner learns the current state at once.
+- **Encodings.** Every put carries a Zenoh encoding naming the message type and its version:
+  `application/msgpack;magmesh/{type}/v{version}` (e.g. `application/msgpack;magmesh/mag/v1`; batches
+  `application/msgpack;magmesh/batch/v2`; status replies `application/msgpack;magmesh/status/v1`).
+  `schemas.streams.json_schema(type)` gives the JSON Schema of each type.
+- **Contract version {CONTRACT}.** Version 1: one sample per message. Version 2 adds batches (below) beside the
+  single samples, which stay valid on every key.
 
 ## Keys
 
-| key | message | published by | meaning |
-|---|---|---|---|
-| `magmesh/{vehicle}/raw/mag/{sensor}` | mag | vehicles, simulators, replays | magnetometer samples as measured |
-| `magmesh/{vehicle}/raw/imu` | imu | vehicles | gyro + accelerometer |
-| `magmesh/{vehicle}/raw/gnss` | gnss | vehicles | GNSS fixes |
-| `magmesh/{vehicle}/raw/ins` | ins | survey vehicles | dead-reckoned INS navigation |
-| `magmesh/{vehicle}/raw/route` | route | mission planners | the planned line A → B |
-| `magmesh/{vehicle}/raw/attitude` | attitude | flight controllers | the vehicle's own attitude estimate |
-| `magmesh/{vehicle}/clean/...` | same as raw | ingest | raw samples that passed validation |
-| `magmesh/{vehicle}/rejects` | reject | any service | every refused input, with the reason |
-| `magmesh/{vehicle}/cal/mag/{sensor}` | mag | calibration | compensated field (`calibrated` true, `param_id`) |
-| `magmesh/{vehicle}/cal/params/{sensor}` | cal_params | calibration | current parameters; also answered by query |
-| `magmesh/{vehicle}/dmc` | dmc | dmc_detector | interference features and validity per epoch |
-| `magmesh/{vehicle}/heading` | heading | heading_fuser | fused attitude and heading |
-| `magmesh/{vehicle}/fix/geomag` | geomag_fix | geomag_matcher | geomagnetic matching result |
-| `magmesh/{vehicle}/track` | track | track_monitor | cross-track monitoring state |
-| `magmesh/{vehicle}/alarm/{source}` | alarm | services | alarm transitions (raised / cleared) |
-| `magmesh/{vehicle}/truth/{what}` | truth | simulators, replays | ground truth |
-| `magmesh/svc/{role}/{instance}` | (liveliness token) | every service | present while the instance runs |
-| `magmesh/svc/{role}/{instance}/status` | status (queryable) | every service | counts, rates, drops, settings, mode |
-| `magmesh/svc/{role}/{instance}/control` | (queryable) | every service | hand-over control used by `magmesh swap` |
+| key | message | encoding | published by | meaning |
+|---|---|---|---|---|
+{STREAM_ROWS}| `magmesh/svc/{role}/{instance}` | (liveliness token) | - | every service | present while the instance runs |
+| `magmesh/svc/{role}/{instance}/status` | status (queryable) | `application/msgpack;magmesh/status/v1` | every service | counts, rates, drops, settings, mode |
+| `magmesh/svc/{role}/{instance}/control` | (queryable) | `application/msgpack;magmesh/control/v1` | every service | hand-over control used by `magmesh swap` |
 
 Alarm sources in use: `dmc` (dmc_detector), `heading` (heading_fuser), `match` (geomag_matcher), `track`,
 `heading_innovation`, `mag_anomaly` (track_monitor).
@@ -77,8 +69,35 @@ def _kind(f) -> str:
     return k
 
 
+def _stream_rows() -> str:
+    rows = []
+    for st in streams.STREAMS.values():
+        rows.append(f"| `{st.template}` | {st.msg_type} | `{st.encoding}` | {st.publisher} | {st.meaning} |\n")
+    rows.append(f"| `magmesh/{{vehicle}}/raw/batch` | batch | `{streams.encoding_name('batch')}` | vehicles' on-board "
+                "agents | many samples of the vehicle's streams (contract v2) |\n")
+    rows.append(f"| `magmesh/{{vehicle}}/clean/batch` | batch | `{streams.encoding_name('batch')}` | ingest "
+                "(output = batches) | validated batches |\n")
+    return "".join(rows)
+
+
+def _limits() -> str:
+    out = ["\n## Physical ranges (ingest)\n\nIngest refuses a sample outside these ranges (code `range`); the bound is "
+           "the ingest setting named, whose default is shown. Every raw sample also needs `t_s` ≥ 0.\n\n"
+           "| message | field | test | setting | default |\n|---|---|---|---|---|\n"]
+    tests = {"norm": "norm ≤ bound", "abs": "every component within ± bound", "max": "≤ bound",
+             "between": "within lo..hi"}
+    for t, lims in streams.LIMITS.items():
+        for lim in lims:
+            d = streams.LIMIT_DEFAULTS[lim.setting]
+            shown = f"{d[0]:g}..{d[1]:g}" if isinstance(d, tuple) else f"{d:g}"
+            if lim.scale != 1.0:
+                shown += f" × {lim.scale:g}"
+            out.append(f"| {t} | `{lim.field}` | {tests[lim.how]} | `{lim.setting}` | {shown} {lim.unit} |\n")
+    return "".join(out)
+
+
 def render() -> str:
-    out = [INTRO]
+    out = [INTRO.replace("{STREAM_ROWS}", _stream_rows()).replace("{CONTRACT}", str(streams.CONTRACT_VERSION))]
     for f in HEADER:
         out.append(f"| `{f.name}` | {_kind(f)} | {f.doc} |\n")
     out.append("\n## Message types\n")
@@ -90,6 +109,8 @@ def render() -> str:
             if f.lo is not None or f.hi is not None:
                 rng = f" (range {'' if f.lo is None else f'{f.lo:g}'}..{'' if f.hi is None else f'{f.hi:g}'})"
             out.append(f"| `{f.name}` | {_kind(f)} | {'yes' if f.required else 'no'} | {f.doc}{rng} |\n")
+    out.append(_limits())
+    out.append("\n## Batches (contract version 2)\n\n" + batch.__doc__.split("\n\n", 1)[1].rsplit("\n\n", 1)[0].replace("``", "`") + "\n")
     out.append("""
 ## Status replies
 

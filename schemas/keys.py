@@ -38,6 +38,8 @@ KINDS = {
 
 #: sub-streams of raw/ and clean/
 RAW_STREAMS = ("mag", "imu", "gnss", "ins", "route", "attitude")
+#: the chunk of a vehicle's batches (contract v2: many samples of its streams in one message, see schemas/batch.py)
+BATCH = "batch"
 
 #: chunks that can never be a vehicle id: ``svc`` starts the service keys, ``magmesh`` is the root
 RESERVED_VEHICLES = frozenset((SVC, ROOT))
@@ -144,6 +146,16 @@ def clean_route(vehicle: str) -> str:
 
 def clean_attitude(vehicle: str) -> str:
     return f"{ROOT}/{_v(vehicle)}/clean/attitude"
+
+
+def raw_batch(vehicle: str) -> str:
+    """A vehicle's batches as its on-board agent publishes them (contract v2)."""
+    return f"{ROOT}/{_v(vehicle)}/raw/{BATCH}"
+
+
+def clean_batch(vehicle: str) -> str:
+    """A vehicle's validated batches, published by ingest (contract v2)."""
+    return f"{ROOT}/{_v(vehicle)}/clean/{BATCH}"
 
 
 def clean_all(vehicle: str = "*") -> str:
@@ -289,6 +301,8 @@ def _parse(key: str) -> KeyInfo:
     if n is not None and len(rest) != n:
         raise KeyError_(f"key {key!r}: kind {kind!r} takes {n} further part(s), got {len(rest)}")
     if kind in ("raw", "clean"):
+        if rest and rest[0] == BATCH and len(rest) == 1:
+            return KeyInfo(key, vehicle, kind, rest)
         if not rest or rest[0] not in RAW_STREAMS:
             raise KeyError_(f"key {key!r}: {kind}/ must be followed by one of {', '.join(RAW_STREAMS)}")
         if rest[0] == "mag" and len(rest) != 2:
@@ -320,7 +334,8 @@ def parse_data(key: str) -> KeyInfo:
 
 
 #: which message type a per-vehicle key carries, by kind (raw/clean/cal: by stream)
-_STREAM_TYPES = {"mag": "mag", "imu": "imu", "gnss": "gnss", "ins": "ins", "route": "route", "attitude": "attitude"}
+_STREAM_TYPES = {"mag": "mag", "imu": "imu", "gnss": "gnss", "ins": "ins", "route": "route", "attitude": "attitude",
+                 BATCH: "batch"}
 _KIND_TYPES = {"rejects": "reject", "dmc": "dmc", "heading": "heading", "fix": "geomag_fix", "track": "track",
                "alarm": "alarm", "truth": "truth"}
 
