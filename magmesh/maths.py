@@ -242,3 +242,22 @@ def line_current_field_nt(current_a: float, p0_m, p1_m, points_m) -> np.ndarray:
     mag = MU0_4PI * current_a / d * (cos1 - cos2)
     direction = np.cross(u, perp / d)
     return mag * direction * 1e9
+
+
+# ---- local tangent plane ----------------------------------------------------------------------
+
+WGS84_A_M = 6378137.0
+WGS84_E2 = 6.69437999014e-3
+
+
+def enu_to_geodetic(pos_enu_m, lat0_deg: float, lon0_deg: float, alt0_m: float = 0.0):
+    """Local tangent-plane ENU (m) about an origin → (lat_deg, lon_deg, alt_m), with the WGS-84 radii of
+    curvature at the origin (centimetres over a few km)."""
+    p = np.asarray(pos_enu_m, float)
+    lat0 = math.radians(lat0_deg)
+    s2 = math.sin(lat0) ** 2
+    r_n = WGS84_A_M / math.sqrt(1 - WGS84_E2 * s2)  # prime vertical
+    r_m = r_n * (1 - WGS84_E2) / (1 - WGS84_E2 * s2)  # meridian
+    lat = lat0_deg + np.degrees(p[..., 1] / r_m)
+    lon = lon0_deg + np.degrees(p[..., 0] / (r_n * math.cos(lat0)))
+    return lat, lon, alt0_m + p[..., 2]

@@ -1,0 +1,213 @@
+"""Ecosystem integrations: Foxglove live (foxglove.websocket.v1) and in MCAP, the ROS 2 bridge (rmw_zenoh keys,
+CDR), the zenoh-cli codec. Real processes and sessions on loopback, every wait bounded."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import os
+import struct
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+
+from magmesh import foxglove_types as fx
+from schemas import keys, messages
+from tests import meshutil as mu
+
+pytestmark = pytest.mark.mesh
+
+
+def _alarm(vehicle, seq, state="raised", severity="critical"):
+    return messages.make("alarm", vehicle, 1.0 + seq, seq, source="dmc", state=state, severity=severity,
+                         reason="field strength off by 3000 nT", value=3000.0, threshold=1500.0, unit="nT",
+                         service="dmc_detector/a")
+
+
+def _heading(vehicle, seq, heading=math.radians(30), pitch=0.05, roll=-0.02):
+    return messages.make("heading", vehicle, 0.1 * seq, seq, heading_rad=heading, pitch_rad=pitch, roll_rad=roll,
+                         heading_std_rad=0.01, pitch_std_rad=0.01, roll_std_rad=0.01, mode="magnetic",
+                         mag_innovation_rad=0.0, mag_test_ratio=0.1, mag_fused=True)
+
+
+def _gnss(vehicle, seq, lat=32.06, lon=118.80, pos=(0.0, 0.0, 0.0), std=1.5):
+    return messages.make("gnss", vehicle, 0.2 * seq, seq, lat_deg=lat, lon_deg=lon, alt_m=10.0,
+                         pos_enu_m=list(pos), vel_enu_m_s=[1.0, 0.0, 0.0], course_rad=math.pi / 2, speed_m_s=1.0,
+                         fix_type="3d", num_sats=9, pdop=1.2, horiz_std_m=std)
+
+
+def _geomag(vehicle, seq, pos=(100.0, 200.0, 0.0)):
+    return messages.make("geomag_fix", vehicle, 5.0 + seq, seq, status="accepted", accepted=True, pos_enu_m=list(pos),
+                         ins_pos_enu_m=[90.0, 210.0, 0.0], hausdorff_nt=4.0, margin_nt=3.0, search_area_m2=1e6,
+                         n_samples=20)
+
+
+# ---- pure conversions --------------------------------------------------------------------------------------------
+
+
+def test_conversions_give_foxglove_types_with_right_values():
+    conv = fx.FoxgloveConverter(origins={"survey-1": (45.4, -75.7, 300.0)})
+    t_ns = 1_700_000_000_123_456_789
+    log = conv.convert(keys.alarm("car-1", "dmc"), _alarm("car-1", 0), t_ns)
+    assert [(o.topic, o.schema) for o in log] == [("/car-1/log", "foxglove.Log")]
+    assert log[0].msg["level"] == fx.LOG_ERROR and log[0].msg["timestamp"] == {"sec": 1_700_000_000,
+                                                                                "nsec": 123_456_789}
+    assert "3000 nT" in log[0].msg["message"] and "threshold 1500 nT" in log[0].msg["message"]
+    cleared = conv.convert(keys.alarm("car-1", "dmc"), _alarm("car-1", 1, state="cleared"), t_ns)
+    assert cleared[0].msg["level"] == fx.LOG_INFO
+
+    # GNSS 100 m east / 50 m north of the origin: the learned origin puts a later local fix back on the map
+    lat, lon, _ = fx.maths.enu_to_geodetic([100.0, 50.0, 2.0], 32.06, 118.80, 8.0)
+    gn = conv.convert(keys.clean_gnss("car-1"), _gnss("car-1", 0, float(lat), float(lon), (100.0, 50.0, 2.0)), t_ns)
+    assert gn[0].schema == "foxglove.LocationFix" and gn[0].topic == "/car-1/gnss/fix"
+    assert gn[0].msg["position_covariance"][0] == pytest.approx(1.5**2) and gn[0].msg["position_covariance_type"] == 2
+    o = conv.origin("car-1")
+    assert o[0] == pytest.approx(32.06, abs=1e-9) and o[1] == pytest.approx(118.80, abs=1e-9)
+    assert conv.convert(keys.raw_gnss("car-1"), _gnss("car-1", 1), t_ns) == []  # raw shown once, after ingest
+
+    fix = conv.convert(keys.fix_geomag("survey-1"), _geomag("survey-1", 0, (0.0, 1000.0, 0.0)), t_ns)
+    assert fix[0].topic == "/survey-1/geomag/fix"
+    assert fix[0].msg["latitude"] == pytest.approx(45.4 + 1000.0 / 6_367_000 * 180 / math.pi, abs=2e-4)
+    assert fix[0].msg["longitude"] == pytest.approx(-75.7, abs=1e-12)
+    assert conv.convert(keys.fix_geomag("drone-1"), _geomag("drone-1", 0), t_ns) == []
+    assert conv.skipped["geomag fix: no origin"] == 1
+    pending = dict(_geomag("survey-1", 1), status="pending", accepted=False)
+    assert conv.convert(keys.fix_geomag("survey-1"), pending, t_ns) == []
+
+    # attitude: heading 30° (clockwise from north) is yaw +60° in ENU; at the vehicle's last GNSS position
+    pose, tf = conv.convert(keys.heading("car-1"), _heading("car-1", 0, pitch=0.0, roll=0.0), t_ns)
+    q = pose.msg["pose"]["orientation"]
+    assert 2 * math.atan2(q["z"], q["w"]) == pytest.approx(math.radians(60))
+    assert pose.msg["pose"]["position"] == {"x": 100.0, "y": 50.0, "z": 2.0}
+    assert (tf.topic, tf.msg["parent_frame_id"], tf.msg["child_frame_id"]) == ("/tf", "car-1/enu", "car-1/base_link")
+
+
+# ---- Foxglove live -----------------------------------------------------------------------------------------------
+
+
+def _spawn_cli(*args, env=None):
+    e = dict(os.environ, PYTHONUNBUFFERED="1", **(env or {}))
+    return subprocess.Popen([sys.executable, "-m", "magmesh", *args], cwd=mu.REPO, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=e, start_new_session=True)
+
+
+class _Publisher:
+    """Publishes a vehicle's alarm, heading, GNSS and geomagnetic fixes at ~20 Hz until stopped."""
+
+    def __init__(self, session):
+        self.session = session
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self):
+        seq = 0
+        while not self.stop.is_set():
+            s = self.session
+            s.put(keys.clean_gnss("car-1"), messages.encode(_gnss("car-1", seq)))
+            s.put(keys.heading("car-1"), messages.encode(_heading("car-1", seq)))
+            s.put(keys.alarm("car-1", "dmc"), messages.encode(_alarm("car-1", seq, "raised" if seq % 2 else "cleared")))
+            s.put(keys.fix_geomag("car-1"), messages.encode(_geomag("car-1", seq)))
+            seq += 1
+            time.sleep(0.05)
+
+
+async def _foxglove_client(port, want_topics, timeout_s=60.0):
+    """Speak foxglove.websocket.v1: wait for the advertised channels, subscribe, decode a message of each."""
+    import websockets
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            ws = await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.websocket.v1"])
+            break
+        except OSError:
+            if time.monotonic() > deadline:
+                raise
+            await asyncio.sleep(0.2)
+    async with ws:
+        assert ws.subprotocol == "foxglove.websocket.v1"
+        info = json.loads(await asyncio.wait_for(ws.recv(), 10))
+        assert info["op"] == "serverInfo"
+        chans: dict[int, dict] = {}
+        subs: dict[int, int] = {}
+        got: dict[str, dict] = {}
+        while set(got) != set(want_topics):
+            left = deadline - time.monotonic()
+            assert left > 0, f"missing {set(want_topics) - set(got)}; channels {[c['topic'] for c in chans.values()]}"
+            frame = await asyncio.wait_for(ws.recv(), left)
+            if isinstance(frame, str):
+                m = json.loads(frame)
+                if m["op"] == "advertise":
+                    new = []
+                    for c in m["channels"]:
+                        chans[c["id"]] = c
+                        if c["topic"] in want_topics and c["id"] not in subs.values():
+                            sid = len(subs) + 1
+                            subs[sid] = c["id"]
+                            new.append({"id": sid, "channelId": c["id"]})
+                    if new:
+                        await ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
+                continue
+            assert frame[0] == 0x01
+            sid, log_ns = struct.unpack_from("<IQ", frame, 1)
+            ch = chans[subs[sid]]
+            got.setdefault(ch["topic"], {"channel": ch, "msg": json.loads(frame[13:]), "log_ns": log_ns})
+        return got
+
+
+def test_foxglove_live_channels_schemas_and_messages(tmp_path):
+    port = mu.free_port()
+    ws_port = mu.free_port()
+    router = mu.open_router(port)
+    pub_session = mu.open_client(port)
+    proc = _spawn_cli("foxglove", "--connect", mu.endpoint(port), "--port", str(ws_port), "--quiet",
+                      "--manifest", str(mu.REPO / "deploy" / "mesh.toml"),
+                      env={"MAGMESH_STATE_DIR": str(tmp_path)})
+    pub = _Publisher(pub_session)
+    want = ["magmesh/car-1/alarm/dmc", "magmesh/car-1/heading", "magmesh/car-1/fix/geomag", "magmesh/car-1/clean/gnss",
+            "/car-1/log", "/car-1/gnss/fix", "/car-1/geomag/fix", "/car-1/pose", "/tf"]
+    try:
+        got = asyncio.run(_foxglove_client(ws_port, want))
+    finally:
+        pub.stop.set()
+        pub.thread.join(5)
+        rc = mu.stop(proc, timeout=15)
+        out = proc.stdout.read().decode(errors="replace")
+        pub_session.close()
+        router.close()
+    assert rc == 0, out
+    for topic in want[:4]:
+        ch = got[topic]["channel"]
+        assert ch["encoding"] == "json" and ch["schemaEncoding"] == "jsonschema"
+        schema = json.loads(ch["schema"])
+        assert ch["schemaName"] == f"magmesh.{messages.type_for_key(topic)}"
+        assert set(schema["required"]) >= {"type", "vehicle", "t_s", "seq"}
+        # the live message decodes and validates against the magmesh contract
+        assert messages.validate(got[topic]["msg"], where=topic)["vehicle"] == "car-1"
+    assert got["magmesh/car-1/heading"]["msg"]["heading_rad"] == pytest.approx(math.radians(30))
+    for topic, schema_name in [("/car-1/log", "foxglove.Log"), ("/car-1/gnss/fix", "foxglove.LocationFix"),
+                               ("/car-1/geomag/fix", "foxglove.LocationFix"), ("/car-1/pose", "foxglove.PoseInFrame"),
+                               ("/tf", "foxglove.FrameTransform")]:
+        ch = got[topic]["channel"]
+        assert ch["schemaName"] == schema_name and ch["encoding"] == "json", ch
+        assert set(json.loads(ch["schema"])["required"]) <= set(got[topic]["msg"]), topic
+    assert got["/car-1/gnss/fix"]["msg"]["latitude"] == pytest.approx(32.06)
+    # the geomagnetic fix (100 m E, 200 m N of the frame origin learned from GNSS) lands north-east of it
+    g = got["/car-1/geomag/fix"]["msg"]
+    assert 32.06 + 0.0017 < g["latitude"] < 32.06 + 0.0019 and 118.80 + 0.001 < g["longitude"] < 118.80 + 0.0011
+    assert got["/car-1/log"]["msg"]["level"] in (fx.LOG_ERROR, fx.LOG_INFO)
+    assert "foxglove:" in out and "dropped for slow clients" in out
+
+
+def test_foxglove_bad_flags_get_one_clear_paragraph(tmp_path):
+    p = _spawn_cli("foxglove", "--origin", "car-1=north", "--port", str(mu.free_port()))
+    out = p.communicate(timeout=60)[0].decode()
+    assert p.returncode == 2 and "--origin 'car-1=north' must be VEHICLE=LAT,LON" in out and "Traceback" not in out
+    p = _spawn_cli("foxglove", "--manifest", str(tmp_path / "missing.toml"))
+    out = p.communicate(timeout=60)[0].decode()
+    assert p.returncode == 2 and "missing.toml does not exist" in out and "Traceback" not in out
