@@ -494,7 +494,18 @@ def encode(msg: dict, check: bool = True) -> bytes:
 
 
 def decode(payload: bytes | bytearray | memoryview, where: str = "", expected_type: str | None = None) -> dict:
-    """Decode and validate msgpack bytes; raise :class:`SchemaError` on anything wrong."""
+    """Decode and validate msgpack bytes; raise :class:`SchemaError` on anything wrong.
+
+    Runs the compiled validator (:func:`schemas.streams.fast_decode`, msgspec structs generated from
+    :data:`MESSAGES`); a payload it refuses goes through :func:`decode_reference`, which names the problem.
+    """
+    from .streams import fast_decode
+
+    return fast_decode(payload, where, expected_type)
+
+
+def decode_reference(payload: bytes | bytearray | memoryview, where: str = "", expected_type: str | None = None) -> dict:
+    """The reference decoder (pure Python): the same result as :func:`decode`, slower, with the error texts."""
     if not isinstance(payload, (bytes, bytearray, memoryview)):
         raise SchemaError("<payload>", f"must be bytes, got {type(payload).__name__}", where)
     if len(payload) == 0:

@@ -286,12 +286,15 @@ def json_schema(msg_type: str) -> dict:
 
 
 _untyped = msgspec.msgpack.Decoder()
+_MAX_PAYLOAD = 16 * 1024 * 1024
 
 
 def fast_decode(payload: bytes, where: str = "", expected_type: str | None = None) -> dict:
     """Decode and validate one v1 message with the compiled validator; same result and errors as
     :func:`schemas.messages.decode` (on a failure the reference validator names the field and the problem)."""
     try:
+        if len(payload) > _MAX_PAYLOAD:
+            raise ValueError
         obj = _untyped.decode(payload)
         t = obj["type"] if type(obj) is dict else None
         if expected_type is not None and t != expected_type:
@@ -299,7 +302,7 @@ def fast_decode(payload: bytes, where: str = "", expected_type: str | None = Non
         s = msgspec.convert(obj, struct_for(t), strict=True)
     except Exception:
         # slow path: the reference validator writes the error (and is the judge of anything msgspec refuses)
-        return messages.decode(payload, where, expected_type)
+        return messages.decode_reference(payload, where, expected_type)
     out = dict(obj)
     for name in s.__struct_fields__:
         v = getattr(s, name)
