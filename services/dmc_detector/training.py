@@ -67,6 +67,20 @@ def params_from_sim(mp, rng: np.random.Generator | None = None, offset_err_nt: f
                          float(mp.field_radius_nt), "3d", pid)
 
 
+#: the paper-streets drives (``paper_*`` layouts, HMR3300 at 8 Hz): rates between consecutive samples as in
+#: the paper (the window of one sample, the rate over one 0.125 s period)
+PAPER_FEATURES = core.FeatureSettings(smooth_window_s=0.1, rate_window_s=0.125)
+#: calibration error of an HMR3300 pair compensated on the initial circle: offset (nT) and matrix (fraction),
+#: 1-σ; gives the undisturbed single-compass heading error of ~1° RMS of the datasheet (level, 1.0° RMS)
+#: and the paper's "< 1.2° after static compensation"
+PAPER_CAL_OFFSET_ERR_NT = 250.0
+PAPER_CAL_MATRIX_ERR = 0.006
+
+
+def is_paper_layout(layout: str) -> bool:
+    return layout.startswith("paper_")
+
+
 def simulate_drive(layout: str, seed: int, duration_s: float = 300.0,
                    settings: core.FeatureSettings | None = None, calibration_error: bool = True,
                    cal_seed: int = 0) -> DriveData:
@@ -75,12 +89,22 @@ def simulate_drive(layout: str, seed: int, duration_s: float = 300.0,
     The static compensation is the simulator's truth plus a calibration's typical error unless
     ``calibration_error`` is False. ``cal_seed`` picks the calibration: the same car keeps the same
     calibration from drive to drive (cal_seed fixed); another cal_seed is a recalibrated car.
+    A ``paper_*`` layout is driven with the paper-streets profile (``sim_publishers.car.core.PAPER_STREETS``),
+    its features taken between consecutive samples (:data:`PAPER_FEATURES`) and its calibration error
+    that of an HMR3300 pair.
     """
-    from sim_publishers.car.core import simulate
+    from sim_publishers.car.core import paper_streets_settings, simulate
 
-    d = simulate(seed=seed, layout=layout, duration_s=duration_s)
+    paper = is_paper_layout(layout)
+    if paper:
+        d = simulate(paper_streets_settings(layout, seed, duration_s=duration_s))
+        settings = settings or PAPER_FEATURES
+        err_kw = {"offset_err_nt": PAPER_CAL_OFFSET_ERR_NT, "matrix_err": PAPER_CAL_MATRIX_ERR}
+    else:
+        d = simulate(seed=seed, layout=layout, duration_s=duration_s)
+        err_kw = {}
     rng = np.random.default_rng([cal_seed, 0xDC]) if calibration_error else None
-    p1, p2 = params_from_sim(d.true_params["1"], rng), params_from_sim(d.true_params["2"], rng)
+    p1, p2 = params_from_sim(d.true_params["1"], rng, **err_kw), params_from_sim(d.true_params["2"], rng, **err_kw)
     f = core.features_batch(d.t_mag_s, d.mag_b_nt["1"], d.mag_b_nt["2"], p1, p2, d.declination_rad, settings)
     err = np.degrees(np.abs(maths.angle_diff(f.heading_rad, d.truth.heading_rad)))
     name = f"{layout}/seed{seed}" + (f"/cal{cal_seed}" if calibration_error and cal_seed else "")

@@ -108,6 +108,8 @@ class CarSimSettings:
     electrical_step_nt: float = 60.0  # car's switched loads: hard-iron steps of about this size
     electrical_events_per_min: float = 1.0  # how often a load switches on (each lasts 5–60 s)
     clutter_per_km: float = 15.0  # manhole covers and parked cars along the streets (not in "clean")
+    mag_resolution_nt: float = 0.0  # output quantisation step of the magnetometers (0 = none)
+    car_loads: str = "steps"  # the car's own fields: "steps" (generic hard-iron steps) or "dipoles" (PAPER_STREETS)
     accel_noise_m_s2: float = 0.03
     accel_bias_max_m_s2: float = 0.08
     gnss_pos_std_m: float = 1.5  # 1-σ horizontal error per axis (open sky)
@@ -137,6 +139,10 @@ class CarSimSettings:
             raise ValueError("internal_rate_hz must be at least the highest sensor rate")
         if not 0 <= self.stop_probability <= 1:
             raise ValueError("stop_probability must be in [0, 1]")
+        if self.car_loads not in ("steps", "dipoles"):
+            raise ValueError(f"car_loads must be 'steps' or 'dipoles', got {self.car_loads!r}")
+        if not self.mag_resolution_nt >= 0:
+            raise ValueError(f"mag_resolution_nt must be ≥ 0, got {self.mag_resolution_nt!r}")
 
 
 # ---- interference layouts ---------------------------------------------------------------------
@@ -157,6 +163,9 @@ class SourceSpec:
     speed_m_s: float = 14.0  # truck: its own speed
     same_direction: bool = False  # truck: overtaking (True) or oncoming (False)
     stop_s: float = 0.0  # the car stops at the source's centre for this long (a red light)
+    height_m: float = 5.5  # deck: height of its girders above the road (< 0: under the road, a bridge deck)
+    pace: float = 0.15  # vehicle: its speed relative to the car's, as a fraction of the car's speed
+    vehicle: str = "car"  # vehicle: "car" or "bus"
 
 
 LAYOUTS: dict[str, tuple[SourceSpec, ...]] = {
@@ -180,7 +189,58 @@ LAYOUTS: dict[str, tuple[SourceSpec, ...]] = {
         SourceSpec("bridge_1", "bridge", straight=2, frac=0.75, length_m=35.0, strength=1.3, stop_s=5.0),
         SourceSpec("truck_2", "truck", straight=4, frac=0.5, speed_m_s=16.0, same_direction=True, strength=1.3),
     ),
+    # "paper streets": the conditions of ALGORITHMS.md §1's road data (see PAPER_STREETS and the README):
+    # extended steel structures at metres (field nearly uniform over the 10 cm baseline), vehicles keeping
+    # pace in the next lane and queueing beside the car, steel bridge decks with rebar and expansion joints
+    "paper_a": (
+        SourceSpec("elevated_1", "deck", straight=0, frac=0.55, length_m=120.0, height_m=5.5, stop_s=10.0),
+        SourceSpec("bus_1", "vehicle", straight=1, frac=0.5, lateral_m=3.2, vehicle="bus", pace=0.12, stop_s=6.0),
+        SourceSpec("bridge_1", "deck", straight=2, frac=0.5, length_m=60.0, height_m=-1.0),
+        SourceSpec("car_1", "vehicle", straight=3, frac=0.4, lateral_m=2.4, vehicle="car", pace=0.2),
+        SourceSpec("sidewall_1", "deck", straight=4, frac=0.5, length_m=100.0, height_m=4.0, lateral_m=-9.0),
+        SourceSpec("roadworks_1", "plates", straight=5, frac=0.5, length_m=9.0),
+        SourceSpec("bus_2", "vehicle", straight=6, frac=0.5, lateral_m=-2.2, vehicle="bus", pace=0.1, stop_s=8.0),
+    ),
+    "paper_b": (
+        SourceSpec("bridge_1", "deck", straight=0, frac=0.5, length_m=80.0, height_m=-1.2, stop_s=6.0,
+                   strength=1.2),
+        SourceSpec("truck_1", "vehicle", straight=1, frac=0.45, lateral_m=-3.4, vehicle="bus", pace=0.08, stop_s=8.0),
+        SourceSpec("elevated_1", "deck", straight=2, frac=0.5, length_m=100.0, height_m=6.5, strength=1.3),
+        SourceSpec("cable_1", "cable", straight=3, frac=0.5, strength=0.8),
+        SourceSpec("car_1", "vehicle", straight=4, frac=0.5, lateral_m=-2.6, vehicle="car", pace=0.25),
+        SourceSpec("roadworks_1", "plates", straight=5, frac=0.4, length_m=6.0, stop_s=5.0),
+        SourceSpec("elevated_2", "deck", straight=6, frac=0.5, length_m=120.0, height_m=5.5, lateral_m=1.5),
+    ),
+    "paper_c": (
+        SourceSpec("sidewall_1", "deck", straight=0, frac=0.5, length_m=120.0, height_m=5.0, lateral_m=8.0,
+                   stop_s=8.0),
+        SourceSpec("elevated_1", "deck", straight=1, frac=0.5, length_m=90.0, height_m=5.0, strength=0.8),
+        SourceSpec("bus_1", "vehicle", straight=2, frac=0.5, lateral_m=3.0, vehicle="bus", pace=0.15),
+        SourceSpec("bridge_1", "deck", straight=3, frac=0.5, length_m=50.0, height_m=-0.9, strength=0.9),
+        SourceSpec("car_1", "vehicle", straight=4, frac=0.45, lateral_m=2.3, vehicle="car", pace=0.1, stop_s=5.0),
+        SourceSpec("bus_2", "vehicle", straight=5, frac=0.5, lateral_m=2.1, vehicle="bus", pace=0.06, stop_s=10.0),
+        SourceSpec("roadworks_1", "plates", straight=6, frac=0.5, length_m=12.0),
+    ),
 }
+
+#: settings of the "paper streets" profile (use with a ``paper_*`` layout: :func:`paper_streets_settings`).
+#: Sensor: Honeywell HMR3300 (datasheet: 8 Hz update in the magnetometer/heading modes, 16-bit ADC on the
+#: HMC1021/HMC1022 bridges over ±2 gauss; output in units of ~0.1 mG = 10 nT, the resolution used here;
+#: bridge noise 85 µgauss ≈ 8.5 nT (HMC1021/1022 datasheet, 10 Hz bandwidth)). Streets: slower, congested
+#: traffic with more stops (exposure to a source grows as the speed falls), road grades of ±3 % (ramps of
+#: elevated roads) and camber of ±0.9°, the car's own switched loads as dipoles in the body.
+PAPER_STREETS: dict[str, Any] = {
+    "mag_rate_hz": 8.0, "mag_noise_nt": 8.5, "mag_resolution_nt": 10.0, "truth_rate_hz": 8.0,
+    "city_speed_min_m_s": 4.0, "city_speed_max_m_s": 12.0, "stop_probability": 0.5,
+    "grade_amplitude_rad": 0.03, "camber_amplitude_rad": 0.015, "clutter_per_km": 25.0, "car_loads": "dipoles",
+}
+PAPER_LAYOUTS = ("paper_a", "paper_b", "paper_c")
+
+
+def paper_streets_settings(layout: str = "paper_a", seed: int = 1, **overrides: Any) -> CarSimSettings:
+    """CarSimSettings of the paper-streets profile (HMR3300 sensors, congested streets, the car's own loads)."""
+    return CarSimSettings(**{**PAPER_STREETS, "layout": layout, "seed": seed, **overrides})
+
 
 #: GNSS sky view under each kind of source: "blocked" (no fix) or "degraded"
 _SKY = {"tunnel": "blocked", "bridge": "degraded", "viaduct": "degraded"}
@@ -219,6 +279,16 @@ class Source:
     s_range_m: tuple[float, float] = (0.0, 0.0)  # along-route extent (static sources)
     sky: str = "open"  # GNSS sky view under it
     dipole_radius_m: float = math.inf  # static dipoles: field neglected beyond this distance
+    body_track: Any = None  # vehicle beside the car: t_s (n,) → dipole positions (n, K, 3) in the car's body frame
+    body_moment_am2: np.ndarray | None = None  # (K, 3) its moments in the car's body frame
+
+    def field_body_nt(self, t_s: np.ndarray, point_body_m: np.ndarray) -> np.ndarray:
+        """Field (N×3, nT, car body frame) of a vehicle beside the car at one body-frame point."""
+        pos = self.body_track(np.asarray(t_s, float))
+        out = np.zeros((pos.shape[0], 3))
+        for k, m in enumerate(self.body_moment_am2):
+            out += maths.dipole_field_nt(m, pos[:, k, :], point_body_m[None, :])
+        return out
 
     def field_nt(self, t_s: np.ndarray, points_m: np.ndarray) -> np.ndarray:
         """Field of the source at points (N×3) at times t_s (N,), ENU, nT."""
@@ -416,7 +486,7 @@ def _plan_route(s: CarSimSettings, specs: tuple[SourceSpec, ...], rng: np.random
     need_len: dict[int, float] = {}
     forced: dict[int, tuple[float, float]] = {}
     for sp in specs:
-        extent = sp.length_m if sp.kind in ("bridge", "viaduct", "tunnel") else 60.0
+        extent = sp.length_m if sp.kind in ("bridge", "viaduct", "tunnel", "deck", "plates") else 60.0
         lo = (extent / 2 + 50.0) / max(min(sp.frac, 1 - sp.frac), 0.1)
         need_len[sp.straight] = max(need_len.get(sp.straight, 0.0), lo)
         if sp.stop_s > 0:
@@ -631,7 +701,27 @@ def _place_sources(s: CarSimSettings, specs, plan: _Plan, traj: _Trajectory, b_e
             groups = [(_grid(frame, _along(half, 3.0), (-2.5, 2.5), (4.5,)), 3500.0),
                       (_grid(frame, _along(half, 6.0), (-5.0, 5.0), (1.5,)), 2000.0),
                       (_grid(frame, _along(half, 1.5), (-1.0, 1.0), (-0.3,)), 70.0)]
-        if sp.kind in ("bridge", "viaduct", "tunnel"):
+        sky = _SKY.get(sp.kind, "open")
+        body_track = body_moment = None
+        if sp.kind == "plates":
+            # roadworks: steel road plates (1.5 m × 3 m × 25 mm) laid over a trench on the car's lane, one every
+            # 3 m over ``length_m``; each as 3 × 6 cells of 0.5 m, 20 A·m² per cell (magnetisation of order
+            # 3·10³ A/m in 6 dm³ of mild steel): tens of µT one metre above, strongly non-uniform over 10 cm
+            cells = _grid(frame, np.concatenate([x + np.arange(-1.25, 1.3, 0.5) for x in _along(half, 3.0)]),
+                          (-0.5, 0.0, 0.5), (0.02,))
+            pos = np.array(cells)
+            mom = np.concatenate([_member_moments(rng, 18, b_earth_enu, 20.0 * k)
+                                  for _ in range(len(cells) // 18)] + [np.zeros((len(cells) % 18, 3))])
+            extent = half
+        elif sp.kind == "deck":
+            pos, mom, sky = _deck(frame, sp, half, rng, b_earth_enu)
+            extent = half
+        elif sp.kind == "vehicle":
+            body_track, body_moment = _vehicle(sp, s_c, traj, rng, b_earth_enu, psi, h)
+            pos, mom = np.zeros((0, 3)), np.zeros((0, 3))
+            t_pass = float(np.interp(s_c, traj.dist, traj.t))
+            extent = 30.0 / max(sp.pace, 0.02)
+        elif sp.kind in ("bridge", "viaduct", "tunnel"):
             pos = np.array([p for pts, _ in groups for p in pts])
             mom = np.concatenate([_steel_moments(rng, len(pts), b_earth_enu, m * k) for pts, m in groups])
             extent = half
@@ -660,9 +750,91 @@ def _place_sources(s: CarSimSettings, specs, plan: _Plan, traj: _Trajectory, b_e
         out.append(Source(
             name=sp.name, kind=sp.kind, centre_enu_m=centre, dipole_pos_m=pos, dipole_moment_am2=mom,
             segments_m=segs, current_a=current, velocity_enu_m_s=vel, t_pass_s=t_pass,
-            radius_m=extent + 60.0, s_range_m=(s_c - extent, s_c + extent), sky=_SKY.get(sp.kind, "open"),
+            radius_m=extent + 60.0, s_range_m=(s_c - extent, s_c + extent), sky=sky,
+            body_track=body_track, body_moment_am2=body_moment,
         ))
     return out
+
+
+def _line(frame, x0: float, x1: float, y: float, z0: float, z1: float, step_m: float = 1.0) -> list[np.ndarray]:
+    """Points every ``step_m`` along a straight steel member from (x0, y, z0) to (x1, y, z1) (road frame)."""
+    n = max(2, int(round(max(abs(x1 - x0), abs(z1 - z0)) / step_m)) + 1)
+    xs, zs = np.linspace(x0, x1, n), np.linspace(z0, z1, n)
+    centre, fwd, left, up, road_z = frame
+    dz = road_z(xs) - centre[2]
+    return [centre + x * fwd + y * left + (d + z) * up for x, z, d in zip(xs, zs, dz, strict=True)]
+
+
+def _member_moments(rng, n: int, b_earth_enu: np.ndarray, per_m_am2: float, step_m: float = 1.0) -> np.ndarray:
+    """Moments of the n points of one steel member: induced (along the Earth field) plus a remanent part
+    coherent along the member (one direction per member, ±20 % in size from point to point)."""
+    remanent = _unit(rng.normal(size=3))
+    mag = per_m_am2 * step_m * rng.uniform(0.8, 1.2, size=(n, 1))
+    return (_unit(b_earth_enu)[None, :] * 0.7 + remanent[None, :] * 0.7) * mag
+
+
+def _deck(frame, sp: SourceSpec, half: float, rng, b_earth_enu) -> tuple[np.ndarray, np.ndarray, str]:
+    """An extended steel structure as lines of dipoles (1 m apart, like a continuous magnetised member).
+
+    ``height_m`` > 0: an elevated road or overhead structure — four longitudinal girders at that height
+    across ±4.5 m (1000 A·m² per m each: steel box girders) and pillars every 30 m at ±7 m (vertical members, 600 A·m² per m):
+    at 4–6 m its field is several µT and nearly uniform over the 10 cm baseline. With ``lateral_m`` far
+    from 0 it stands beside the road (an elevated road or steel wall alongside). ``height_m`` < 0: a steel
+    bridge deck — four girders that far under the road (150 A·m² per m), truss walls at ±5.5 m (vertical
+    members every 5 m and top chords at 5 m, 500 A·m² per m), rebar in the concrete slab (10 A·m² every
+    1.5 m, 0.3 m under the road) and a steel expansion joint at each end (60 A·m² points at 0.15 m).
+    Moments: the field of the structure at the car is calibrated to the paper's report that heading errors
+    near such structures exceed 20–25° (a perpendicular field of 10–15 µT against ~34 µT horizontal)."""
+    k = sp.strength
+    members: list[tuple[list[np.ndarray], float, float]] = []  # (points, A·m² per m, spacing)
+    if sp.height_m > 0:
+        for y in (-4.5, -1.5, 1.5, 4.5):
+            members.append((_line(frame, -half, half, y, sp.height_m, sp.height_m), 1000.0 * k, 1.0))
+        # pillars: either side of an overhead deck; beside the road, under the structure (≥ 3.5 m from the car)
+        pillar_y = (-7.0, 7.0) if abs(sp.lateral_m) < 6.0 else (-4.5, 4.5)
+        for x in _along(half, 30.0):
+            for y in pillar_y:
+                members.append((_line(frame, x, x, y, 0.0, sp.height_m), 600.0 * k, 1.0))
+        sky = "degraded" if abs(sp.lateral_m) < 6.0 else "open"
+    else:
+        for y in (-3.0, -1.0, 1.0, 3.0):
+            members.append((_line(frame, -half, half, y, sp.height_m, sp.height_m), 150.0 * k, 1.0))
+        for y in (-5.5, 5.5):
+            members.append((_line(frame, -half, half, y, 5.0, 5.0), 500.0 * k, 1.0))
+            for x in _along(half, 5.0):
+                members.append((_line(frame, x, x, y, 0.0, 5.0), 500.0 * k, 1.0))
+        members.append((_grid(frame, _along(half, 1.5), (-1.5, 0.0, 1.5), (-0.3,)), 10.0 * k, 1.0))
+        members.append((_grid(frame, (-half, half), (-1.5, 0.0, 1.5), (-0.15,)), 60.0 * k, 1.0))
+        sky = "degraded"
+    pos = np.array([p for pts, _, _ in members for p in pts])
+    mom = np.concatenate([_member_moments(rng, len(pts), b_earth_enu, per_m, step) for pts, per_m, step in members])
+    return pos, mom, sky
+
+
+def _vehicle(sp: SourceSpec, s_c: float, traj: _Trajectory, rng, b_earth_enu, psi: float, h: float):
+    """A vehicle in the next lane keeping pace with the car: beside it when the car is at ``s_c``, drifting
+    along it at ``pace`` × the car's speed (so it queues beside the car at a stop). Dipoles in the car's
+    body frame: a car as two (engine, rear axle: 150 A·m² each), a bus or truck as four 1500 A·m² along
+    its 11 m (vehicle detection literature models cars and trucks as magnetic dipoles of this order)."""
+    if sp.vehicle == "bus":
+        xs, m0, z = np.array([-4.5, -1.5, 1.5, 4.5]), 1500.0, 0.9
+    else:
+        xs, m0, z = np.array([-1.2, 1.2]), 150.0, 0.5
+    mom_enu = _steel_moments(rng, len(xs), b_earth_enu, m0 * sp.strength)
+    # moments fixed in the vehicle, which heads as the car does: take them in the car's body frame at the zone
+    R0 = _rotations(np.array([psi]), np.array([0.0]), np.array([0.0]))[0]
+    mom_body = mom_enu @ R0  # Rᵀ m per row
+    t_grid, d_grid = traj.t, traj.dist
+
+    def track(t_s: np.ndarray) -> np.ndarray:
+        x = sp.pace * (np.interp(t_s, t_grid, d_grid) - s_c)
+        pos = np.empty((t_s.size, len(xs), 3))
+        pos[:, :, 0] = x[:, None] + xs[None, :]
+        pos[:, :, 1] = sp.lateral_m
+        pos[:, :, 2] = z - h
+        return pos
+
+    return track, mom_body
 
 
 def _relevant(src: Source, t: np.ndarray, pos: np.ndarray) -> np.ndarray:
@@ -689,7 +861,7 @@ def _place_clutter(s: CarSimSettings, plan: _Plan, traj: _Trajectory, b_earth_en
         return None
     where = np.sort(rng.uniform(s0, s1, size=n))
     for src in sources:  # none inside the big zones (their own steel dominates there)
-        if src.kind in ("bridge", "viaduct", "tunnel", "cable"):
+        if src.kind in ("bridge", "viaduct", "tunnel", "cable", "deck", "plates"):
             where = where[(where < src.s_range_m[0] - 20.0) | (where > src.s_range_m[1] + 20.0)]
     n = where.size
     if n == 0:
@@ -724,6 +896,60 @@ def _electrical_offsets(s: CarSimSettings, t: np.ndarray) -> dict[str, np.ndarra
         on = (t >= t_on) & (t < t_off)
         for sid in SENSORS:
             out[sid][on] += v * rng.uniform(0.6, 1.4)
+    return out
+
+
+#: the car's own switched loads as dipoles in the body frame (x forward, y left, z up, m from the midpoint
+#: of the two sensors; moments A·m²): position, moment size, and what switches it. A small DC motor with
+#: its ferrite magnet and a wiring loop of a few A have moments of 0.01–0.5 A·m²; the sizes give
+#: 50–400 nT at the nearer sensor (the dipole formula), unequal at the two sensors 10 cm apart.
+CAR_LOADS = (
+    ("blower_fan", (0.45, 0.25, -0.30), 0.30, "on_off"),  # HVAC blower behind the dashboard
+    ("wiper_motor", (0.95, -0.20, -0.35), 0.40, "wipers"),  # front cowl: runs in showers, current pulses per sweep
+    ("indicator_relay", (0.15, 0.12, -0.10), 0.01, "indicator"),  # flasher 1.5 Hz near sensor 1, while turning
+    ("alternator_cable", (1.40, -0.30, -0.40), 1.50, "engine"),  # charging current: engine speed and the loads
+)
+
+
+def _car_load_fields(s: CarSimSettings, t: np.ndarray, traj: _Trajectory, lever: dict,
+                     calib_end_s: float) -> dict[str, np.ndarray]:
+    """Field of the car's own loads at each sensor (body frame, nT) over the magnetometer epochs.
+
+    Fan: on/off periods of 30–180 s. Wipers: one shower per drive with probability 0.5 (60–200 s), the motor
+    current pulsing with each 0.75 Hz sweep. Indicator: a 1.5 Hz square wave from 3 s before to the end of
+    every street turn. Alternator cable: a moment following engine speed (∝ car speed) and the load of fan
+    and wipers, relative to its value during the initial calibration circle (where the calibration absorbed it)."""
+    rng = np.random.default_rng([s.seed, 0xCA7])
+    mrng = np.random.default_rng([s.vehicle_seed, 0xCA7])  # directions: a property of the car
+    n = t.size
+    fan = np.zeros(n)
+    t_on = rng.uniform(0.0, 60.0)
+    while t_on < s.duration_s:
+        t_off = t_on + rng.uniform(30.0, 180.0)
+        fan[(t >= t_on) & (t < t_off)] = 1.0
+        t_on = t_off + rng.uniform(30.0, 240.0)
+    wipers = np.zeros(n)
+    if rng.random() < 0.5:
+        w0 = rng.uniform(0.0, max(s.duration_s - 60.0, 1.0))
+        on = (t >= w0) & (t < w0 + rng.uniform(60.0, 200.0))
+        wipers[on] = 0.5 * (1.0 - np.cos(2 * math.pi * 0.75 * (t[on] - w0)))
+    yaw_rate = np.abs(np.interp(t, traj.t, traj.omega[:, 2]))
+    # street turns only (the initial circle is the calibration manoeuvre), with a 3 s lead before each
+    turning = (yaw_rate > 0.08) & (t > calib_end_s)
+    ahead = np.interp(t + 3.0, t, turning.astype(float), right=0.0) > 0
+    indicator = np.where(turning | ahead, (np.floor(t * 3.0) % 2 == 0).astype(float), 0.0)
+    speed = np.interp(t, traj.t, np.linalg.norm(traj.vel, axis=1))
+    engine = 0.2 + 0.5 * np.clip(speed / 14.0, 0, 1) + 0.15 * fan + 0.15 * wipers
+    out = {sid: np.zeros((n, 3)) for sid in SENSORS}
+    switch = {"on_off": fan, "wipers": wipers, "indicator": indicator, "engine": engine}
+    for _name, where, size, what in CAR_LOADS:
+        m = _unit(mrng.normal(size=3)) * size
+        a = switch[what]
+        if what == "engine":  # the calibration absorbed its level on the circle (3 m/s, no other load)
+            a = a - (0.2 + 0.5 * 3.0 / 14.0)
+        p = np.asarray(where, float)
+        for sid in SENSORS:
+            out[sid] += a[:, None] * maths.dipole_field_nt(m, p, lever[sid])[None, :]
     return out
 
 
@@ -864,16 +1090,26 @@ def simulate(settings: CarSimSettings | None = None, **overrides: Any) -> CarDri
     b_src_enu = {sid: np.zeros((n, 3)) for sid in SENSORS}
     sensor_pos = {sid: pos + np.einsum("nij,j->ni", R, lever[sid]) for sid in SENSORS}
     for j, src in enumerate(sources):
-        idx = np.flatnonzero(_relevant(src, t_mag, pos))
+        if src.body_track is not None:  # a vehicle beside the car: its dipoles are given in the body frame
+            idx = np.flatnonzero(np.min(np.abs(src.body_track(t_mag)[:, :, 0]), axis=1) < 30.0)
+        else:
+            idx = np.flatnonzero(_relevant(src, t_mag, pos))
         if idx.size == 0:
             continue
         for sid in SENSORS:
-            f = src.field_nt(t_mag[idx], sensor_pos[sid][idx])
+            if src.body_track is not None:
+                f = np.einsum("nij,nj->ni", R[idx], src.field_body_nt(t_mag[idx], lever[sid]))
+            else:
+                f = src.field_nt(t_mag[idx], sensor_pos[sid][idx])
             b_src_enu[sid][idx] += f
             if sid == "1":
                 active[idx, j] = np.linalg.norm(f, axis=1) > s.active_field_nt
     params = true_mag_params(s, radius)
-    electrical = _electrical_offsets(s, t_mag)
+    if s.car_loads == "dipoles":
+        loads_body = _car_load_fields(s, t_mag, traj, lever, plan.calib[1] / s.internal_rate_hz)
+        electrical = {sid: loads_body[sid] @ np.linalg.inv(params[sid].matrix).T for sid in SENSORS}
+    else:
+        electrical = _electrical_offsets(s, t_mag)
     mag_b: dict[str, np.ndarray] = {}
     herr: dict[str, np.ndarray] = {}
     # levelling: Ry(−θ) Rx(φ) = _rotations with yaw 0, i.e. heading π/2 (maths.tilt_compensated_heading)
@@ -884,6 +1120,8 @@ def simulate(settings: CarSimSettings | None = None, **overrides: Any) -> CarDri
         S = np.linalg.inv(params[sid].matrix)
         mag_b[sid] = (h @ S.T + params[sid].offset_nt + electrical[sid]
                       + rng.normal(size=(n, 3)) * s.mag_noise_nt)
+        if s.mag_resolution_nt > 0:  # the sensor's output unit
+            mag_b[sid] = np.round(mag_b[sid] / s.mag_resolution_nt) * s.mag_resolution_nt
         lev = np.einsum("nij,nj->ni", Rlevel, h)
         h_mag = maths.mag_heading_flu(lev[:, 0], lev[:, 1], decl)
         herr[sid] = maths.angle_diff(h_mag, heading)
