@@ -69,3 +69,66 @@ def test_time_order_duplicates_and_gaps():
 def test_settings_range_checked():
     with pytest.raises(ValueError):
         IngestSettings(max_field_nt=0)
+
+
+def test_sample_ahead_of_the_streams_clock_is_refused_without_moving_it():
+    from services.ingest.core import ahead_limit_s
+
+    st = StreamState()
+    for i in range(100):  # 100 Hz, received in real time
+        check_order(mag(0.01 * i), st, S, K, now=0.01 * i)
+        accept(mag(0.01 * i, seq=i), st, 0.01 * i, S)
+    assert ahead_limit_s("mag", st, S, 1.0) == pytest.approx(10.0 + 1.0 * (2 * 0.01 + 0.5))
+    with pytest.raises(Rejection) as e:
+        check_order(mag(0.99 + 3500.0), st, S, K, now=1.0)
+    assert e.value.code == "time_order" and "ahead of the stream's clock" in e.value.reason
+    assert st.last_t_s == pytest.approx(0.99)
+    check_order(mag(1.0), st, S, K, now=1.0)  # the real stream goes on
+    # the gap a silent stream may bridge grows with receive time: 60 s of silence, then 60 s later in sample time
+    check_order(mag(61.0), st, S, K, now=61.0)
+
+
+def test_a_faster_stream_clock_is_learned():
+    st = StreamState()
+    for i in range(300):  # a replay at 20x: 0.2 s of sample time per 0.01 s of receive time
+        t = 0.2 * i
+        check_order(mag(t), st, S, K, now=0.01 * i)
+        accept(mag(t, seq=i), st, 0.01 * i, S)
+    assert 15 < st.rate < 25
+    check_order(mag(st.last_t_s + 18.0), st, S, K, now=0.01 * 299)  # within its clock at ~20x (a 1x clock: 10.5 s)
+
+
+def test_rebase_only_after_consistent_refusals():
+    from services.ingest.core import note_refusal, rebase
+
+    s = IngestSettings(rebase_after=5)
+    st = StreamState()
+    accept(mag(100.0, seq=0), st, 0.0, s)
+    # refusals that disagree with each other (a forger's random times) never add up
+    assert not any(note_refusal(mag(t), st, s) for t in (1.0, 5000.0, 2.0, 9000.0, 3.0, 7000.0, 4.0))
+    # a restarted source: consistent times, each a little after the previous
+    flags = [note_refusal(mag(0.01 * i), st, s) for i in range(1, 6)]
+    assert flags == [False, False, False, False, True]
+    rebase(st)
+    assert st.last_t_s is None and st.clock_rebases == 1
+    check_order(mag(0.06), st, s, K, now=1.0)
+    # an accepted sample in between resets the run
+    accept(mag(0.06, seq=1), st, 1.0, s)
+    assert not note_refusal(mag(9.0), st, s) and st.contra_n == 1
+
+
+def test_seq_jumps_are_bounded():
+    st = StreamState()
+    accept(mag(0.0, seq=0), st)
+    accept(mag(0.1, seq=10**9), st)
+    accept(mag(0.2, seq=1), st)
+    accept(mag(0.3, seq=5), st)
+    assert st.upstream_gaps == 3 and st.seq_rebases == 2
+
+
+def test_max_ahead_settings_checked_and_merged():
+    assert IngestSettings(max_ahead_s={"imu": 1.0}).max_ahead_s["imu"] == 1.0
+    assert IngestSettings(max_ahead_s={"imu": 1.0}).max_ahead_s["gnss"] == 60.0
+    for bad in ({"imus": 1.0}, {"imu": -1}, {"imu": "x"}, [1.0]):
+        with pytest.raises(ValueError):
+            IngestSettings(max_ahead_s=bad)
