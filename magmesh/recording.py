@@ -312,7 +312,9 @@ def read_records(path: str | Path, key_exprs: Sequence[str] | None = None,
         for schema, channel, message in reader.iter_messages(log_time_order=True):
             ok = selected.get(channel.id)
             if ok is None:
-                ok = selected[channel.id] = matches_any(key_exprs, channel.topic)
+                # Foxglove views in a json recording (magmesh.foxglove_mcap) are not mesh traffic
+                ok = selected[channel.id] = (channel.metadata.get("foxglove_derived") != "true"
+                                             and matches_any(key_exprs, channel.topic))
             if not ok:
                 continue
             msg_type = channel.metadata.get("magmesh_type") or None
@@ -320,8 +322,10 @@ def read_records(path: str | Path, key_exprs: Sequence[str] | None = None,
                 msg_type = schema.name[len(SCHEMA_PREFIX):]
             if msg_type == LIVELINESS and not liveliness:
                 continue
-            yield Record(channel.topic, msg_type, bytes(message.data), int(message.log_time),
-                         int(message.publish_time))
+            data = bytes(message.data)
+            if channel.message_encoding == "json":  # a json recording: back to the wire encoding
+                data = msgpack.packb(json.loads(data), use_bin_type=True)
+            yield Record(channel.topic, msg_type, data, int(message.log_time), int(message.publish_time))
 
 
 def load_messages(path: str | Path, key_exprs: Sequence[str] | None = None,
@@ -365,6 +369,8 @@ def summarize(path: str | Path) -> dict:
         st = summ.statistics
         for cid, n in st.channel_message_counts.items():
             ch = summ.channels[cid]
+            if ch.metadata.get("foxglove_derived") == "true":
+                continue
             if ch.metadata.get("magmesh_type") == LIVELINESS:
                 n_live += int(n)
                 continue

@@ -12,6 +12,8 @@ import time
 from collections import Counter
 from collections.abc import Callable, Sequence
 
+from schemas import keys, messages
+
 FIFO_CAPACITY = 16384
 IDLE_SLEEP_S = 0.0005
 MAX_IDLE_SLEEP_S = 0.005
@@ -60,3 +62,23 @@ def run_tap(session, key_exprs: Sequence[str], on_sample: Callable[[str, bytes, 
         for sub in subs:
             sub.undeclare()
     return counts
+
+
+def decode_samples(key: str, payload: bytes) -> list[tuple[str, dict]]:
+    """The validated v1 messages a payload carries, each with its per-stream key: one for a single sample,
+    every sample of a batch (contract v2, ``raw/batch`` / ``clean/batch``) on its stream's own key, in order.
+
+    Raises :class:`schemas.messages.SchemaError` when the payload is not a valid magmesh message and
+    :class:`schemas.keys.KeyError_` when the key is outside the contract.
+    """
+    info = keys.parse(key)
+    if info.kind in ("raw", "clean") and info.rest and info.rest[0] == keys.BATCH:
+        from schemas import batch
+
+        b = batch.decode(payload, where=key)
+        out = []
+        for name, cols in b.streams.items():
+            skey = batch.stream_key(info.kind, info.vehicle, name)
+            out.extend((skey, m) for m in cols.messages(info.vehicle))
+        return out
+    return [(key, messages.decode(payload, where=key))]

@@ -28,7 +28,10 @@ def _alarm(vehicle, seq, state="raised", severity="critical"):
                          service="dmc_detector/a")
 
 
-def _heading(vehicle, seq, heading=math.radians(30), pitch=0.05, roll=-0.02):
+HEADING_30 = math.radians(30)
+
+
+def _heading(vehicle, seq, heading=HEADING_30, pitch=0.05, roll=-0.02):
     return messages.make("heading", vehicle, 0.1 * seq, seq, heading_rad=heading, pitch_rad=pitch, roll_rad=roll,
                          heading_std_rad=0.01, pitch_std_rad=0.01, roll_std_rad=0.01, mode="magnetic",
                          mag_innovation_rad=0.0, mag_test_ratio=0.1, mag_fused=True)
@@ -211,3 +214,82 @@ def test_foxglove_bad_flags_get_one_clear_paragraph(tmp_path):
     p = _spawn_cli("foxglove", "--manifest", str(tmp_path / "missing.toml"))
     out = p.communicate(timeout=60)[0].decode()
     assert p.returncode == 2 and "missing.toml does not exist" in out and "Traceback" not in out
+
+
+# ---- Foxglove in MCAP --------------------------------------------------------------------------------------------
+
+
+def _read_mcap(path):
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as fh:
+        r = make_reader(fh)
+        return [(sch, ch, m) for sch, ch, m in r.iter_messages(log_time_order=True)]
+
+
+def test_record_json_writes_jsonschema_json_and_foxglove_types(tmp_path):
+    port = mu.free_port()
+    router = mu.open_router(port)
+    pub_session = mu.open_client(port)
+    out = tmp_path / "fox.mcap"
+    proc = _spawn_cli("record", "--encoding", "json", "-o", str(out), "--duration", "8", "--quiet",
+                      "--connect", mu.endpoint(port), "magmesh/car-1/**", env={"MAGMESH_STATE_DIR": str(tmp_path)})
+    pub = _Publisher(pub_session)
+    try:
+        text = proc.communicate(timeout=120)[0].decode(errors="replace")
+    finally:
+        pub.stop.set()
+        pub.thread.join(5)
+        pub_session.close()
+        router.close()
+    assert proc.returncode == 0, text
+    rows = _read_mcap(out)
+    by_topic: dict[str, list] = {}
+    for sch, ch, m in rows:
+        by_topic.setdefault(ch.topic, []).append((sch, ch, m))
+    for topic in ("magmesh/car-1/alarm/dmc", "magmesh/car-1/heading", "magmesh/car-1/clean/gnss", "/car-1/log",
+                  "/car-1/gnss/fix", "/car-1/geomag/fix", "/car-1/pose", "/tf"):
+        assert topic in by_topic, (topic, sorted(by_topic), text)
+        sch, ch, m = by_topic[topic][0]
+        assert ch.message_encoding == "json" and sch.encoding == "jsonschema", topic
+        json.loads(sch.data)
+        json.loads(m.data)
+    assert by_topic["/car-1/log"][0][0].name == "foxglove.Log"
+    assert by_topic["/car-1/gnss/fix"][0][0].name == "foxglove.LocationFix"
+    assert by_topic["/car-1/geomag/fix"][0][0].name == "foxglove.LocationFix"
+    fix = json.loads(by_topic["/car-1/gnss/fix"][0][2].data)
+    assert fix["latitude"] == pytest.approx(32.06) and fix["longitude"] == pytest.approx(118.80)
+    logs = [json.loads(m.data) for _, _, m in by_topic["/car-1/log"]]
+    alarms = [json.loads(m.data) for _, _, m in by_topic["magmesh/car-1/alarm/dmc"]]
+    assert len(logs) == len(alarms) > 10
+    assert [lg["level"] for lg in logs] == [fx.LOG_ERROR if a["state"] == "raised" else fx.LOG_INFO for a in alarms]
+    # the magmesh channels replay: read back as msgpack messages equal to what was published
+    from magmesh import recording as rc
+
+    recs = [r for r in rc.read_records(out) if r.key == "magmesh/car-1/heading"]
+    assert len(recs) == len(by_topic["magmesh/car-1/heading"])
+    first = recs[0].decode()
+    assert first == messages.validate(_heading("car-1", first["seq"]))
+    assert all(not r.key.startswith("/") for r in rc.read_records(out))  # Foxglove views are not replayed
+    assert "/car-1/log" not in rc.summarize(out)["keys"]
+
+
+def test_mcap_to_json_foxglove_converts_a_msgpack_recording(tmp_path):
+    from magmesh import recording as rc
+
+    src, dst = tmp_path / "run.mcap", tmp_path / "fox.mcap"
+    t0 = 1_700_000_000_000_000_000
+    with rc.RecordingWriter(src) as w:
+        for i in range(5):
+            w.write_message(keys.clean_gnss("car-1"), _gnss("car-1", i), t0 + i * 1000)
+            w.write_message(keys.alarm("car-1", "dmc"), _alarm("car-1", i), t0 + i * 1000 + 1)
+        w.write(keys.raw_imu("car-1"), b"\xc1 not msgpack", t0 + 9000)
+    p = _spawn_cli("mcap", "to-json", "--foxglove", str(src), "-o", str(dst))
+    text = p.communicate(timeout=60)[0].decode()
+    assert p.returncode == 0, text
+    assert "wrote 10 JSON messages and 10 Foxglove-typed messages" in text and "1 undecodable kept" in text
+    rows = _read_mcap(dst)
+    names = {(ch.topic, sch.name if sch else None, ch.message_encoding) for sch, ch, _ in rows}
+    assert ("/car-1/log", "foxglove.Log", "json") in names
+    assert ("/car-1/gnss/fix", "foxglove.LocationFix", "json") in names
+    assert ("magmesh/car-1/raw/imu", None, "application/octet-stream") in names  # kept, not lost

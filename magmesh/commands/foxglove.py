@@ -36,7 +36,7 @@ from ..foxglove_types import FOXGLOVE_SCHEMAS, FoxgloveConverter, magmesh_channe
 from ..foxglove_ws import FoxgloveServer
 from ..paths import DEPLOY_DIR
 from ..recording import matches_any
-from ..tap import run_tap
+from ..tap import decode_samples, run_tap
 
 log = logging.getLogger("magmesh.foxglove")
 
@@ -113,34 +113,35 @@ class FoxgloveBridge:
     def on_sample(self, key: str, payload: bytes, receive_ns: int) -> None:
         try:
             info = keys.parse(key)
-            schema_name, schema = magmesh_channel(key)
-        except (keys.KeyError_, KeyError):
+        except keys.KeyError_:
             self.counts["not a magmesh key"] += 1
             return
         if info.kind == "svc":
             try:
                 msg = msgpack.unpackb(payload, raw=False)
             except Exception:
-                self.counts["undecodable"] += 1
-                return
+                msg = None
             if not isinstance(msg, dict):
                 self.counts["undecodable"] += 1
                 return
-        else:
-            try:
-                msg = messages.decode(payload, where=key)
-            except messages.SchemaError:
-                # raw/ keys may carry anything a sensor sends; ingest reports the refusal on rejects
-                self.counts["undecodable"] += 1
-                return
-        self.server.send(self._channel(key, schema_name, schema), receive_ns, to_json_bytes(msg))
-        self.counts["forwarded"] += 1
-        if info.kind == "svc":
+            name, schema = magmesh_channel(key)
+            self.server.send(self._channel(key, name, schema), receive_ns, to_json_bytes(msg))
+            self.counts["forwarded"] += 1
             return
-        for out in self.conv.convert(key, msg, receive_ns):
-            cid = self._channel(out.topic, out.schema, FOXGLOVE_SCHEMAS[out.schema])
-            self.server.send(cid, receive_ns, to_json_bytes(out.msg))
-            self.counts[out.schema] += 1
+        try:
+            samples = decode_samples(key, payload)
+        except (messages.SchemaError, keys.KeyError_, KeyError):
+            # raw/ keys may carry anything a sensor sends; ingest reports the refusal on rejects
+            self.counts["undecodable"] += 1
+            return
+        for skey, msg in samples:  # a batch is shown as its samples, each on its stream's key
+            name, schema = magmesh_channel(skey)
+            self.server.send(self._channel(skey, name, schema), receive_ns, to_json_bytes(msg))
+            self.counts["forwarded"] += 1
+            for out in self.conv.convert(skey, msg, receive_ns):
+                cid = self._channel(out.topic, out.schema, FOXGLOVE_SCHEMAS[out.schema])
+                self.server.send(cid, receive_ns, to_json_bytes(out.msg))
+                self.counts[out.schema] += 1
 
 
 def _raised_alarms(session, exprs: list[str]) -> list[tuple[str, bytes]]:

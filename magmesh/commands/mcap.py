@@ -2,6 +2,7 @@
 
     magmesh mcap info run.mcap                      # keys, counts, time span, how it was recorded
     magmesh mcap to-json run.mcap -o run.json.mcap  # JSON-encoded copy for viewers such as Foxglove
+    magmesh mcap to-json --foxglove run.mcap -o fox.mcap  # + foxglove.Log / LocationFix / PoseInFrame / tf
 """
 
 from __future__ import annotations
@@ -26,6 +27,9 @@ def register(subparsers) -> None:
     j.add_argument("input")
     j.add_argument("-o", "--output", required=True)
     j.add_argument("--keys", nargs="+", default=None, metavar="KEYEXPR")
+    j.add_argument("--foxglove", action="store_true",
+                   help="also write Foxglove's well-known types (alarms as foxglove.Log, fixes as "
+                        "foxglove.LocationFix, attitude as PoseInFrame and /tf), as `magmesh record --encoding json`")
     j.set_defaults(func=run_to_json)
     p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
 
@@ -61,6 +65,13 @@ def run_info(args: argparse.Namespace) -> int:
 
 
 def run_to_json(args: argparse.Namespace) -> int:
+    if args.foxglove:
+        from ..foxglove_mcap import export
+
+        c = export(_check(args.input), args.output, args.keys)
+        print(f"wrote {c['written']} JSON messages and {c['foxglove_messages']} Foxglove-typed messages to "
+              f"{args.output}" + (f" ({c['unvalidated']} undecodable kept as bytes)" if c["unvalidated"] else ""))
+        return 0
     r = to_json_mcap(_check(args.input), args.output, args.keys)
     print(f"wrote {r['written']} JSON messages to {args.output}" +
           (f" ({r['left_out']} undecodable left out)" if r["left_out"] else ""))

@@ -48,6 +48,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--exclude", nargs="+", default=(), metavar="KEYEXPR", help="receive but do not write these keys")
     p.add_argument("--no-liveliness", action="store_true", help="do not record service liveliness events")
     p.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd")
+    p.add_argument("--encoding", choices=["msgpack", "json"], default="msgpack",
+                   help="msgpack: the wire bytes unchanged, for replay (default); json: json messages with "
+                        "jsonschema schemas and Foxglove types (foxglove.Log, LocationFix, PoseInFrame, "
+                        "FrameTransform) that Foxglove opens as they are (also replayable)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress line")
     zconf.add_zenoh_args(p)
 
@@ -63,6 +67,7 @@ def record(
     on_progress: Callable[[dict], None] | None = None,
     ready: threading.Event | None = None,
     exclude: Sequence[str] = (),
+    encoding: str = "msgpack",
 ) -> dict:
     """Record until ``stop`` is set or ``duration_s`` passes; return the counts (also stored in the file).
 
@@ -74,7 +79,11 @@ def record(
     stop = stop or threading.Event()
     info = {"key_exprs": exprs, "exclude": list(exclude), "started_unix_s": time.time(), "tool": "magmesh record"}
     excluded: dict[str, bool] = {}
-    with zenoh.open(conf) as session, RecordingWriter(output, info=info, compression=compression) as writer:
+    if encoding == "json":
+        from ..foxglove_mcap import FoxgloveMcapWriter as writer_cls
+    else:
+        writer_cls = RecordingWriter
+    with zenoh.open(conf) as session, writer_cls(output, info=info, compression=compression) as writer:
         subs = [(e, session.declare_subscriber(e, zenoh.handlers.FifoChannel(FIFO_CAPACITY))) for e in exprs]
         live = None
         if liveliness:
@@ -187,7 +196,7 @@ def run(args: argparse.Namespace) -> int:
                   end="", file=sys.stderr, flush=True)
 
     counts = record(conf, args.output, args.key_exprs, args.duration, not args.no_liveliness, args.compression,
-                    stop, progress, exclude=args.exclude)
+                    stop, progress, exclude=args.exclude, encoding=args.encoding)
     if tty:
         print(file=sys.stderr)
     print(format_counts(counts, args.output))
