@@ -1,5 +1,6 @@
-"""BROAD replay for the heading evaluation: load a trial, run the fuser core and two peer AHRS
-(x-io Fusion via ``imufusion``, the ``ahrs`` package's EKF) on it, score the heading error.
+"""BROAD replay for the heading evaluation: load a trial, run the fuser core and three peer AHRS
+(``vqf``, Laidig & Seel's VQF, online with its defaults; x-io Fusion via ``imufusion``; the ``ahrs``
+package's EKF) on it, score the heading error.
 
 BROAD (Laidig et al., Data 6(7):72, 2021, CC-BY-4.0): myon aktos-t IMU with optical ground truth at
 285.714 Hz. ``opt_quat`` is sensor → ENU. The heading error is BROAD's own metric
@@ -43,22 +44,58 @@ class Trial:
                      self.quat_true[:n], self.movement[:n])
 
 
+TRIAL_SUFFIXES = (".hdf5", ".h5", ".mat")
+_FIELDS = ("imu_gyr", "imu_acc", "imu_mag", "opt_quat", "movement", "sampling_rate")
+
+
+class TrialError(ValueError):
+    """A file that is not a readable BROAD trial (the message says why)."""
+
+
 def trial_files(directory: Path | str = BROAD_DIR) -> list[Path]:
-    return sorted(Path(directory).glob("*.hdf5"))
+    """Every candidate trial file (HDF5 or BROAD's MATLAB files), one per trial name (HDF5 preferred)."""
+    by_name: dict[str, Path] = {}
+    for p in sorted(Path(directory).iterdir()) if Path(directory).is_dir() else []:
+        if p.suffix.lower() in TRIAL_SUFFIXES and (p.stem not in by_name or p.suffix.lower() != ".mat"):
+            by_name[p.stem] = p
+    return [by_name[k] for k in sorted(by_name)]
+
+
+def _load_mat(path: Path) -> dict:
+    import scipy.io
+
+    try:
+        d = scipy.io.loadmat(path, squeeze_me=False)
+        get = {k: np.asarray(d[k]) for k in _FIELDS if k in d}
+    except NotImplementedError:  # MATLAB v7.3 files are HDF5 with every matrix transposed
+        with h5py.File(path, "r") as f:
+            get = {k: np.asarray(f[k]).T for k in _FIELDS if k in f}
+    return get
 
 
 def load_trial(path: Path | str) -> Trial:
+    """Load one BROAD trial (``.hdf5`` or BROAD's ``.mat``); :class:`TrialError` says what is wrong."""
     path = Path(path)
-    with h5py.File(path, "r") as f:
-        return Trial(
-            path.stem,
-            float(f.attrs["sampling_rate"]),
-            np.asarray(f["imu_gyr"], float),
-            np.asarray(f["imu_acc"], float),
-            np.asarray(f["imu_mag"], float) * UT_TO_NT,
-            np.asarray(f["opt_quat"], float),
-            np.asarray(f["movement"], bool),
-        )
+    try:
+        if path.suffix.lower() == ".mat":
+            d = _load_mat(path)
+            rate = float(np.asarray(d.get("sampling_rate", np.nan)).ravel()[0]) if "sampling_rate" in d else None
+        else:
+            with h5py.File(path, "r") as f:
+                d = {k: np.asarray(f[k]) for k in _FIELDS[:-1] if k in f}
+                rate = float(f.attrs["sampling_rate"]) if "sampling_rate" in f.attrs else None
+    except (OSError, ValueError) as e:
+        raise TrialError(f"{path.name}: not readable as a BROAD trial ({e})") from None
+    missing = [k for k in _FIELDS[:-1] if k not in d] + ([] if rate else ["sampling_rate"])
+    if missing:
+        raise TrialError(f"{path.name}: not a BROAD trial, missing {', '.join(missing)}")
+    n = len(d["imu_gyr"])
+    for k in ("imu_acc", "imu_mag", "opt_quat"):
+        if np.shape(d[k])[0] != n:
+            raise TrialError(f"{path.name}: {k} has {np.shape(d[k])[0]} rows, imu_gyr {n}")
+    return Trial(path.stem, rate, np.asarray(d["imu_gyr"], float), np.asarray(d["imu_acc"], float),
+                 np.asarray(d["imu_mag"], float) * UT_TO_NT, np.asarray(d["opt_quat"], float),
+                 np.asarray(d["movement"], bool).ravel())
 
 
 def is_disturbed(name: str) -> bool:
@@ -164,16 +201,25 @@ def run_magmesh(trial: Trial, settings: Settings | None = None) -> tuple[np.ndar
     return out, info
 
 
+_S = math.sqrt(0.5)
+Q_NWU_TO_ENU = np.array([_S, 0.0, 0.0, _S])  # +90° about up: north (1, 0, 0)_NWU → (0, 1, 0)_ENU
+
+
 def run_imufusion(trial: Trial) -> np.ndarray:
-    """x-io Fusion with its magnetic rejection on (the README's example settings), same start attitude."""
+    """x-io Fusion with its magnetic rejection on (the README's example settings), same start attitude.
+
+    Run in its own North-West-Up convention (its ENU option does not give an ENU output: a board lying
+    with x east, y north converges to yaw −90°) and turned into ENU, ``q_ENU = q_z(+90°) ⊗ q_NWU``.
+    """
     import imufusion
 
     rate = int(round(trial.rate_hz))
     ahrs = imufusion.Ahrs()
     ahrs.set_settings(imufusion.AhrsSettings(
-        convention=imufusion.CONVENTION_ENU, gain=0.5, gyroscope_range=2000.0,
+        convention=imufusion.CONVENTION_NWU, gain=0.5, gyroscope_range=2000.0,
         acceleration_rejection=10.0, magnetic_rejection=10.0, rejection_timeout=5 * rate, sample_rate=rate))
-    ahrs.set_quaternion(initial_quat(trial))
+    to_nwu = Q_NWU_TO_ENU * np.array([1.0, -1.0, -1.0, -1.0])
+    ahrs.set_quaternion(quat_mul_rows(to_nwu[None], initial_quat(trial)[None])[0])
     ahrs.skip_startup()
     gyro_deg = np.degrees(trial.gyro_rad_s)
     acc_g = trial.accel_m_s2 / maths.G0
@@ -182,7 +228,22 @@ def run_imufusion(trial: Trial) -> np.ndarray:
     for i in range(len(gyro_deg)):
         ahrs.update(gyro_deg[i], acc_g[i], mag_ut[i])
         out[i] = ahrs.get_quaternion()
-    return out
+    return quat_mul_rows(np.repeat(Q_NWU_TO_ENU[None], len(out), axis=0), out)
+
+
+def run_vqf(trial: Trial) -> np.ndarray:
+    """VQF (Laidig & Seel 2023, the ``vqf`` package), online, its default parameters, 9-D output.
+
+    ``vqf``'s quaternions are scalar-first, sensor → ENU (x east, y north, z up; magnetic north), the
+    convention of BROAD's ``opt_quat``; it aligns itself from its first samples. ``updateBatch`` runs
+    the online (causal) filter over the arrays in compiled code.
+    """
+    from vqf import VQF
+
+    ts = 1.0 / trial.rate_hz
+    out = VQF(ts).updateBatch(np.ascontiguousarray(trial.gyro_rad_s), np.ascontiguousarray(trial.accel_m_s2),
+                              np.ascontiguousarray(trial.mag_nt / UT_TO_NT))
+    return np.asarray(out["quat9D"])
 
 
 def run_ahrs_ekf(trial: Trial) -> np.ndarray:
@@ -209,3 +270,6 @@ def _dip_of_first_sample(trial: Trial) -> float:
     q = initial_quat(trial)
     mn = maths.quat_rotate(q, trial.mag_nt[0])
     return math.atan2(-mn[2], math.hypot(mn[0], mn[1]))
+
+
+PEERS = {"vqf": run_vqf, "imufusion": run_imufusion, "ahrs_ekf": run_ahrs_ekf}

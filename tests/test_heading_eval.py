@@ -27,13 +27,70 @@ def test_broad_slice_with_peers():
 
     trial = hb.load_trial(hb.BROAD_DIR / "32_disturbed_attached_magnet_1cm.hdf5").sliced(int(100 * 285.714))
     assert trial.movement.sum() > 10_000
-    q, info = hb.run_magmesh(trial, hb.broad_settings_for(trial))
+    from services.heading_fuser import profiles
+
+    q, info = hb.run_magmesh(trial, profiles.settings(profiles.IMU_ONLY))
     mine = hb.heading_rms_deg(q, trial)
-    fusion = hb.heading_rms_deg(hb.run_imufusion(trial), trial)
-    ekf = hb.heading_rms_deg(hb.run_ahrs_ekf(trial), trial)
-    assert np.isfinite([mine, fusion, ekf]).all()
-    assert mine < min(fusion, ekf), (mine, fusion, ekf)
+    peers = {name: hb.heading_rms_deg(fn(trial), trial) for name, fn in hb.PEERS.items()}
+    assert np.isfinite([mine, *peers.values()]).all()
+    assert mine < min(peers.values()), (mine, peers)
     assert info["mode_frac"]["gyro_only"] > 0.1  # the attached magnet was recognised
+
+
+@pytest.fixture(scope="module")
+def trial02_slice():
+    from bench import heading_broad as hb
+
+    # 40 s of rest, then 50 s of slow rotations: enough to tell a right convention from a wrong one
+    return hb.load_trial(hb.BROAD_DIR / "02_undisturbed_slow_rotation_B.hdf5").sliced(int(90 * 285.714))
+
+
+@pytest.mark.parametrize("peer", ["vqf", "imufusion", "ahrs_ekf"])
+def test_each_peer_is_sane_on_undisturbed_trial_02(trial02_slice, peer):
+    """A peer in the wrong frame or units is tens of degrees off here (imufusion's ENU option: 90°)."""
+    from bench import heading_broad as hb
+
+    assert trial02_slice.movement.sum() > 10_000
+    q = hb.PEERS[peer](trial02_slice)
+    assert q.shape == (len(trial02_slice.gyro_rad_s), 4)
+    rms = hb.heading_rms_deg(q, trial02_slice)
+    assert rms < 3.0, (peer, rms)
+
+
+@pytest.mark.parametrize("peer", ["vqf", "imufusion", "ahrs_ekf"])
+def test_each_peer_reads_a_static_board_lying_in_enu_as_yaw_zero(peer):
+    """Body axes = ENU (x east, y north, z up), still: every peer must converge to yaw ≈ 0 (the field's
+    own declination in BROAD's lab, 0.36°)."""
+    from bench import heading_broad as hb
+
+    n, rate = 3000, 100.0
+    field_nt = np.array([100.0, 15800.0, -40800.0])
+    trial = hb.Trial("static", rate, np.zeros((n, 3)), np.tile([0.0, 0.0, 9.81], (n, 1)), np.tile(field_nt, (n, 1)),
+                     np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)), np.ones(n, bool))
+    q = hb.PEERS[peer](trial)
+    err = np.degrees(hb.heading_errors_rad(q[-100:], trial.quat_true[-100:]))
+    assert np.all(err < 1.0), (peer, err.max())
+
+
+def test_eval_reports_every_trial_or_why_it_skipped_it(tmp_path):
+    from bench import heading_broad as hb
+
+    src = hb.load_trial(hb.BROAD_DIR / "02_undisturbed_slow_rotation_B.hdf5").sliced(int(50 * 285.714))
+    import scipy.io
+
+    n = len(src.gyro_rad_s)
+    scipy.io.savemat(tmp_path / "02_as_mat.mat", {
+        "imu_gyr": src.gyro_rad_s, "imu_acc": src.accel_m_s2, "imu_mag": src.mag_nt / hb.UT_TO_NT,
+        "opt_quat": src.quat_true, "movement": src.movement.reshape(n, 1), "sampling_rate": src.rate_hz})
+    scipy.io.savemat(tmp_path / "notatrial.mat", {"x": np.zeros(3)})
+    (tmp_path / "broken.hdf5").write_bytes(b"not hdf5")
+    skipped: dict = {}
+    r = E.evaluate_broad(tmp_path, None, peers=True, skipped=skipped)
+    assert set(r) == {"02_as_mat"}
+    assert set(r["02_as_mat"]) >= {"profile", "magmesh", "vqf", "imufusion", "ahrs_ekf"}
+    assert set(skipped) == {"notatrial", "broken"}
+    assert "missing" in skipped["notatrial"] and "imu_gyr" in skipped["notatrial"]
+    assert "not readable" in skipped["broken"]
 
 
 def test_heading_error_metric_matches_a_pure_yaw_offset():

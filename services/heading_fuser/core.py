@@ -81,12 +81,27 @@ class Settings:
     accel_noise_per_rate_m_s2_per_rad_s: float = 10.0  # accel σ grows with |ω| (lever arm, centripetal)
     accel_rejection_m_s2: float = 2.0  # skip the accel update when ||a| − g| exceeds this
     accel_update_period_s: float = 0.0  # at most one accel update per this period (0: every sample)
+    # gravity under linear acceleration: the accelerometer low-passed in the gyro-integrated
+    # (inertial) frame, where gravity is constant and a bounded motion's acceleration averages out
+    gravity_lpf_tau_s: float = 0.0  # its time constant (0: the raw accelerometer is gravity)
+    gravity_lpf_noise_m_s2: float = 0.3  # 1-σ of that estimate as specific force
+    # rest detection (gyro and accelerometer quiet): then the accelerometer is gravity, and the gyro's
+    # zero rate observes its bias; the sensor noise is learned online while at rest
+    rest_detection: bool = False
+    rest_gyro_rad_s: float = 0.035  # low-passed |ω| below this (2°/s) ...
+    rest_accel_m_s2: float = 0.5  # ... and |a − low-passed a| below this ...
+    rest_min_s: float = 1.5  # ... for this long: at rest
+    rest_filter_tau_s: float = 0.5  # the low-pass of that test
+    rest_accel_noise_m_s2: float = 0.1  # accelerometer 1-σ at rest (prior; learned online)
+    rest_gyro_noise_rad_s: float = 0.005  # per-sample gyro 1-σ at rest (prior; learned online)
     # magnetometer
     mag_noise_nt: float = 150.0  # 1-σ per axis of the (calibrated) field
     mag_heading_noise_floor_rad: float = 0.01  # floor on the heading-measurement σ
     mag_gate_sigma: float = 5.0  # innovation gate, standard deviations (PX4 EKF2_MAG_GATE)
     mag_update_period_s: float = 0.0  # at most one mag update per this period (0: every sample)
     mag_delay_s: float = 0.0  # the magnetometer's lag behind the gyro (see estimate_mag_delay_s)
+    mag_delay_online: bool = False  # estimate that lag causally from gyro + magnetometer (MagLagEstimator)
+    mag_delay_max_s: float = 0.05  # the largest lag considered
     declination_rad: float = 0.0  # magnetic declination, east positive
     ref_field_nt: float = 0.0  # reference field strength (0: learn at alignment)
     ref_dip_rad: float = float("nan")  # reference dip, down positive (nan: learn at alignment)
@@ -274,6 +289,15 @@ class HeadingFilter:
         self._rejected_since_t: float | None = None
         self._gyro_only_since_t: float | None = None
         self.transitions: list[tuple[float, str, str, str]] = []  # (t_s, from, to, reason)
+        self.mag_delay_s = s.mag_delay_s
+        self._lag = MagLagEstimator(s.mag_delay_max_s) if s.mag_delay_online else None
+        self._acc_lp_i: np.ndarray | None = None  # accelerometer low-passed in the gyro-integrated frame
+        self._rest_gyro_lp = np.zeros(3)
+        self._rest_acc_lp: np.ndarray | None = None
+        self._rest_since_t: float | None = None
+        self.at_rest = False
+        self._noise_gyro_var = s.rest_gyro_noise_rad_s**2  # learned at rest
+        self._noise_acc_var = s.rest_accel_noise_m_s2**2
 
     @property
     def internal_states(self) -> InternalStates:
@@ -369,9 +393,23 @@ class HeadingFilter:
             return
         self._predict(gyro_rad_s, dt_s)
         self._history.append((self.t_s, self._qg, self._gyro_yaw))
+        if self._lag is not None:
+            self._lag.add_gyro(self.t_s, gyro_rad_s)
+        rate = math.sqrt(gyro_rad_s[0] ** 2 + gyro_rad_s[1] ** 2 + gyro_rad_s[2] ** 2)
+        acc = accel_m_s2
+        if s.rest_detection:
+            self._detect_rest(gyro_rad_s, accel_m_s2, dt_s)
+        if s.gravity_lpf_tau_s > 0.0:
+            acc = self._gravity_lpf(accel_m_s2, dt_s)
         if self.t_s - self._last_accel_t >= s.accel_update_period_s - 1e-9:
             self._last_accel_t = self.t_s
-            self._fuse_accel(accel_m_s2, math.sqrt(gyro_rad_s[0] ** 2 + gyro_rad_s[1] ** 2 + gyro_rad_s[2] ** 2))
+            if self.at_rest:
+                self._fuse_accel(accel_m_s2, 0.0, math.sqrt(self._noise_acc_var))
+                self._zero_rate(gyro_rad_s)
+            elif s.gravity_lpf_tau_s > 0.0:
+                self._fuse_accel(acc, 0.0, s.gravity_lpf_noise_m_s2)
+            else:
+                self._fuse_accel(accel_m_s2, rate)
         st = self.states
         st.time_since_mag_fused_s = self.t_s - self._last_fused_t
         st.gyro_only_duration_s = 0.0 if self._gyro_only_since_t is None else self.t_s - self._gyro_only_since_t
@@ -416,7 +454,59 @@ class HeadingFilter:
         self.q = tuple(c / n for c in self.q)
         self.bias = self.bias + dx[3:]
 
-    def _fuse_accel(self, accel, rate_rad_s: float = 0.0) -> None:
+    def _gravity_lpf(self, accel, dt: float) -> np.ndarray:
+        """The accelerometer low-passed in the gyro-integrated frame, returned in the body frame now.
+
+        Gravity is constant in that frame and the specific force of a bounded motion (a translation
+        back and forth, a tap) averages out over ``gravity_lpf_tau_s``; the gyro's drift over that
+        time is what remains (bias-corrected gyro: a few hundredths of a degree)."""
+        Rg = _qmat(self._qg)
+        a_i = Rg @ np.asarray(accel, float)
+        if self._acc_lp_i is None or self.at_rest:
+            self._acc_lp_i = a_i  # at rest the accelerometer is gravity: restart the average there
+        else:
+            self._acc_lp_i = self._acc_lp_i + min(1.0, dt / self.settings.gravity_lpf_tau_s) * (a_i - self._acc_lp_i)
+        return Rg.T @ self._acc_lp_i
+
+    def _detect_rest(self, gyro, accel, dt: float) -> None:
+        """Rest: low-passed |ω| and the accelerometer's deviation from its low-pass both small for
+        ``rest_min_s``. While at rest the gyro and accelerometer noise variances are learned."""
+        s = self.settings
+        g = np.asarray(gyro, float)
+        a = np.asarray(accel, float)
+        k = min(1.0, dt / s.rest_filter_tau_s)
+        self._rest_gyro_lp += k * (g - self._rest_gyro_lp)
+        if self._rest_acc_lp is None:
+            self._rest_acc_lp = a.copy()
+        self._rest_acc_lp += k * (a - self._rest_acc_lp)
+        da = a - self._rest_acc_lp
+        quiet = (float(np.linalg.norm(self._rest_gyro_lp - self.bias)) < s.rest_gyro_rad_s
+                 and float(np.linalg.norm(da)) < s.rest_accel_m_s2)
+        if not quiet:
+            self._rest_since_t = None
+            self.at_rest = False
+            return
+        if self._rest_since_t is None:
+            self._rest_since_t = self.t_s
+        self.at_rest = self.t_s - self._rest_since_t >= s.rest_min_s
+        if self.at_rest:
+            kn = min(1.0, dt / 10.0)  # noise variances averaged over ~10 s of rest
+            dg = g - self._rest_gyro_lp
+            self._noise_gyro_var += kn * (float(dg @ dg) / 3.0 - self._noise_gyro_var)
+            self._noise_acc_var += kn * (float(da @ da) / 3.0 - self._noise_acc_var)
+
+    def _zero_rate(self, gyro) -> None:
+        """At rest the gyro measures its bias: z = ω, H = [0, I], R = the learned per-sample noise."""
+        r = self._noise_gyro_var
+        Pbb = self.P[3:, 3:]
+        S = Pbb + np.eye(3) * r
+        K = np.linalg.solve(S, self.P[3:, :]).T  # (6, 3): P Hᵀ S⁻¹
+        dx = K @ (np.asarray(gyro, float) - self.bias)
+        self._inject(dx)
+        P = self.P - K @ self.P[3:, :]
+        self.P = 0.5 * (P + P.T)
+
+    def _fuse_accel(self, accel, rate_rad_s: float = 0.0, noise_m_s2: float | None = None) -> None:
         s = self.settings
         a = np.asarray(accel, float)
         na = math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
@@ -432,7 +522,8 @@ class HeadingFilter:
         # (eq. 2.2) g_true ≈ g + [g]× δθ  →  H = [[g]×, 0]
         H = np.zeros((3, 6))
         H[:, :3] = _skew(g)
-        sig = (s.accel_noise_m_s2 + 2.0 * abs(err) + s.accel_noise_per_rate_m_s2_per_rad_s * rate_rad_s) / maths.G0
+        base = s.accel_noise_m_s2 if noise_m_s2 is None else noise_m_s2
+        sig = (base + 2.0 * abs(err) + s.accel_noise_per_rate_m_s2_per_rad_s * rate_rad_s) / maths.G0
         PHt = self.P @ H.T
         S = H @ PHt + np.eye(3) * sig * sig
         K = np.linalg.solve(S, PHt.T).T
@@ -470,6 +561,9 @@ class HeadingFilter:
                 self._last_mag_t = t
                 fl.initialising = False
             return False
+        if self._lag is not None:
+            self._lag.add_mag(t, m, self.ref_field_nt)
+            self.mag_delay_s = self._lag.delay_s
         if t - self._last_mag_t < s.mag_update_period_s - 1e-9:
             return fl.mag_fused
         dt_mag = max(0.0, min(t - self._last_mag_t, 1.0))
@@ -477,7 +571,7 @@ class HeadingFilter:
         R = _qmat(self.q)
         # a delayed sample is levelled with the attitude at its own time (PX4 EKF2_MAG_DELAY); the
         # heading error about the nav vertical is the same then and now, so H below uses R of now
-        t_att = t - s.mag_delay_s  # the attitude at the sample's own time (late or lagging samples)
+        t_att = t - self.mag_delay_s  # the attitude at the sample's own time (late or lagging samples)
         q_m, gyro_yaw_m = self._attitude_at(t_att) if t_att < self.t_s - 1e-9 else (self.q, self._gyro_yaw)
         R_m = _qmat(q_m)
         mn = R_m @ m
@@ -673,6 +767,66 @@ class HeadingFilter:
         step = max(-self.settings.recovery_slew_rad_s * dt, min(self.settings.recovery_slew_rad_s * dt, nu))
         # rotate about the nav vertical by `step`: δθ_body = Rᵀ e_up · step
         self._inject(np.concatenate([Hr * step, np.zeros(3)]))
+
+
+class MagLagEstimator:
+    """Causal estimate of the magnetometer's lag behind the gyro, from the sensors alone.
+
+    The same equation as :func:`estimate_mag_delay_s`, ṁ(t) = −ω(t − d) × m(t), accumulated sample by
+    sample: for each candidate lag on a grid of ``step_s`` the squared residual is summed over the
+    samples seen so far (only while the body turns faster than ``min_rate_rad_s`` and the field is near
+    its reference, so a disturbance adds nothing), and the lag is the minimum, refined by a parabola.
+    It reports 0 until ``min_samples`` turning samples have been seen.
+    """
+
+    def __init__(self, max_delay_s: float = 0.05, step_s: float = 0.002, min_rate_rad_s: float = 0.5,
+                 min_samples: int = 500):
+        self.grid = np.arange(0.0, max_delay_s + 1e-12, step_s)
+        self.step_s = step_s
+        self.cost = np.zeros(len(self.grid))
+        self.n = 0
+        self.min_rate = min_rate_rad_s
+        self.min_samples = min_samples
+        self.delay_s = 0.0
+        self._gt: deque = deque(maxlen=64)
+        self._gw: deque = deque(maxlen=64)
+        self._prev: tuple | None = None
+
+    def add_gyro(self, t: float, gyro) -> None:
+        self._gt.append(t)
+        self._gw.append((gyro[0], gyro[1], gyro[2]))
+
+    def add_mag(self, t: float, m: np.ndarray, ref_nt: float) -> None:
+        prev, self._prev = self._prev, (t, m)
+        if prev is None or not self._gt or t - prev[0] <= 0.0 or t - prev[0] > 0.1:
+            return
+        if ref_nt and abs(math.sqrt(float(m @ m)) / ref_nt - 1.0) > 0.1:
+            return
+        tm = 0.5 * (t + prev[0])
+        if tm - self.grid[-1] < self._gt[0]:
+            return
+        dm = (m - prev[1]) / (t - prev[0])
+        mm = 0.5 * (m + prev[1])
+        gt = np.asarray(self._gt)
+        idx = np.clip(np.searchsorted(gt, tm - self.grid), 1, len(gt) - 1)
+        w_all = np.asarray(self._gw)
+        # linear interpolation of the gyro at each candidate time
+        t0, t1 = gt[idx - 1], gt[idx]
+        f = np.clip((tm - self.grid - t0) / np.maximum(t1 - t0, 1e-9), 0.0, 1.0)[:, None]
+        w = w_all[idx - 1] * (1.0 - f) + w_all[idx] * f
+        if float(np.linalg.norm(w[0])) < self.min_rate:
+            return
+        r = dm + np.cross(w, mm)
+        self.cost += np.einsum("ij,ij->i", r, r)
+        self.n += 1
+        if self.n >= self.min_samples and self.n % 50 == 0:
+            c = self.cost
+            j = int(np.argmin(c))
+            frac = 0.0
+            if 0 < j < len(c) - 1:
+                den = c[j - 1] - 2 * c[j] + c[j + 1]
+                frac = 0.5 * (c[j - 1] - c[j + 1]) / den if den > 0 else 0.0
+            self.delay_s = float(max(0.0, self.grid[j] + frac * self.step_s))
 
 
 def estimate_mag_delay_s(gyro_rad_s, mag_nt, rate_hz: float, max_delay_s: float = 0.05) -> float:
