@@ -742,3 +742,124 @@ def test_every_odd_key_is_refused_by_every_service(name):
     assert set(r.count_in) == {keys.BAD_KEY}
     st = r.status()
     assert st["rejected_total"] == n_fed and st["rejected"]["key"] == n_fed and st["lost_total"] == 0
+
+
+# ---- the live mesh ----------------------------------------------------------------------------------------
+
+LIVE_PROCESSES = "sim-car-1,ingest-1,dmc-1,calibration-1,heading-1,track-1"
+LIVE_TOKENS = [("ingest", "ingest-1"), ("dmc_detector", "dmc-1"), ("calibration", "calibration-1"),
+               ("heading_fuser", "heading-1"), ("track_monitor", "track-1"), ("sim", "sim-car-1")]
+
+
+def live_inputs(rng: random.Random, n_random: int) -> list[tuple[str, bytes, str]]:
+    """What is put on the live mesh: every odd key near car-1's keys with a valid and a garbage payload, then
+    ``n_random`` spoiled messages on car-1's and made-up vehicles' keys (the odd-key space included)."""
+    out = []
+    targets = [keys.raw_imu("car-1"), keys.raw_mag("car-1", "1"), keys.raw_gnss("car-1"), keys.clean_imu("car-1"),
+               keys.clean_gnss("car-1"), keys.clean_mag("car-1", "1"), keys.cal_mag("car-1", "1"),
+               keys.cal_params("car-1", "1"), keys.dmc("car-1"), keys.clean_route("car-1"),
+               keys.clean_attitude("car-1")]
+    pools = Pools(weird=[None, "x", 2**64 - 1, -1.5, [1, 2], {"a": 1}, b"\x00", math.nan], odd_ids=["ä", "x" * 65,
+                  "car 1"], valid_ids=["v-1", "made-up-7"], floats=[0.0, 1e300, -5.0], spoils=list(SPOILS),
+                  clean_frac=0.2)
+    gen = Gen(rng, pools)
+    for k in targets:
+        good = gen.message(k, messages.type_for_key(k), 1.0, 0)
+        for odd in odd_keys_near(k):
+            vehicle = odd.split("/")[1] if odd.count("/") else "car-1"
+            out.append((odd, msgpack.packb({**good, "vehicle": vehicle}, use_bin_type=True), "odd_key"))
+            out.append((odd, rng.randbytes(rng.randint(1, 64)), "odd_key_garbage"))
+    for i in range(n_random):
+        k = rng.choice(targets[:3] + [keys.raw_imu(f"made-up-{i % 50}"), keys.raw_mag("drone-1", "1")])
+        out.append(gen.spoil(k, gen.message(k, messages.type_for_key(k), rng.uniform(0, 1e4), rng.randint(0, 99))))
+    return out
+
+
+@pytest.mark.mesh
+def test_live_mesh_survives_odd_keys_payloads_sizes_and_rates(tmp_path):
+    """Real processes under ``magmesh up``; every odd key, garbage, oversized and forged input from outside, fast;
+    then every process is alive with no restart, every token is back, and car-1's clean IMU still flows."""
+    import subprocess
+    import sys
+
+    from meshutil import REPO, Collector, endpoint, free_port, open_client, query_status, stop, wait_alive
+
+    port = free_port()
+    env = {**os.environ, "MAGMESH_STATE_DIR": str(tmp_path / "state")}
+    sup = subprocess.Popen([sys.executable, "-m", "magmesh", "up", str(DEPLOY_DIR / "mesh.toml"), "--endpoint",
+                            endpoint(port), "--only", LIVE_PROCESSES, "--duration", "300", "--log-dir",
+                            str(tmp_path / "logs"), "--quiet"], cwd=REPO, env=env, start_new_session=True,
+                           stdout=open(tmp_path / "up.log", "ab"), stderr=subprocess.STDOUT)
+    client = open_client(port)
+    tools = []
+    try:
+        for role, inst in LIVE_TOKENS:
+            assert wait_alive(client, keys.svc_token(role, inst), 90), f"{inst} never came up"
+        clean = Collector(client, keys.clean_imu("car-1"))
+        assert clean.wait_for(lambda k, m: True, 30), "no clean IMU before the fuzzing"
+        # operator tools listening to everything while it happens
+        for cmd in (["alarms", "--json"], ["record", "-o", str(tmp_path / "fuzz.mcap"), "--quiet"]):
+            tools.append(subprocess.Popen([sys.executable, "-m", "magmesh", *cmd, "--connect", endpoint(port)],
+                                          cwd=REPO, env=env, stdout=open(tmp_path / f"{cmd[0]}.log", "ab"),
+                                          stderr=subprocess.STDOUT, start_new_session=True))
+        time.sleep(2.0)  # the tools' subscriptions are declared
+        inputs = live_inputs(random.Random(20261201), 1500)
+        n_put = n_refused_by_zenoh = 0
+        for key, payload, _how in inputs:  # as fast as the client can put: the rate is part of the test
+            try:
+                client.put(key, payload)
+                n_put += 1
+            except Exception:  # noqa: BLE001 - a key Zenoh itself refuses (empty chunk, bad wildcard)
+                n_refused_by_zenoh += 1
+        assert n_put > 2000
+        # one car-1 IMU sample dated an hour ahead of the live stream
+        ck = keys.clean_imu("car-1")
+
+        def real(k, m):  # a put on a wildcard key such as magmesh/*/clean/imu reaches this subscriber too
+            return k == ck and isinstance(m, dict) and m.get("type") == "imu"
+
+        last_t = max(m["t_s"] for k, m in clean.matching(real))
+        st_before = query_status(client, keys.svc_status("ingest", "ingest-1"), 10)
+        from schemas import make
+
+        forged = make("imu", "car-1", last_t + 3600.0, 10**9, gyro_rad_s=[0.0, 0.0, 0.0], accel_m_s2=[0.0, 0.0, 9.8])
+        client.put(keys.raw_imu("car-1"), msgpack.packb(forged, use_bin_type=True))
+        t_forged = time.monotonic()
+        assert clean.wait_for(lambda k, m: real(k, m) and m["t_s"] > last_t, 10), "car-1's clean IMU stopped"
+        resumed_s = time.monotonic() - t_forged
+        assert clean.wait_for(lambda k, m: real(k, m) and m["t_s"] > last_t + 1.0, 10), "car-1's clean IMU stopped"
+        assert all(m["t_s"] < last_t + 3600.0 for _, m in clean.matching(real)), "the forged sample passed"
+        time.sleep(2.0)
+        # every process alive, none restarted; every token back; the tools still running
+        sst = query_status(client, keys.svc_status("supervisor", "*"), 10)
+        assert sst is not None, "the supervisor did not answer"
+        procs = sst["processes"]
+        assert set(procs) == set(LIVE_PROCESSES.split(",")), procs
+        assert all(p["alive"] and p["restarts"] == 0 for p in procs.values()), procs
+        for role, inst in LIVE_TOKENS:
+            assert wait_alive(client, keys.svc_token(role, inst), 10), f"{inst} lost its liveliness token"
+        assert all(t.poll() is None for t in tools), "an operator tool exited under the fuzzing"
+        st = query_status(client, keys.svc_status("ingest", "ingest-1"), 10)
+        assert st["rejected_total"] > 1000 and st["rejected"].get("key", 0) > 500, st["rejected"]
+        assert st["lost"].get("handler_error", 0) == 0
+        # the foreign samples on car-1's live keys moved no seq: no gap beyond what was already there
+        raw_imu = keys.raw_imu("car-1")
+        assert st["drops"].get(raw_imu, {}).get("upstream_gap", 0) == st_before["drops"].get(raw_imu, {}).get(
+            "upstream_gap", 0)
+        assert len(msgpack.packb(st)) < 128 << 10, "status reply not bounded"
+        with capsys_disabled():
+            print(f"\n---- live mesh: {n_put} inputs put ({n_refused_by_zenoh} refused by Zenoh itself), "
+                  f"ingest refusals {st['rejected']}, clean IMU resumed {resumed_s:.2f} s after a forged sample")
+    finally:
+        for t in tools:
+            stop(t, 5)
+        stop(sup, 15)
+        client.close()
+
+
+class capsys_disabled:  # noqa: N801 - printing the live figures without a capsys fixture
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
