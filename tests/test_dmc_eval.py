@@ -21,23 +21,58 @@ def _args(**kw) -> argparse.Namespace:
 
 def _check(r: dict) -> None:
     json.dumps(r)  # plain Python types only
+    b = r["baselines"]
+    for key, paper in (("single_threshold", eval_dmc.PAPER_TABLE2), ("dmc_threshold", eval_dmc.PAPER_TABLE1)):
+        rows = b[key]
+        assert [row["name"] for row in rows] == ["paper_set1", "paper_set2", "paper_set3", "paper_set4"]
+        for row, p in zip(rows, paper, strict=True):
+            assert row["paper"] == p
+            assert 0.0 <= row["rp_pct"] <= 100.0 and 0.0 <= row["mp_pct"] <= 100.0 and row["wp_deg"] >= 0.0
+        # tightening the thresholds lowers the recognition rate (the paper's Table 1 and 2 trend)
+        rps = [row["rp_pct"] for row in rows]
+        assert rps == sorted(rps, reverse=True) and rps[0] > rps[-1]
+    # the DMC applies the single compass's tests and more: it never recognises more, and it errs less
+    for s_row, d_row in zip(b["single_threshold"], b["dmc_threshold"], strict=True):
+        assert d_row["rp_pct"] <= s_row["rp_pct"] + 1e-9
+    assert b["dmc_threshold"][0]["mp_pct"] < b["single_threshold"][0]["mp_pct"]
+    # the drives are hard: the loosest single-compass set lets bad headings through
+    assert b["single_threshold"][0]["mp_pct"] > 2.0 and b["single_threshold"][0]["wp_deg"] > 2.0
+
     u = r["fcm_unseen"]
-    assert u["rp_pct"] >= eval_dmc.GOAL["rp_pct"], u
-    assert u["mp_pct"] <= eval_dmc.GOAL["mp_pct"], u
-    assert u["wp_deg"] <= eval_dmc.GOAL["wp_deg"], u
-    assert u["meets_goal"] and u["missed_zones"] == 0
     assert not set(u["drives"]) & set(u["trained_on"]), "fcm_unseen must exclude the training drives"
-    assert any(not d.startswith("urban_a") for d in u["drives"]), "unseen layouts must be included"
-    names = [row["name"] for row in r["table1_threshold_sweep"]]
-    assert names[:4] == ["paper_set1", "paper_set2", "paper_set3", "paper_set4"]
-    # tightening the thresholds lowers the recognition rate (the paper's Table 1 trend)
-    rps = [row["rp_pct"] for row in r["table1_threshold_sweep"][:4]]
-    assert rps == sorted(rps, reverse=True)
-    assert {row["name"] for row in r["table2_single"]} == set(names)
-    assert "[" not in eval_dmc.format_text(r).split("\n")[0]
+    assert u["drives"] and all(not d.startswith("paper_a") for d in u["drives"]), "judged on untrained layouts"
+    assert u["meets_goal"] == (u["rp_pct"] > eval_dmc.GOAL["rp_pct"] and u["mp_pct"] < eval_dmc.GOAL["mp_pct"]
+                               and u["wp_deg"] < eval_dmc.GOAL["wp_deg"])
+    assert u["paper"] == eval_dmc.PAPER_FCM_UNSEEN
+    g = r["fcm_gain"]
+    assert g["pooled"]["rp_pct"] == pytest.approx(u["rp_pct"], abs=1e-3)
+    assert [row["drive"] for row in g["per_drive"]] == u["drives"]
+    thr = g["pooled"]["threshold_rp_at_equal_mp_pct"]
+    assert thr is not None and g["pooled"]["rp_gained_at_equal_mp_pct"] == pytest.approx(u["rp_pct"] - thr, abs=2e-3)
+    c = r["fcm_committed_model_unseen"]
+    assert c["rp_pct"] == pytest.approx(u["rp_pct"], abs=1e-6), "the committed model is what the recipe trains"
+    text = eval_dmc.format_text(r)
+    assert "[" not in text.split("\n")[0] and "paper_set4" in text and "fcm_gain" in text
 
 
-def test_eval_dmc_quick_meets_goal():
+def test_threshold_curve_falls_with_tighter_thresholds():
+    from services.dmc_detector import training as T
+
+    d = [T.simulate_drive("paper_b", 21, 120.0)]
+    curve = eval_dmc.threshold_curve(d)
+    rps = [c["rp_pct"] for c in curve]
+    assert rps == sorted(rps) and rps[0] < rps[-1]  # scales ascend: looser → more recognised
+    top = curve[-1]  # the loosest set: the curve's highest RP, so nothing on it beats it at its own MP
+    g = eval_dmc._gain(curve, top["rp_pct"], top["mp_pct"])
+    assert g["rp_gained_at_equal_mp_pct"] == pytest.approx(0.0, abs=1e-6)
+    assert g["mp_saved_at_equal_rp_pct"] == pytest.approx(0.0, abs=1e-6)
+    better = eval_dmc._gain(curve, top["rp_pct"] - 10.0, top["mp_pct"] - 0.5)  # same RP at lower MP: MP saved
+    worse = eval_dmc._gain(curve, top["rp_pct"] - 10.0, top["mp_pct"] + 0.5)
+    assert better["mp_saved_at_equal_rp_pct"] == pytest.approx(worse["mp_saved_at_equal_rp_pct"] + 1.0, abs=1e-6)
+    assert eval_dmc._gain(curve, 0.0, -1.0)["rp_gained_at_equal_mp_pct"] is None  # no threshold reaches MP < 0
+
+
+def test_eval_dmc_quick():
     r = eval_dmc.run(_args(quick=True, no_speed=True, no_quasistatic=True))
     _check(r)
     assert len(r["drives"]["unseen"]) == len(eval_dmc.UNSEEN_QUICK)

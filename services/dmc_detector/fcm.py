@@ -45,6 +45,8 @@ from .core import Features, Thresholds
 MODEL_FORMAT = "magmesh.dmc_fcm"
 MODEL_VERSION = 1
 DEFAULT_MODEL = MODELS_DIR / "dmc_fcm_v1.json"
+#: centres for HMR3300 compasses at 8 Hz on the paper-streets drives (``magmesh train dmc --drives paper_a:1``)
+PAPER_STREETS_MODEL = MODELS_DIR / "dmc_fcm_paper_streets_v1.json"
 FEATURE_SETS = {"paper": ("dm", "dh"), "extended": ("dm", "ddm", "dh", "ddh")}
 #: the paper's loosest Table 1 set (200, 100, 8, 8) with 10 nT per HMR3300 field unit: stage 1 of ``fcm``
 LOOSE = Thresholds(2000.0, 1000.0, 8.0, 8.0)

@@ -234,6 +234,8 @@ def train_fcm(drives: list[DriveData], feature_set: str = "extended", seed: int 
     """Train FCM centres on drives; ``use_reference`` orders clusters by the drives' true heading error."""
     info = {"drives": [d.name for d in drives], "source": "sim_publishers.car"}
     errs = [d.heading_err_deg for d in drives] if use_reference else None
+    if drives and all(is_paper_layout(d.layout) for d in drives) and "feature_settings" not in kw:
+        kw["feature_settings"] = PAPER_FEATURES  # the windows the features were computed with
     return fcm.train([d.features for d in drives], feature_set=feature_set, seed=seed, training_info=info,
                      heading_err_deg=errs, **kw)
 
@@ -270,5 +272,7 @@ def quasistatic_run(drive: DriveData, settings=None) -> tuple[np.ndarray, np.nda
 
 #: the recipe of the committed model (``magmesh train dmc`` defaults; ``magmesh eval dmc`` re-trains with it)
 DEFAULT_TRAIN_DRIVES = (("urban_a", 1),)
+#: the training drive of the paper-streets model (``magmesh eval dmc`` trains on it, applies to the rest)
+PAPER_TRAIN_DRIVES = (("paper_a", 1),)
 DEFAULT_FEATURE_SET = "paper"
 DEFAULT_USE_REFERENCE = True
