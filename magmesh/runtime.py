@@ -36,7 +36,8 @@ from typing import Any
 
 import msgpack
 
-from schemas import keys, messages
+from schemas import batch as batches
+from schemas import keys, messages, streams
 from schemas.keys import KeyInfo
 from schemas.messages import SchemaError
 
@@ -52,7 +53,8 @@ STOP_GRACE_S = 1.5
 
 # ---- the input path's bounds (see Runner.handle_sample) ---------------------------------------
 #: largest payload accepted per message type, checked before decoding (a contract-legal message is far smaller)
-MAX_PAYLOAD_BYTES = {"truth": 1 << 20, "cal_params": 64 << 10, "reject": 64 << 10, "alarm": 64 << 10}
+MAX_PAYLOAD_BYTES = {"truth": 1 << 20, "cal_params": 64 << 10, "reject": 64 << 10, "alarm": 64 << 10,
+                     "batch": 16 << 20}
 MAX_PAYLOAD_DEFAULT = 32 << 10
 #: unknown extra fields (forward compatibility) are kept up to this many encoded bytes in all, else all dropped
 MAX_EXTRA_BYTES = 1024
@@ -67,6 +69,26 @@ LOG_EVERY_S = 10.0
 #: drop reasons that are loss: what could not be delivered or recovered. ``rejected:*`` are refusals; every
 #: other reason is a skip by design (e.g. a stream not used, an alarm state unchanged)
 LOST_REASONS = frozenset(("upstream_gap", "handler_error", "queue_overflow", "invalid_output"))
+
+
+_ENCODINGS: dict[str, Any] = {}
+_CLEAN_BATCH = f"/clean/{keys.BATCH}"
+
+
+def _encoding(key: str) -> Any:
+    """The Zenoh encoding of a put or reply on ``key``: ``application/msgpack;magmesh/{type}/v{version}``."""
+    enc = _ENCODINGS.get(key)
+    if enc is None:
+        import zenoh
+
+        try:
+            name = streams.encoding_for_key(key)
+        except keys.KeyError_:
+            name = streams.MEDIA_TYPE  # a key outside the contract (a test's or a tool's): msgpack, no schema
+        enc = zenoh.Encoding(name)
+        if len(_ENCODINGS) < 65536:
+            _ENCODINGS[key] = enc
+    return enc
 
 
 def drop_category(reason: str) -> str:
@@ -86,6 +108,8 @@ class Service:
     Settings: type | None = None
     CONSUMES: tuple[str, ...] = ()
     PRODUCES: tuple[str, ...] = ()
+    #: raw/batch payloads (contract v2) reach on_message undecoded: the service validates them (ingest)
+    RAW_BATCHES: bool = False
     #: decode inputs before on_message (ingest turns this off to validate raw bytes itself)
     DECODE_INPUTS: bool = True
 
@@ -131,6 +155,16 @@ class Service:
     def republish(self, key: str, msg: dict) -> dict | None:
         """Publish an already validated input message's fields on another key, with this service's seq."""
         return self._runtime.republish(key, msg)
+
+    #: a service that takes whole batches (contract v2) defines ``on_batch(info, batch, state)``: ``info`` is
+    #: the batch key's, ``batch`` a :class:`schemas.batch.Batch` holding only the streams the service subscribes
+    #: to (columns as numpy arrays). Without it, the runtime hands each sample of a batch to ``on_message`` in
+    #: sample-time order, exactly as if it had arrived alone.
+    on_batch: Callable | None = None
+
+    def publish_batch(self, key: str, vehicle: str, cols: dict) -> int:
+        """Publish validated samples of a vehicle's streams as one batch (``clean/batch``); returns samples sent."""
+        return self._runtime.publish_batch(key, vehicle, cols)
 
     def alarm(self, vehicle: str, source: str, state: str, severity: str, reason: str,
               value: float | None, threshold: float | None, t_s: float, unit: str = "", **extra: Any) -> dict:
@@ -344,6 +378,9 @@ class Runner:
         self.rebases: dict[str, int] = defaultdict(int)  # seq / clock re-bases, each counted once
         self._next_evict = time.monotonic() + 1.0
         self._log_last: dict[str, tuple[float, int]] = {}
+        self.batch_in = False  # clean batches are unbatched here (set in start())
+        self._sub_exprs: list[Any] = []
+        self._wants: dict[str, bool] = {}
         service._rt = self
 
     # ---- output ---------------------------------------------------------------------------
@@ -352,7 +389,9 @@ class Runner:
         if pub is None:
             import zenoh
 
-            opts = dict(congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
+            # every put names its message type and version (schemas/streams.py)
+            opts = dict(congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE,
+                        encoding=_encoding(key))
             kind = keys.parse(key).kind
             if (kind == "alarm" or (kind == "cal" and "/cal/params/" in key)) and isinstance(self.session, zenoh.Session):
                 # state that must never be missed: the last sample stays cached for late joiners (history), and
@@ -413,6 +452,43 @@ class Runner:
         if msg_type == "alarm":
             self._alarm_sent(key, msg)
         return msg
+
+    def publish_batch(self, key: str, vehicle: str, cols: dict) -> int:
+        """One batch of already validated samples (``{stream name: Columns}``) on ``key``.
+
+        Each sample's ``seq`` in the batch is this publisher's count on the sample's own stream key (the same
+        number a single sample republished there would carry), so a consumer sees gaps per stream, and the
+        batch's own ``seq`` counts batches on ``key``. During a hand-over the samples go one by one through the
+        gated path, so the cut stays exact.
+        """
+        kind = keys.parse(key).kind
+        if self.mode != "active" or self.cut:
+            n = 0
+            for name, c in cols.items():
+                skey = batches.stream_key(kind, vehicle, name)
+                for m in c.messages(vehicle):
+                    n += self.republish(skey, m) is not None
+            return n
+        import numpy as np
+
+        out = {}
+        n = 0
+        for name, c in cols.items():
+            if c.n == 0:
+                continue
+            skey = batches.stream_key(kind, vehicle, name)
+            s0 = self.seq.get(skey, -1) + 1
+            out[name] = batches.Columns(c.name, c.msg_type, c.t_s, np.arange(s0, s0 + c.n, dtype=np.int64), c.cols)
+            self.seq[skey] = s0 + c.n - 1
+            self.count_out[skey].n += c.n
+            n += c.n
+        if not out:
+            return 0
+        seq = self.seq.get(key, -1) + 1
+        self._publisher(key).put(batches.encode(vehicle, seq, out))
+        self.seq[key] = seq
+        self.count_out[key].n += 1
+        return n
 
     def republish(self, key: str, msg: dict) -> dict | None:
         """Publish the fields of an already validated input message on another key (no re-validation)."""
@@ -578,6 +654,9 @@ class Runner:
 
         A batch path calls this once per sample (or :meth:`check_input` then :meth:`dispatch`).
         """
+        if self.batch_in and key.endswith(_CLEAN_BATCH):
+            self.handle_batch(key, payload)
+            return
         self._cur_key, self._cur_rejected = key, False
         try:
             got = self.check_input(key, payload)
@@ -587,6 +666,103 @@ class Runner:
             self._handler_failed(key, e)
         finally:
             self._cur_key = None
+
+    # ---- batches (contract v2) ---------------------------------------------------------------
+    def wants(self, key: str) -> bool:
+        """Whether one of the service's subscriptions covers the per-stream ``key`` (cached)."""
+        w = self._wants.get(key)
+        if w is None:
+            import zenoh
+
+            ke = zenoh.KeyExpr(key)
+            w = any(s.intersects(ke) for s in self._sub_exprs)
+            if len(self._wants) < 65536:
+                self._wants[key] = w
+        return w
+
+    def handle_batch(self, key: str, payload: bytes) -> None:
+        """A ``clean/batch`` from ingest: trusted (validated there), so only its structure is read. Its samples
+        go to ``on_batch`` whole, or one by one to ``on_message`` in sample-time order; each stream's seq and
+        time are tracked as for single samples."""
+        try:
+            info = keys.parse_data(key)
+        except keys.KeyError_ as e:
+            self.count_in[keys.BAD_KEY].n += 1
+            self.reject(key, "key", str(e), None, len(payload), None, None, None)
+            return
+        self.count_in[key].n += 1
+        now = time.monotonic()
+        self.key_seen[key] = now
+        self.vehicle_seen[info.vehicle] = now
+        try:
+            b = batches.decode(payload, where=key, check=False)
+        except SchemaError as e:
+            code = "version" if e.field == "version" else ("decode" if e.field == "<payload>" else "schema")
+            self.reject(key, code, str(e), e.field, len(payload), info.vehicle, None, "batch")
+            return
+        if b.vehicle != info.vehicle:
+            self.reject(key, "key", f"field 'vehicle' of {key} is {b.vehicle[:64]!r}, but the key names vehicle "
+                        f"{info.vehicle!r}", "vehicle", len(payload), info.vehicle, b.t_s, "batch")
+            return
+        wanted: list[tuple[KeyInfo, Any]] = []
+        for name, c in b.streams.items():
+            skey = batches.stream_key("clean", info.vehicle, name)
+            if c.n == 0 or not self.wants(skey):
+                continue
+            wanted.append((keys.parse(skey), c))
+            self._batch_accepted(skey, info.vehicle, c)
+        if not wanted:
+            return
+        svc = self.svc
+        state = self.state_for(info.vehicle)
+        if svc.on_batch is not None:
+            b.streams = {c.name: c for _, c in wanted}
+            try:
+                svc.on_batch(info, b, state)
+            except Exception as e:  # noqa: BLE001 - counted as lost on the batch key, never fatal
+                self._handler_failed(key, e)
+            return
+        per = [(si, c.messages(info.vehicle)) for si, c in wanted]
+        if len(per) == 1:
+            order = [(0, i) for i in range(len(per[0][1]))]
+        else:
+            import numpy as np
+
+            t_all = np.concatenate([c.t_s for _, c in wanted])
+            src = np.concatenate([np.full(c.n, j) for j, (_, c) in enumerate(wanted)])
+            idx = np.concatenate([np.arange(c.n) for _, c in wanted])
+            o = np.argsort(t_all, kind="stable")
+            order = zip(src[o].tolist(), idx[o].tolist(), strict=True)
+        on_message = svc.on_message
+        for j, i in order:
+            si, msgs = per[j]
+            try:
+                on_message(si, msgs[i], state)
+            except Exception as e:  # noqa: BLE001
+                self._handler_failed(si.key, e)
+
+    def _batch_accepted(self, skey: str, vehicle: str, c: Any) -> None:
+        last = self.in_seq.get(skey)
+        s0, s1 = int(c.seq[0]), int(c.seq[-1])
+        if last is not None:
+            gap = s0 - last - 1
+            if gap > self.seq_jump_max:
+                self.count_rebase("seq_jump")
+            elif gap > 0:
+                self.drops[skey]["upstream_gap"] += gap
+            elif gap < 0:
+                self.count_rebase("seq_back")
+        inner = s1 - s0 + 1 - c.n  # ingest numbers the samples of a stream consecutively
+        if inner > 0:
+            self.drops[skey]["upstream_gap"] += inner
+        self.in_seq[skey] = s1
+        self.count_in[skey].n += c.n
+        self.key_seen[skey] = time.monotonic()
+        t0, t1 = float(c.t_s.min()), float(c.t_s.max())
+        if vehicle not in self.first_in_t:
+            self.first_in_t[vehicle] = t0
+        if t1 > self.last_in_t.get(vehicle, float("-inf")):
+            self.last_in_t[vehicle] = t1
 
     def _handler_failed(self, key: str, e: Exception) -> None:
         self.last_error = f"{type(e).__name__}: {e}"[:500]
@@ -623,6 +799,11 @@ class Runner:
         if len(payload) > limit:
             self.reject(key, "decode", f"payload of {key} is {len(payload)} bytes, more than the {limit} bytes a "
                         f"{mtype} message may take: not decoded", "<payload>", len(payload), info.vehicle, None, None)
+            return None
+        if mtype == "batch":  # contract v2 raw batches: validated by the service that takes them (ingest)
+            if self.svc.RAW_BATCHES:
+                return info, payload
+            self.count_drop(key, "batch_not_consumed")
             return None
         if not self.svc.DECODE_INPUTS:
             return info, payload
@@ -814,7 +995,8 @@ class Runner:
     def _answer_status(self, query: Any) -> None:
         try:
             payload = msgpack.packb(self.status(), use_bin_type=True)
-            query.reply(keys.svc_status(self.svc.role, self.svc.instance), payload)
+            skey = keys.svc_status(self.svc.role, self.svc.instance)
+            query.reply(skey, payload, encoding=_encoding(skey))
         except Exception as e:
             self.last_error = f"status reply failed: {e}"
         finally:
@@ -829,7 +1011,7 @@ class Runner:
                 raised = list(self.raised.items())
             for key, msg in raised:
                 if qke.intersects(zenoh.KeyExpr(key)):
-                    query.reply(key, messages.encode(msg, check=False))
+                    query.reply(key, messages.encode(msg, check=False), encoding=_encoding(key))
         except Exception as e:
             self.last_error = f"alarm reply failed: {e}"
         finally:
@@ -885,7 +1067,8 @@ class Runner:
         except Exception as e:
             result = {"ok": False, "error": f"{type(e).__name__}: {e}"}
         try:
-            query.reply(keys.svc_control(self.svc.role, self.svc.instance), msgpack.packb(result, use_bin_type=True))
+            ckey = keys.svc_control(self.svc.role, self.svc.instance)
+            query.reply(ckey, msgpack.packb(result, use_bin_type=True), encoding=_encoding(ckey))
         finally:
             query.drop()
 
@@ -897,7 +1080,7 @@ class Runner:
         try:
             params = dict(query.parameters) if query.parameters is not None else {}
             for key, msg in fn(str(query.key_expr), params):
-                query.reply(key, messages.encode(msg) if isinstance(msg, dict) else bytes(msg))
+                query.reply(key, messages.encode(msg) if isinstance(msg, dict) else bytes(msg), encoding=_encoding(key))
         except Exception as e:
             self.last_error = f"query {name} failed: {e}"
             try:
@@ -912,7 +1095,19 @@ class Runner:
         import zenoh
 
         svc = self.svc
-        for kexpr in svc.subscriptions():
+        subs = list(svc.subscriptions())
+        self._sub_exprs = [zenoh.KeyExpr(k) for k in subs]
+        # contract v2: a service consuming clean/ streams also takes the vehicle's clean batches (ingest's
+        # output = batches), unbatched for it here; nothing in the service changes
+        for kexpr in list(subs):
+            parts = kexpr.split("/")
+            if len(parts) >= 4 and parts[0] == keys.ROOT and parts[2] == "clean":
+                bk = f"{keys.ROOT}/{parts[1]}/clean/{keys.BATCH}"
+                if not any(zenoh.KeyExpr(s).includes(zenoh.KeyExpr(bk)) for s in subs):
+                    subs.append(bk)
+        any_batch = zenoh.KeyExpr(f"{keys.ROOT}/*/clean/{keys.BATCH}")
+        self.batch_in = svc.DECODE_INPUTS and any(zenoh.KeyExpr(s).intersects(any_batch) for s in subs)
+        for kexpr in subs:
             sub = self.session.declare_subscriber(kexpr, zenoh.handlers.FifoChannel(FIFO_CAPACITY))
             self.subs.append(sub)
             self._spawn(self._reader, sub, "s")
@@ -938,6 +1133,9 @@ class Runner:
                      ", ".join(svc.subscriptions()) or "no subscriptions")
 
     def tick_period(self) -> float | None:
+        override = getattr(self.svc, "tick_override_s", None)  # e.g. ingest's batch window
+        if override:
+            return float(override)
         s = self.svc.settings
         t = getattr(s, "tick_s", None) if s is not None else None
         return float(t) if t else None

@@ -146,7 +146,7 @@ def _bad(fld: str, problem: str, where: str) -> SchemaError:
     return SchemaError(fld, problem, where, "batch")
 
 
-def _column(f, raw: Any, n: int, sname: str, where: str) -> Any:
+def _column(f, raw: Any, n: int, sname: str, where: str, check: bool = True) -> Any:
     name = f"{sname}.{f.name}"
     w = _width(f)
     if w is not None:
@@ -159,6 +159,8 @@ def _column(f, raw: Any, n: int, sname: str, where: str) -> Any:
         a = np.frombuffer(raw, dtype=dtype)
         if width > 1:
             a = a.reshape(n, width)
+        if not check:
+            return a
         if dtype == "<f8":
             bad = ~np.isfinite(a)
             if f.nullable and width == 1:
@@ -184,7 +186,7 @@ def _column(f, raw: Any, n: int, sname: str, where: str) -> Any:
         vals = [raw] if isinstance(raw, str) else raw
         if not isinstance(vals, list) or (not isinstance(raw, str) and len(vals) != n):
             raise _bad(name, f"must be one string or an array of {n} strings", where)
-        for v in vals:
+        for v in (vals if check else ()):
             if v is None and f.nullable:
                 continue
             if not isinstance(v, str) or len(v) > MAX_STR:
@@ -195,8 +197,12 @@ def _column(f, raw: Any, n: int, sname: str, where: str) -> Any:
     raise _bad(name, f"field kind {f.kind} cannot travel in a batch", where)
 
 
-def decode(payload: bytes, where: str = "") -> Batch:
-    """Decode and check a batch; raise :class:`SchemaError` naming the stream and field that is wrong."""
+def decode(payload: bytes, where: str = "", check: bool = True) -> Batch:
+    """Decode and check a batch; raise :class:`SchemaError` naming the stream and field that is wrong.
+
+    ``check=False`` (a trusted ``clean/batch`` from ingest) reads the structure only: shapes and sizes are
+    still checked (a wrong one cannot be read), values are not scanned again.
+    """
     if not isinstance(payload, (bytes, bytearray, memoryview)) or len(payload) == 0:
         raise _bad("<payload>", "is empty or not bytes", where)
     if len(payload) > 64 * 1024 * 1024:
@@ -238,10 +244,10 @@ def decode(payload: bytes, where: str = "") -> Batch:
         if not isinstance(sb, (bytes, bytearray)) or len(sb) != 8 * n:
             raise _bad(f"{sname}.seq", f"must be a binary <i8 column of {n} values", where)
         t = np.frombuffer(tb, "<f8")
-        if not np.isfinite(t).all():
+        if check and not np.isfinite(t).all():
             raise _bad(f"{sname}.t_s", "must contain only finite numbers", where)
         s = np.frombuffer(sb, "<i8")
-        if n and s.min() < 0:
+        if check and n and s.min() < 0:
             raise _bad(f"{sname}.seq", "must contain only integers ≥ 0", where)
         if type(cols) is not dict:
             raise _bad(f"{sname}.cols", "must be a map of columns", where)
@@ -253,8 +259,8 @@ def decode(payload: bytes, where: str = "") -> Batch:
                 if f.required:
                     raise _bad(f"{sname}.{f.name}", "is missing", where)
                 continue
-            parsed[f.name] = _column(f, raw, n, sname, where)
-        if st == "mag":
+            parsed[f.name] = _column(f, raw, n, sname, where, check)
+        if check and st == "mag":
             sensor = parsed.get("sensor")
             want = sname.partition("/")[2]
             if (isinstance(sensor, str) and sensor != want) or (isinstance(sensor, list) and any(x != want for x in sensor)):
@@ -334,6 +340,11 @@ def from_message(msg: dict) -> Columns:
         else:
             cols[f.name] = np.asarray([v], dtype=w[0]).reshape(1, -1) if w[1] > 1 else np.asarray([v], dtype=w[0])
     return Columns(name, msg["type"], np.array([float(msg["t_s"])]), np.array([int(msg["seq"])], dtype=np.int64), cols)
+
+
+def stream_name(info: Any) -> str:
+    """The name inside a batch of a per-stream key (parsed): raw/mag/1 → ``mag/1``, clean/imu → ``imu``."""
+    return "/".join(info.rest)
 
 
 def stream_key(kind: str, vehicle: str, name: str) -> str:

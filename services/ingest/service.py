@@ -11,14 +11,24 @@ import time
 from magmesh.runtime import Service
 from schemas import keys, messages
 
-from .core import (IngestSettings, Rejection, StreamState, VehicleState, accept, check_order, check_ranges,
-                   note_refusal, rebase)
+from .batching import BatchingIngest, IngestServiceSettings
+from .core import (
+    Rejection,
+    StreamState,
+    VehicleState,
+    accept,
+    check_order,
+    check_ranges,
+    note_refusal,
+    rebase,
+)
 
 
-class Ingest(Service):
+class Ingest(BatchingIngest, Service):
     role = "ingest"
     impl = "ingest"
-    Settings = IngestSettings
+    Settings = IngestServiceSettings
+    RAW_BATCHES = True  # raw/batch (contract v2): validated here on whole columns
     CONSUMES = ("raw/mag/{sensor}", "raw/imu", "raw/gnss", "raw/ins", "raw/route", "raw/attitude")
     PRODUCES = ("clean/mag/{sensor}", "clean/imu", "clean/gnss", "clean/ins", "clean/route", "clean/attitude",
                 "rejects")
@@ -32,6 +42,9 @@ class Ingest(Service):
     def on_message(self, info, msg: dict, state: VehicleState) -> None:
         # the runtime has decoded the payload against the contract (schema, version, finite values, vehicle id
         # matching the key) and reported anything that failed on rejects; here: physics, time order, duplicates
+        if info.rest[0] == keys.BATCH:  # contract v2: many samples, validated on whole columns
+            self.on_batch_input(info, msg, state)
+            return
         key = info.key
         st = state.streams.get(key)
         if st is None:
@@ -41,19 +54,28 @@ class Ingest(Service):
             check_ranges(msg, self.settings, key)
             check_order(msg, st, self.settings, key, now)
         except Rejection as r:
-            if r.code == "time_order" and note_refusal(msg, st, self.settings):
-                # the stream kept contradicting its clock with samples that agree with each other: the clock
-                # really jumped (a restarted source, a GNSS time step); start it again from this sample
-                self.log.warning("%s: clock re-based at t_s = %.6f s after %d consistent samples refused on time",
-                                 key, msg["t_s"], self.settings.rebase_after)
-                rebase(st)
-                self._rt.count_rebase("clock")
-            else:
-                self.reject(key, r.code, r.reason, r.field, len(messages.encode(msg, check=False)), info.vehicle,
-                            msg["t_s"], msg["type"])
+            if not self.time_refusal(info, msg, st, r):
                 return
         accept(msg, st, now, self.settings)
-        self.republish(keys.raw_to_clean(key), msg)
+        self.emit(info, msg)
+
+    def on_tick(self) -> None:
+        self.flush()
+
+    def time_refusal(self, info, msg: dict, st: StreamState, r: Rejection) -> bool:
+        """A refused sample: reported (False), or (True) the one that re-bases a clock that really jumped."""
+        key = info.key
+        if r.code == "time_order" and note_refusal(msg, st, self.settings):
+            # the stream kept contradicting its clock with samples that agree with each other: the clock
+            # really jumped (a restarted source, a GNSS time step); start it again from this sample
+            self.log.warning("%s: clock re-based at t_s = %.6f s after %d consistent samples refused on time",
+                             key, msg["t_s"], self.settings.rebase_after)
+            rebase(st)
+            self._rt.count_rebase("clock")
+            return True
+        self.reject(key, r.code, r.reason, r.field, len(messages.encode(msg, check=False)), info.vehicle,
+                    msg["t_s"], msg["type"])
+        return False
 
     def evict_key(self, key: str) -> None:
         """The runtime freed an idle key: its stream's clock and seq go too."""

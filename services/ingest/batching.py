@@ -1,0 +1,205 @@
+"""Ingest on batches (contract v2): v2 batches validated once, vectorised; clean batches out within a window.
+
+A ``raw/batch`` is decoded and checked column by column (:func:`schemas.batch.decode`: types, lengths,
+finiteness, bounds, choices), then each stream's physical ranges (the streams table, :func:`schemas.streams.
+limit_masks`) and time order are tested on whole columns with numpy. What fails is refused per sample — one
+reject report per stream and reason, counted per sample — and the rest is accepted. A stream whose batch holds
+something the vectorised test does not decide (a time jump, a sample dated ahead of the stream's clock) goes
+through the per-sample path instead, which gives exactly the v1 decisions.
+
+With ``output = "batches"`` accepted samples, from batches and from v1 single samples alike, are published as
+one ``clean/batch`` per vehicle at most ``batch_window_s`` after the first of them arrived (a batch input is
+published at once, with whatever singles of its vehicle were waiting). With ``output = "singles"`` (the
+default) every accepted sample is republished alone on its ``clean/`` key, as in contract v1.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from schemas import batch as batches
+from schemas import keys, streams
+from schemas.messages import SchemaError
+
+from .core import IngestSettings, Rejection, StreamState, accept, check_order, check_ranges
+
+
+@dataclass(frozen=True)
+class IngestServiceSettings(IngestSettings):
+    output: str = "singles"  # singles: one clean/ message per sample (v1) | batches: clean/batch per vehicle (v2)
+    batch_window_s: float = 0.02  # longest wall-clock wait of an accepted sample before its clean batch goes out
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.output not in ("singles", "batches"):
+            raise ValueError(f"output must be 'singles' or 'batches', got {self.output!r}")
+        if not 0 < self.batch_window_s <= 5.0:
+            raise ValueError(f"batch_window_s must be in (0, 5] s, got {self.batch_window_s!r}")
+
+
+def order_masks(t: np.ndarray, ok: np.ndarray, last_t: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """Duplicates and time going backwards on one stream's column, decided as the per-sample test would:
+    each sample against the latest earlier sample that was accepted (``ok``: not refused otherwise)."""
+    prev_src = np.where(ok, t, -np.inf)
+    run = np.maximum.accumulate(prev_src)
+    prev = np.empty_like(t)
+    prev[0] = -np.inf if last_t is None else last_t
+    if t.shape[0] > 1:
+        prev[1:] = np.maximum(run[:-1], prev[0])
+    return t == prev, t < prev
+
+
+class BatchingIngest:
+    """The batch half of the ingest service (mixed into :class:`services.ingest.service.Ingest`)."""
+
+    settings: IngestServiceSettings
+
+    @property
+    def batch_output(self) -> bool:
+        """True with ``output = "batches"`` (a plain :class:`IngestSettings` means singles)."""
+        return getattr(self.settings, "output", "singles") == "batches"
+
+    @property
+    def _pending(self) -> dict[str, tuple[float, dict[str, list[batches.Columns]]]]:
+        """vehicle → (monotonic time of its first waiting sample, stream name → columns waiting)."""
+        d = self.__dict__.get("_pending_d")
+        if d is None:
+            d = self.__dict__["_pending_d"] = {}
+        return d
+
+    # ---- input -------------------------------------------------------------------------------------
+    def on_batch_input(self, info: Any, payload: bytes, state: Any) -> None:
+        key = info.key
+        try:
+            b = batches.decode(payload, where=key)
+        except SchemaError as e:
+            code = "version" if e.field == "version" else ("decode" if e.field == "<payload>" else "schema")
+            self.reject(key, code, str(e), e.field, len(payload), info.vehicle, None, "batch")
+            return
+        if b.vehicle != info.vehicle:
+            self.reject(key, "key", f"field 'vehicle' of {key} is {b.vehicle[:64]!r}, but the key names vehicle "
+                        f"{info.vehicle!r}", "vehicle", len(payload), info.vehicle, b.t_s, "batch")
+            return
+        now = time.monotonic()
+        for name, c in b.streams.items():
+            if c.n:
+                self._stream_columns(info.vehicle, name, c, state, now, b.seq)
+        self.flush(info.vehicle)
+
+    def _stream_columns(self, vehicle: str, name: str, c: batches.Columns, state: Any, now: float,
+                        bseq: int) -> None:
+        s = self.settings
+        skey = batches.stream_key("raw", vehicle, name)
+        self._rt.count_in[skey].n += c.n
+        st = state.streams.get(skey)
+        if st is None:
+            st = state.streams[skey] = StreamState()
+        t = c.t_s
+        refused: list[tuple[str, str, np.ndarray, str]] = []
+        bad_t = t < 0
+        if bad_t.any():
+            refused.append(("range", "t_s", bad_t, "must be ≥ 0"))
+        for fld, mask, sentence in streams.limit_masks(c.msg_type, c.cols, c.n, s):
+            refused.append(("range", fld, mask, sentence))
+        ok = np.ones(c.n, bool)
+        for _, _, m, _ in refused:
+            ok &= ~m
+        dup, back = order_masks(t, ok, st.last_t_s)
+        ok_t = t[ok & ~dup & ~back]
+        prev_last = st.last_t_s
+        jumps = np.diff(np.concatenate([[prev_last], ok_t])) if prev_last is not None and ok_t.size else (
+            np.diff(ok_t) if ok_t.size > 1 else np.zeros(0))
+        ahead = False
+        if prev_last is not None and st.last_wall is not None and ok_t.size:
+            from .core import ahead_limit_s
+
+            ahead = float(ok_t[-1]) - prev_last > ahead_limit_s(c.msg_type, st, s, now)
+        if (jumps > s.max_time_jump_s).any() or ahead or st.contra_n:
+            # not decided by the columns: each sample through the v1 path (same decisions, same clock rules)
+            self._per_sample(vehicle, skey, c, st, now)
+            return
+        if dup.any():
+            refused.append(("duplicate", "t_s", dup & ok, "repeats the previous sample's t_s"))
+        if back.any():
+            refused.append(("time_order", "t_s", back & ok, "went backwards"))
+        for code, fld, mask, sentence in refused:
+            k = int(mask.sum())
+            if not k:
+                continue
+            i = int(np.argmax(mask))
+            self.reject(skey, code, f"field '{fld}' of {skey} {sentence}: {k} of {c.n} samples of batch {bseq} "
+                        f"(first at t_s = {float(t[i]):.6f} s)", fld, 0, vehicle, float(t[i]), c.msg_type)
+            if k > 1:
+                self.count_drop(skey, f"rejected:{code}", k - 1)
+        keep = ok & ~dup & ~back
+        if not keep.any():
+            return
+        acc = c if keep.all() else c.take(keep)
+        seq = acc.seq
+        if acc.n > 1 or st.last_seq is not None:
+            prev = np.concatenate([[st.last_seq], seq[:-1]]) if st.last_seq is not None else seq[:-1]
+            gaps = (seq[-len(prev):] - prev - 1) if len(prev) else np.zeros(0, np.int64)
+            big = (gaps > s.seq_jump_max) | (gaps < -1)
+            st.seq_rebases += int(big.sum())
+            st.upstream_gaps += int(gaps[(gaps > 0) & ~big].sum())
+            st.last_seq = None  # accept() below counts nothing more for the last sample
+        accept({"seq": int(seq[-1]), "t_s": float(acc.t_s[-1])}, st, now, s)
+        st.accepted += acc.n - 1
+        self.pend(vehicle, name, acc)
+
+    def _per_sample(self, vehicle: str, skey: str, c: batches.Columns, st: StreamState, now: float) -> None:
+        info = keys.parse(skey)
+        for m in c.messages(vehicle):
+            try:
+                check_ranges(m, self.settings, skey)
+                check_order(m, st, self.settings, skey, now)
+            except Rejection as r:
+                if not self.time_refusal(info, m, st, r):
+                    continue
+            accept(m, st, now, self.settings)
+            self.emit(info, m)
+
+    # ---- output ------------------------------------------------------------------------------------
+    def emit(self, info: Any, msg: dict) -> None:
+        """An accepted v1 sample: republished alone, or kept for its vehicle's next clean batch."""
+        if not self.batch_output:
+            self.republish(keys.raw_to_clean(info.key), msg)
+            return
+        self.pend(info.vehicle, batches.stream_name(info), batches.from_message(msg))
+
+    def pend(self, vehicle: str, name: str, cols: batches.Columns) -> None:
+        if not self.batch_output:
+            kind_key = batches.stream_key("clean", vehicle, name)
+            for m in cols.messages(vehicle):
+                self.republish(kind_key, m)
+            return
+        p = self._pending.get(vehicle)
+        if p is None:
+            p = self._pending[vehicle] = (time.monotonic(), {})
+        p[1].setdefault(name, []).append(cols)
+
+    def flush(self, vehicle: str | None = None) -> None:
+        """Publish the clean batch of ``vehicle`` now, or (None) of every vehicle whose window has passed."""
+        if vehicle is not None:
+            p = self._pending.pop(vehicle, None)
+            if p is not None:
+                self._publish(vehicle, p[1])
+            return
+        if not self._pending:
+            return
+        due = time.monotonic() - self.settings.batch_window_s
+        for v in [v for v, p in self._pending.items() if p[0] <= due]:
+            self._publish(v, self._pending.pop(v)[1])
+
+    def _publish(self, vehicle: str, parts: dict[str, list[batches.Columns]]) -> None:
+        cols = {name: batches.concat(lst) for name, lst in parts.items()}
+        self.publish_batch(keys.clean_batch(vehicle), vehicle, cols)
+
+    @property
+    def tick_override_s(self) -> float | None:
+        """The runtime's tick runs the window's flush at half the window."""
+        return self.settings.batch_window_s / 2 if self.batch_output else None

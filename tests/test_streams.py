@@ -1,0 +1,158 @@
+"""Contract v2 in process (no Zenoh): ingest on batches, clean batches out, the runtime's unbatching."""
+
+import msgpack
+import numpy as np
+import pytest
+
+from magmesh.runtime import Runner, Service
+from schemas import batch, keys, messages
+from services.ingest.batching import IngestServiceSettings, order_masks
+from services.ingest.service import Ingest
+
+
+class _Pub:
+    def __init__(self, out, key):
+        self.out, self.key = out, key
+
+    def put(self, payload):
+        self.out.append((self.key, bytes(payload)))
+
+
+class _Session:
+    def __init__(self):
+        self.out = []
+
+    def declare_publisher(self, key, **kw):
+        assert "encoding" in kw  # every publisher names its encoding
+        return _Pub(self.out, key)
+
+
+def _ingest(tmp_path, monkeypatch, **settings):
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
+    sess = _Session()
+    r = Runner(Ingest(IngestServiceSettings(**settings), instance="ing-t"), sess)
+    return r, sess
+
+
+def _mag_batch(vehicle, seq, t, b1, b2, s0=0):
+    n = len(t)
+    return batch.encode(vehicle, seq, {
+        "mag/1": {"t_s": t, "seq": s0 + np.arange(n), "cols": {"sensor": "1", "b_nt": b1}},
+        "mag/2": {"t_s": t, "seq": s0 + np.arange(n), "cols": {"sensor": "2", "b_nt": b2}}})
+
+
+def _field(n, seed=0):
+    rng = np.random.default_rng(seed)
+    return np.array([2e4, 1e3, -4e4]) + rng.normal(0, 50, (n, 3))
+
+
+def test_ingest_validates_a_batch_and_republishes_singles(tmp_path, monkeypatch):
+    r, s = _ingest(tmp_path, monkeypatch)
+    t = 1.0 + np.arange(10) * 0.02
+    b1, b2 = _field(10, 1), _field(10, 2)
+    b1[4] = [3e6, 0, 0]  # beyond what a magnetometer reads
+    t2 = t.copy()
+    t2[7] = t2[6]  # a duplicate on sensor 2
+    payload = batch.encode("car-1", 0, {
+        "mag/1": {"t_s": t, "seq": np.arange(10), "cols": {"sensor": "1", "b_nt": b1}},
+        "mag/2": {"t_s": t2, "seq": np.arange(10), "cols": {"sensor": "2", "b_nt": b2}}})
+    r.handle_sample(keys.raw_batch("car-1"), payload)
+    out = [(k, msgpack.unpackb(p)) for k, p in s.out]
+    c1 = [m for k, m in out if k == keys.clean_mag("car-1", "1")]
+    c2 = [m for k, m in out if k == keys.clean_mag("car-1", "2")]
+    rej = [m for k, m in out if k == keys.rejects("car-1")]
+    assert [m["t_s"] for m in c1] == [x for i, x in enumerate(t.tolist()) if i != 4]
+    assert [m["seq"] for m in c1] == list(range(9))  # ingest's own numbering on the clean key
+    assert len(c2) == 9 and all(messages.validate(m) for m in c1 + c2)
+    assert c1[0]["b_nt"] == b1[0].tolist()
+    assert sorted((m["code"], m["field"]) for m in rej) == [("duplicate", "t_s"), ("range", "b_nt")]
+    assert r.drops[keys.raw_mag("car-1", "1")]["rejected:range"] == 1
+    assert r.count_in[keys.raw_mag("car-1", "2")].n == 10
+
+
+def test_ingest_batches_out_within_the_window(tmp_path, monkeypatch):
+    r, s = _ingest(tmp_path, monkeypatch, output="batches", batch_window_s=0.05)
+    for i in range(5):  # v1 singles wait for the window
+        for sensor in ("1", "2"):
+            m = messages.make("mag", "car-1", 1.0 + 0.02 * i, i, sensor=sensor, b_nt=[2e4, 1e3, -4e4 + i])
+            r.handle_sample(keys.raw_mag("car-1", sensor), messages.encode(m))
+    assert s.out == []
+    r.svc._pending["car-1"] = (0.0, r.svc._pending["car-1"][1])  # the window has passed
+    r.svc.on_tick()
+    assert [k for k, _ in s.out] == [keys.clean_batch("car-1")]
+    b = batch.decode(s.out[0][1], check=True)
+    assert b.seq == 0 and b.streams["mag/2"].n == 5
+    assert b.streams["mag/2"].seq.tolist() == [0, 1, 2, 3, 4]
+    assert b.streams["mag/1"].cols["b_nt"][3].tolist() == [2e4, 1e3, -4e4 + 3]
+    # a batch input goes out at once, numbered on from the singles
+    t = 1.1 + np.arange(4) * 0.02
+    r.handle_sample(keys.raw_batch("car-1"), _mag_batch("car-1", 0, t, _field(4), _field(4), s0=5))
+    b2 = batch.decode(s.out[-1][1])
+    assert b2.seq == 1 and b2.streams["mag/1"].seq.tolist() == [5, 6, 7, 8]
+    assert r.tick_period() == pytest.approx(0.025)
+
+
+def test_bad_batch_is_refused_whole_with_the_field_named(tmp_path, monkeypatch):
+    r, s = _ingest(tmp_path, monkeypatch)
+    b1 = _field(3)
+    b1[1, 2] = np.nan
+    r.handle_sample(keys.raw_batch("car-1"), _mag_batch("car-1", 0, np.arange(3) * 0.1, b1, _field(3)))
+    out = [(k, msgpack.unpackb(p)) for k, p in s.out]
+    assert [k for k, _ in out] == [keys.rejects("car-1")]
+    assert out[0][1]["field"] == "mag/1.b_nt" and out[0][1]["code"] == "schema"
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_vectorised_order_decisions_equal_the_per_sample_ones(seed):
+    rng = np.random.default_rng(seed)
+    t = np.cumsum(rng.choice([0.02, 0.0, -0.03, 0.02, 0.02], 60))
+    ok = rng.random(60) > 0.1
+    last = float(t[0]) - 0.01 if seed % 2 else None
+    dup, back = order_masks(t, ok, last)
+    prev = last
+    for i in range(60):  # the v1 rule: each sample against the last accepted one
+        if not ok[i]:
+            assert not (dup[i] and back[i])
+            continue
+        want_dup = prev is not None and t[i] == prev
+        want_back = prev is not None and t[i] < prev
+        assert (dup[i], back[i]) == (want_dup, want_back), i
+        if not (want_dup or want_back):
+            prev = t[i]
+
+
+class _PerSample(Service):
+    role = "probe"
+    impl = "probe"
+
+    def __init__(self, **kw):
+        super().__init__(**kw)
+        self.got = []
+
+    def subscriptions(self):
+        return [keys.clean_mag("*", "1"), keys.clean_imu("*")]
+
+    def on_message(self, info, msg, state):
+        self.got.append((info.key, msg["t_s"], msg["seq"]))
+
+
+def test_runtime_unbatches_for_per_sample_services_in_time_order(tmp_path, monkeypatch):
+    import zenoh
+
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
+    svc = _PerSample(instance="p-1")
+    r = Runner(svc, _Session())
+    r._sub_exprs = [zenoh.KeyExpr(k) for k in svc.subscriptions()]
+    r.batch_in = True
+    payload = batch.encode("car-1", 0, {
+        "mag/1": {"t_s": np.array([0.0, 0.02, 0.04]), "seq": np.array([0, 1, 3]),
+                  "cols": {"sensor": "1", "b_nt": _field(3)}},
+        "mag/2": {"t_s": np.array([0.0]), "seq": np.array([0]), "cols": {"sensor": "2", "b_nt": _field(1)}},
+        "imu": {"t_s": np.array([0.01, 0.03]), "seq": np.array([0, 1]),
+                "cols": {"gyro_rad_s": np.zeros((2, 3)), "accel_m_s2": np.zeros((2, 3))}}})
+    r.handle_sample(keys.clean_batch("car-1"), payload)
+    m1, imu = keys.clean_mag("car-1", "1"), keys.clean_imu("car-1")
+    assert svc.got == [(m1, 0.0, 0), (imu, 0.01, 0), (m1, 0.02, 1), (imu, 0.03, 1), (m1, 0.04, 3)]
+    assert r.drops[m1]["upstream_gap"] == 1  # seq 2 never came
+    assert r.count_in[m1].n == 3 and keys.clean_mag("car-1", "2") not in r.count_in  # not subscribed: skipped
+    assert r.last_in_t["car-1"] == 0.04
