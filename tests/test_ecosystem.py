@@ -293,3 +293,111 @@ def test_mcap_to_json_foxglove_converts_a_msgpack_recording(tmp_path):
     assert ("/car-1/log", "foxglove.Log", "json") in names
     assert ("/car-1/gnss/fix", "foxglove.LocationFix", "json") in names
     assert ("magmesh/car-1/raw/imu", None, "application/octet-stream") in names  # kept, not lost
+
+
+# ---- ROS 2 bridge ------------------------------------------------------------------------------------------------
+
+
+def test_ros2_bridge_puts_cdr_under_rmw_zenoh_keys_with_tokens(tmp_path):
+
+    from magmesh import ros2
+    from schemas import batch
+
+    port = mu.free_port()
+    router = mu.open_router(port)
+    s = mu.open_client(port)
+    got: list[tuple[str, bytes, bytes | None]] = []
+    cond = threading.Condition()
+
+    def on(sample):
+        with cond:
+            att = sample.attachment.to_bytes() if sample.attachment is not None else None
+            got.append((str(sample.key_expr), sample.payload.to_bytes(), att))
+            cond.notify_all()
+
+    sub = s.declare_subscriber("7/**", on)
+    proc = _spawn_cli("ros2-bridge", "--connect", mu.endpoint(port), "--domain-id", "7", "--quiet",
+                      env={"MAGMESH_STATE_DIR": str(tmp_path)})
+    store = ros2.typestore("jazzy")
+    want = {
+        "7/car_1/mag_1/sensor_msgs::msg::dds_::MagneticField_/" + store.hash_rihs01("sensor_msgs/msg/MagneticField"),
+        "7/car_1/imu/sensor_msgs::msg::dds_::Imu_/" + store.hash_rihs01("sensor_msgs/msg/Imu"),
+        "7/car_1/gnss/fix/sensor_msgs::msg::dds_::NavSatFix_/" + store.hash_rihs01("sensor_msgs/msg/NavSatFix"),
+        "7/car_1/heading/geometry_msgs::msg::dds_::QuaternionStamped_/"
+        + store.hash_rihs01("geometry_msgs/msg/QuaternionStamped"),
+        "7/diagnostics/diagnostic_msgs::msg::dds_::DiagnosticArray_/"
+        + store.hash_rihs01("diagnostic_msgs/msg/DiagnosticArray"),
+        "7/car_1/mag_2/sensor_msgs::msg::dds_::MagneticField_/" + store.hash_rihs01("sensor_msgs/msg/MagneticField"),
+    }
+    mag = messages.make("mag", "car-1", 1.0, 1, sensor="1", b_nt=[21000.0, -1500.0, -42000.0])
+    imu = messages.make("imu", "car-1", 1.0, 1, gyro_rad_s=[0.01, -0.02, 0.3], accel_m_s2=[0.1, 0.2, 9.81])
+    cols = batch.from_message(messages.make("mag", "car-1", 1.0, 1, sensor="2", b_nt=[1.0, 2.0, 3.0]))
+    deadline = time.monotonic() + 60
+    seq = 0
+    try:
+        while time.monotonic() < deadline:
+            seq += 1
+            s.put(keys.clean_mag("car-1", "1"), messages.encode(dict(mag, seq=seq)))
+            s.put(keys.clean_imu("car-1"), messages.encode(dict(imu, seq=seq)))
+            s.put(keys.clean_gnss("car-1"), messages.encode(_gnss("car-1", seq)))
+            s.put(keys.heading("car-1"), messages.encode(_heading("car-1", seq)))
+            s.put(keys.alarm("car-1", "dmc"), messages.encode(_alarm("car-1", seq)))
+            s.put(keys.clean_batch("car-1"), batch.encode("car-1", seq, {"mag/2": cols}))
+            with cond:
+                if want <= {k for k, _, _ in got}:
+                    break
+                cond.wait(0.2)
+        tokens = [str(r.ok.key_expr) for r in s.liveliness().get("@ros2_lv/7/**", timeout=3.0) if r.ok is not None]
+    finally:
+        rc = mu.stop(proc, timeout=15)
+        out = proc.stdout.read().decode(errors="replace")
+        sub.undeclare()
+        s.close()
+        router.close()
+    assert rc == 0, out
+    with cond:
+        first = {}
+        for k, payload, att in got:
+            first.setdefault(k, (payload, att))
+    assert want <= set(first), (sorted(first), out)
+
+    def des(key, t):
+        return store.deserialize_cdr(first[key][0], t)
+
+    k_mag = next(k for k in want if "/mag_1/" in k)
+    m = des(k_mag, "sensor_msgs/msg/MagneticField")
+    assert (m.magnetic_field.x, m.magnetic_field.y, m.magnetic_field.z) == pytest.approx((21000e-9, -1500e-9, -42000e-9))
+    assert m.header.frame_id == "car_1/base_link" and list(m.magnetic_field_covariance) == [0.0] * 9
+    m2 = des(next(k for k in want if "/mag_2/" in k), "sensor_msgs/msg/MagneticField")  # from a batch
+    assert m2.magnetic_field.z == pytest.approx(3e-9)
+    i = des(next(k for k in want if "/imu/" in k), "sensor_msgs/msg/Imu")
+    assert (i.angular_velocity.z, i.linear_acceleration.z, i.orientation_covariance[0]) == pytest.approx((0.3, 9.81, -1))
+    f = des(next(k for k in want if "/gnss/" in k), "sensor_msgs/msg/NavSatFix")
+    assert (f.latitude, f.longitude, f.altitude) == pytest.approx((32.06, 118.80, 10.0))
+    assert f.position_covariance[0] == pytest.approx(2.25) and f.position_covariance_type == 2 and f.status.status == 0
+    q = des(next(k for k in want if "/heading/" in k), "geometry_msgs/msg/QuaternionStamped").quaternion
+    from magmesh import maths
+
+    hdg, pitch, roll = maths.euler_from_quat([q.w, q.x, q.y, q.z])
+    assert (hdg, pitch, roll) == pytest.approx((HEADING_30, 0.05, -0.02), abs=1e-9)
+    d = des(next(k for k in want if "/diagnostics/" in k), "diagnostic_msgs/msg/DiagnosticArray")
+    st = d.status[0]
+    assert st.level in (2,) and st.name == "magmesh/car-1/alarm/dmc" and st.hardware_id == "car-1"
+    assert {kv.key: kv.value for kv in st.values}["threshold"] == "1500"
+    # every put carries rmw_zenoh's attachment: sequence, source timestamp, 16-byte gid
+    sq, ts, gid = ros2.parse_attachment(first[k_mag][1])
+    assert sq >= 1 and abs(ts - time.time_ns()) < 300e9 and len(gid) == 16
+    # liveliness: the node and one publisher per topic, in rmw_zenoh's layout
+    assert any(t.split("/")[5] == "NN" and t.endswith("/%/%/magmesh_bridge") for t in tokens), tokens
+    pubs = [t.split("/") for t in tokens if t.split("/")[5] == "MP"]
+    assert {p[9] for p in pubs} >= {"%car_1%imu", "%car_1%mag_1", "%diagnostics", "%car_1%heading"}, tokens
+    imu_tok = next(p for p in pubs if p[9] == "%car_1%imu")
+    assert imu_tok[10:] == ["sensor_msgs::msg::dds_::Imu_", store.hash_rihs01("sensor_msgs/msg/Imu"), "1:2:1,10:,:,:,,"]
+    assert "ros2-bridge:" in out
+
+
+def test_ros2_bridge_bad_flags(tmp_path):
+    p = _spawn_cli("ros2-bridge", "--domain-id", "999", "--node-name", "9bad")
+    out = p.communicate(timeout=60)[0].decode()
+    assert p.returncode == 2 and "--domain-id 999" in out and "'9bad' is not a ROS node name" in out
+    assert "Traceback" not in out
