@@ -188,6 +188,7 @@ class Supervisor:
         self.raised: set[str] = set()
         self.events: list[str] = []
         self.swapper = None  # set by magmesh.swap when available
+        self.client_config = None  # ProcessSpec -> Zenoh config file of its role (magmesh up --secure)
 
     # ---- zenoh side -----------------------------------------------------------------------
     def open(self) -> None:
@@ -305,6 +306,8 @@ class Supervisor:
                   start: bool = True) -> Child:
         name = instance or spec.name
         cmd = command_for(spec, self.endpoint, self.m.path, impl_override, name)
+        if self.client_config is not None:  # the secured mesh: each process with its role's certificate
+            cmd += ["--config", self.client_config(spec)]
         ch = Child(spec, cmd, self.log_dir / f"{name}.log", self.m.restart_backoff_s)
         if start:
             ch.start()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from ..paths import DEPLOY_DIR
@@ -20,6 +21,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="comma-separated process names: start only these (enabled or not)")
     p.add_argument("--set", action="append", default=[], metavar="PROCESS.NAME=VALUE",
                    help="override one process setting (repeatable), e.g. sim-car-1.speed=0")
+    p.add_argument("--secure", nargs="?", const=".magmesh/secure", default=None, metavar="DIR",
+                   help="run the secured mesh: mutual TLS and access control per role; certificates and "
+                   "configuration files are made in DIR if absent (default .magmesh/secure)")
+    p.add_argument("--insecure", action="store_true",
+                   help="allow an endpoint beyond loopback without TLS and access control (anyone who reaches "
+                   "it can steer the mesh)")
     p.add_argument("--quiet", action="store_true", help="no status line")
     p.add_argument("--log-level", default="INFO")
     p.set_defaults(func=run)
@@ -47,4 +54,19 @@ def run(args: argparse.Namespace) -> int:
             raise SystemExit(f"--set {item!r}: expected PROCESS.NAME=VALUE with a process of the manifest")
         procs[0].settings[key] = value
     sup = Supervisor(m, endpoint=args.endpoint, log_dir=Path(args.log_dir) if args.log_dir else None, quiet=args.quiet)
+    from .. import secure
+
+    problem = secure.exposure_error(sup.endpoint, m.zenoh_config, bool(args.secure), args.insecure)
+    if problem:
+        print(problem, file=sys.stderr)
+        return 2
+    if args.secure:
+        try:
+            prepared = secure.secure_supervisor(sup, m, Path(args.secure))
+        except (ValueError, RuntimeError, OSError) as e:
+            print(f"magmesh up --secure: {e}", file=sys.stderr)
+            return 2
+        if not args.quiet:
+            print(f"secured mesh: mutual TLS and access control on {prepared['endpoint']}; operators attach with "
+                  f"--config {prepared['operator']}", flush=True)
     return sup.run(args.duration)
