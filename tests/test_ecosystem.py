@@ -13,6 +13,7 @@ import sys
 import threading
 import time
 
+import msgpack
 import pytest
 
 from magmesh import foxglove_types as fx
@@ -401,3 +402,53 @@ def test_ros2_bridge_bad_flags(tmp_path):
     out = p.communicate(timeout=60)[0].decode()
     assert p.returncode == 2 and "--domain-id 999" in out and "'9bad' is not a ROS node name" in out
     assert "Traceback" not in out
+
+
+# ---- zenoh-cli codec ---------------------------------------------------------------------------------------------
+
+
+def test_zenoh_cli_prints_decoded_magmesh_messages(tmp_path):
+    from pathlib import Path
+
+    from magmesh import zenoh_codec
+
+    zenoh_exe = Path(sys.executable).with_name("zenoh")
+    assert zenoh_exe.exists(), "zenoh-cli is a dev dependency"
+    port = mu.free_port()
+    router = mu.open_router(port)
+    s = mu.open_client(port)
+    p = subprocess.Popen([str(zenoh_exe), "--mode", "client", "--connect", mu.endpoint(port), "subscribe", "-k",
+                          "magmesh/**", "--decoder", "magmesh", "--line", "{key} {value}"], stdout=subprocess.PIPE,
+                         stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(iter(p.stdout.readline, b"")), daemon=True)
+    reader.start()
+    try:
+        deadline = time.monotonic() + 60
+        seq = 0
+        while time.monotonic() < deadline:
+            seq += 1
+            s.put(keys.heading("car-1"), messages.encode(_heading("car-1", seq)))
+            s.put(keys.alarm("car-1", "dmc"), messages.encode(_alarm("car-1", seq)))
+            time.sleep(0.1)
+            text = b"".join(lines).decode(errors="replace")
+            if "magmesh/car-1/heading {" in text and "magmesh/car-1/alarm/dmc {" in text:
+                break
+    finally:
+        mu.stop(p, timeout=10)
+        s.close()
+        router.close()
+    rows = [ln.decode().strip().split(" ", 1) for ln in lines if ln.startswith(b"magmesh/")]
+    heading = json.loads(next(v for k, v in rows if k == "magmesh/car-1/heading"))
+    assert messages.validate(heading)["heading_rad"] == pytest.approx(HEADING_30)
+    alarm = json.loads(next(v for k, v in rows if k == "magmesh/car-1/alarm/dmc"))
+    assert alarm["reason"] == "field strength off by 3000 nT" and alarm["threshold"] == 1500.0
+    # a map that breaks the contract is shown with what is wrong; garbage is refused; the encoder validates
+    bad = json.loads(zenoh_codec.decode("magmesh/car-1/heading", msgpack.packb({"type": "heading", "seq": 1})))
+    assert "_invalid" in bad and bad["type"] == "heading"
+    with pytest.raises(ValueError, match="not msgpack"):
+        zenoh_codec.decode("magmesh/car-1/heading", b"\xc1\xc1")
+    imu = '{"type":"imu","version":1,"vehicle":"car-1","t_s":1.0,"seq":1,"gyro_rad_s":[0,0,0],"accel_m_s2":[0,0,9.8]}'
+    assert messages.decode(zenoh_codec.encode("magmesh/car-1/raw/imu", imu))["accel_m_s2"] == [0.0, 0.0, 9.8]
+    with pytest.raises(messages.SchemaError, match="gyro_rad_s"):
+        zenoh_codec.encode("magmesh/car-1/raw/imu", imu.replace('"gyro_rad_s":[0,0,0],', ""))
