@@ -452,3 +452,14 @@ def test_zenoh_cli_prints_decoded_magmesh_messages(tmp_path):
     assert messages.decode(zenoh_codec.encode("magmesh/car-1/raw/imu", imu))["accel_m_s2"] == [0.0, 0.0, 9.8]
     with pytest.raises(messages.SchemaError, match="gyro_rad_s"):
         zenoh_codec.encode("magmesh/car-1/raw/imu", imu.replace('"gyro_rad_s":[0,0,0],', ""))
+
+
+def test_zenohd_recipe_is_a_valid_zenoh_config_with_an_alarm_storage():
+    import zenoh
+
+    conf = zenoh.Config.from_file(str(mu.REPO / "deploy" / "zenohd" / "zenohd.json5"))
+    assert json.loads(conf.get_json("mode")) == "router"
+    store = json.loads(conf.get_json("plugins/storage_manager/storages/magmesh_alarms"))
+    assert store["key_expr"] == keys.alarms_all() and store["volume"] == "memory"
+    assert json.loads(conf.get_json("timestamping/enabled"))["router"] is True
+    assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7447"]
