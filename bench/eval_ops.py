@@ -87,6 +87,8 @@ def measure_codec(n: int, seed: int) -> dict:
         t_decode = time.perf_counter() - t0
     return {
         "messages": n,
+        "read_back": m,
+        "decoded": decoded,
         "write_msgs_per_s": n / t_write,
         "read_msgs_per_s": m / t_read,
         "read_decode_msgs_per_s": decoded / t_decode,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 
 import pytest
 
@@ -22,8 +23,10 @@ def test_codec_measurement_is_plain_and_sane():
     r = eval_ops.run(_args(no_mesh=True, codec_n=2000))
     c = r["codec"]
     assert set(r) == {"codec"}
-    assert all(isinstance(v, (int, float)) for v in c.values())
-    assert c["write_msgs_per_s"] > 500 and c["read_decode_msgs_per_s"] > 500
+    # every message written is read back and decodes (the rates are measurements for the bench, not checks)
+    assert c["messages"] == c["read_back"] == c["decoded"] == 2000
+    for k in ("write_msgs_per_s", "read_msgs_per_s", "read_decode_msgs_per_s"):
+        assert math.isfinite(c[k]) and c[k] > 0, (k, c[k])
     # zstd chunks make the file smaller than the raw payloads
     assert c["bytes_per_message"] < c["payload_bytes_per_message"]
     assert "msg/s" in eval_ops.format_text(r)

@@ -6,9 +6,9 @@ import json
 import math
 import re
 
-import matplotlib.image as mpimg
 import numpy as np
 import pytest
+from figcheck import assert_figure_drawn
 
 from magmesh import report
 from magmesh.geomap import synthetic_paper_map
@@ -129,15 +129,7 @@ def test_report_renders_every_figure_and_html_references_them(rendered):
                 "drone-1_track", "drone-1_track_map", "timeline"]
     srcs = set(re.findall(r"<img src='([^']+)'", page))
     for name in expected:
-        png = out / f"{name}.png"
-        assert png.exists(), name
-        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-        img = mpimg.imread(png)[..., :3]
-        ink = np.mean(np.any(img < 0.9, axis=-1))  # share of pixels that are not (near) white
-        q = (img * 15).astype(np.int64).reshape(-1, 3)
-        colours = len(np.unique(q[:, 0] * 256 + q[:, 1] * 16 + q[:, 2]))
-        assert img.shape[0] > 150 and img.shape[1] > 500, name
-        assert ink > 0.015 and colours > 20, f"{name}.png looks empty (ink {ink:.3f}, {colours} colours)"
+        assert_figure_drawn(out / f"{name}.png")
         assert f"{name}.png" in srcs
     for src in srcs:
         assert (out / src).exists()
@@ -204,7 +196,8 @@ def test_report_command_on_a_recording(tmp_path, rendered):
     out = tmp_path / "rep"
     assert cli.main(["report", str(path), "-o", str(out), "--map", "synthetic:7", "--no-progress"]) == 0
     page = (out / "index.html").read_text()
-    assert "survey-1_geomag.png" in page and (out / "survey-1_geomag.png").exists()
+    assert "survey-1_geomag.png" in page
+    assert_figure_drawn(out / "survey-1_geomag.png")
     assert "magmesh/svc/geomag_matcher/geomag-1" in page and "run.mcap" in page
     s = json.loads((out / "summary.json").read_text())["vehicles"]
     assert set(s) == {"survey-1"} and s["survey-1"]["geomag"]["accepted"] == 6
@@ -214,7 +207,7 @@ def test_heading_figure_falls_back_to_the_dmc_heading(tmp_path, rendered):
     _, _, msgs = rendered
     no_fused = [(k, m) for k, m in msgs if k.startswith("magmesh/car-1/") and not k.endswith("/heading")]
     report.build_report(no_fused, tmp_path)
-    assert (tmp_path / "car-1_heading.png").exists()
+    assert_figure_drawn(tmp_path / "car-1_heading.png")
     s = json.loads((tmp_path / "summary.json").read_text())["vehicles"]["car-1"]
     assert s["heading"] is None and s["dmc"]["all_rms_deg"] > 5.0  # 25° while disturbed
 
