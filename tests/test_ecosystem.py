@@ -463,3 +463,38 @@ def test_zenohd_recipe_is_a_valid_zenoh_config_with_an_alarm_storage():
     assert store["key_expr"] == keys.alarms_all() and store["volume"] == "memory"
     assert json.loads(conf.get_json("timestamping/enabled"))["router"] is True
     assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7447"]
+
+
+def test_foxglove_layout_refers_only_to_channels_and_fields_magmesh_serves():
+    import re
+
+    layout = json.loads((mu.REPO / "deploy" / "foxglove" / "magmesh-layout.json").read_text())
+    cfg = layout["configById"]
+
+    def leaves(node):
+        return [node] if isinstance(node, str) else leaves(node["first"]) + leaves(node["second"])
+
+    panels = leaves(layout["layout"])
+    assert sorted(panels) == sorted(cfg) and {p.split("!")[0] for p in panels} >= {"Map", "3D", "Plot", "RosOut"}
+    conv = fx.FoxgloveConverter()
+    t = time.time_ns()
+    derived = {o.topic: o.schema for k, m in [(keys.alarm("car-1", "dmc"), _alarm("car-1", 0)),
+                                               (keys.clean_gnss("car-1"), _gnss("car-1", 0)),
+                                               (keys.fix_geomag("car-1"), _geomag("car-1", 0)),
+                                               (keys.heading("car-1"), _heading("car-1", 0))]
+               for o in conv.convert(k, m, t)}
+    m = cfg["Map!magmesh"]
+    assert derived[m["followTopic"]] == "foxglove.LocationFix"
+    assert all(derived[tp] == "foxglove.LocationFix" for tp in m["topicColors"])
+    assert derived[cfg["RosOut!alarms"]["topicToRender"]] == "foxglove.Log"
+    assert all(derived[tp] == "foxglove.PoseInFrame" for tp in cfg["3D!magmesh"]["topics"])
+    pose, tf = conv.convert(keys.heading("car-1"), _heading("car-1", 1), t)
+    assert cfg["3D!magmesh"]["followTf"] == tf.msg["child_frame_id"]
+    paths = [p["value"] for k, c in cfg.items() if k.startswith("Plot") for p in c["paths"]]
+    paths.append(cfg["RawMessages!dmc"]["topicPath"])
+    for path in paths:
+        topic, field_ = re.fullmatch(r'"([^"]+)"(?:\.(\w+))?(?:\[\d+\])?', path).groups()
+        mt = messages.MESSAGES[messages.type_for_key(topic)]
+        assert keys.parse(topic).vehicle == "car-1"
+        if field_:
+            assert field_ in {f.name for f in mt.fields}, path
