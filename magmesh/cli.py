@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import pkgutil
 import sys
 
 from . import __version__, commands
+from .errors import UserError
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -30,7 +32,17 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
-    rc = args.func(args)
+    try:
+        rc = args.func(args)
+    except UserError as e:
+        text = str(e)
+        print(text if text.startswith("magmesh") else f"magmesh {args.command}: {text}", file=sys.stderr, flush=True)
+        return e.code
+    except KeyboardInterrupt:
+        # Ctrl-C during a blocking Zenoh call: leave at once (a helper thread may still be inside Zenoh)
+        print(f"magmesh {args.command}: interrupted", file=sys.stderr, flush=True)
+        sys.stdout.flush()
+        os._exit(130)
     return int(rc or 0)
 
 

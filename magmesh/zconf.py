@@ -34,8 +34,12 @@ def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
                    help="enable multicast scouting (off by default)")
 
 
-def build_config(mode=None, connect=None, listen=None, config_file=None, cfg=None, multicast=False):
-    """Build a :class:`zenoh.Config`."""
+def build_config(mode=None, connect=None, listen=None, config_file=None, cfg=None, multicast=False,
+                 connect_timeout_s: float | None = None):
+    """Build a :class:`zenoh.Config`.
+
+    Services retry their connection for ever (they may start before their router); operator commands pass
+    ``connect_timeout_s`` so that an endpoint nobody answers on is an error within that time."""
     import zenoh
 
     conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
@@ -47,8 +51,9 @@ def build_config(mode=None, connect=None, listen=None, config_file=None, cfg=Non
         conf.insert_json5("mode", json.dumps(mode))
     if connect:
         conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
-        # keep retrying: a service may start before its router
-        conf.insert_json5("connect/timeout_ms", "-1")
+        # keep retrying: a service may start before its router (operator commands: bounded)
+        conf.insert_json5("connect/timeout_ms",
+                          "-1" if connect_timeout_s is None else str(max(1, int(connect_timeout_s * 1000))))
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if not config_file:
@@ -67,5 +72,51 @@ def build_config(mode=None, connect=None, listen=None, config_file=None, cfg=Non
     return conf
 
 
-def config_from_args(args: argparse.Namespace):
-    return build_config(args.mode, args.connect, args.listen, args.config, args.cfg, args.multicast_scouting)
+def config_from_args(args: argparse.Namespace, connect_timeout_s: float | None = None):
+    return build_config(args.mode, args.connect, args.listen, args.config, args.cfg, args.multicast_scouting,
+                        connect_timeout_s)
+
+
+def where(args: argparse.Namespace) -> str:
+    """The endpoints an operator command talks to, for messages."""
+    if getattr(args, "connect", None):
+        return ", ".join(args.connect)
+    if getattr(args, "config", None):
+        return f"the endpoints of {args.config}"
+    return default_endpoint()
+
+
+def open_client(args: argparse.Namespace, timeout_s: float, what: str = "magmesh"):
+    """Open the Zenoh session of an operator command: the connection is bounded by ``timeout_s`` and Ctrl-C
+    works while it is attempted (the blocking open runs on a helper thread). Raises
+    :class:`magmesh.errors.UserError` (exit 1) when nothing answers or the configuration is refused."""
+    import threading
+
+    import zenoh
+
+    from .errors import UserError
+
+    try:
+        conf = config_from_args(args, connect_timeout_s=timeout_s)
+    except Exception as e:
+        raise UserError(f"{what}: bad Zenoh configuration: {e}", 2) from None
+    box: dict = {}
+    done = threading.Event()
+
+    def _open() -> None:
+        try:
+            box["session"] = zenoh.open(conf)
+        except Exception as e:  # noqa: BLE001 - reported below as one paragraph
+            box["error"] = e
+        finally:
+            done.set()
+
+    threading.Thread(target=_open, name="zenoh-open", daemon=True).start()
+    if not done.wait(timeout_s + 5.0):
+        raise UserError(f"{what}: could not connect to {where(args)} within {timeout_s:g} s. Is the mesh running "
+                        f"(magmesh up) and is the endpoint right? Use --connect ENDPOINT, --timeout S.", 1)
+    if "error" in box:
+        detail = str(box["error"]).split(" at /", 1)[0]
+        raise UserError(f"{what}: could not connect to {where(args)} within {timeout_s:g} s ({detail}). Is the mesh "
+                        f"running (magmesh up) and is the endpoint right? Use --connect ENDPOINT, --timeout S.", 1)
+    return box["session"]

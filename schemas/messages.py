@@ -504,6 +504,11 @@ def decode(payload: bytes | bytearray | memoryview, where: str = "", expected_ty
     return fast_decode(payload, where, expected_type)
 
 
+#: a sentence for msgpack errors that carry no text of their own
+_MSGPACK_ERRORS = {"FormatError": "a byte that starts no msgpack value (reserved type code)",
+                   "StackError": "nested too deeply", "OutOfData": "the payload ends inside a value"}
+
+
 def decode_reference(payload: bytes | bytearray | memoryview, where: str = "", expected_type: str | None = None) -> dict:
     """The reference decoder (pure Python): the same result as :func:`decode`, slower, with the error texts."""
     if not isinstance(payload, (bytes, bytearray, memoryview)):
@@ -515,7 +520,8 @@ def decode_reference(payload: bytes | bytearray | memoryview, where: str = "", e
     try:
         msg = msgpack.unpackb(payload, raw=False, strict_map_key=True)
     except Exception as e:  # msgpack raises several exception types for bad bytes
-        raise SchemaError("<payload>", f"is not valid msgpack ({type(e).__name__}: {str(e)[:80]})", where) from None
+        detail = str(e)[:80] or _MSGPACK_ERRORS.get(type(e).__name__, "malformed bytes")
+        raise SchemaError("<payload>", f"is not valid msgpack ({type(e).__name__}: {detail})", where) from None
     return validate(msg, where, expected_type)
 
 

@@ -32,6 +32,7 @@ log = logging.getLogger("magmesh.record")
 FIFO_CAPACITY = 16384
 IDLE_SLEEP_S = 0.0005
 MAX_IDLE_SLEEP_S = 0.002
+SETTLE_MAX_S = 0.5  # after the stop: drain what is queued for at most this long
 
 
 def register(subparsers) -> None:
@@ -147,9 +148,11 @@ def record(
             if on_progress is not None and time.monotonic() - last_report >= 1.0:
                 last_report = time.monotonic()
                 on_progress(writer.counts.as_dict())
-        # take what is already queued: nothing received is left uncounted
+        # take what is already queued: nothing received is left uncounted. Bounded: on a live mesh new samples
+        # keep arriving, and extending the settle window on each one would never end (a --duration that hangs)
         settle = time.monotonic() + 0.2
-        while time.monotonic() < settle:
+        settle_hard = time.monotonic() + SETTLE_MAX_S
+        while time.monotonic() < min(settle, settle_hard):
             if drain_once():
                 settle = time.monotonic() + 0.05
             else:
