@@ -469,8 +469,6 @@ class Runner:
                 for m in c.messages(vehicle):
                     n += self.republish(skey, m) is not None
             return n
-        import numpy as np
-
         out = {}
         n = 0
         for name, c in cols.items():
@@ -478,7 +476,7 @@ class Runner:
                 continue
             skey = batches.stream_key(kind, vehicle, name)
             s0 = self.seq.get(skey, -1) + 1
-            out[name] = batches.Columns(c.name, c.msg_type, c.t_s, np.arange(s0, s0 + c.n, dtype=np.int64), c.cols)
+            out[name] = batches.Columns(c.name, c.msg_type, c.t_s, list(range(s0, s0 + c.n)), c.cols)
             self.seq[skey] = s0 + c.n - 1
             self.count_out[skey].n += c.n
             n += c.n
@@ -728,7 +726,7 @@ class Runner:
         else:
             import numpy as np
 
-            t_all = np.concatenate([c.t_s for _, c in wanted])
+            t_all = np.concatenate([np.asarray(c.t_s, float) for _, c in wanted])
             src = np.concatenate([np.full(c.n, j) for j, (_, c) in enumerate(wanted)])
             idx = np.concatenate([np.arange(c.n) for _, c in wanted])
             o = np.argsort(t_all, kind="stable")
@@ -758,7 +756,7 @@ class Runner:
         self.in_seq[skey] = s1
         self.count_in[skey].n += c.n
         self.key_seen[skey] = time.monotonic()
-        t0, t1 = float(c.t_s.min()), float(c.t_s.max())
+        t0, t1 = float(min(c.t_s)), float(max(c.t_s))
         if vehicle not in self.first_in_t:
             self.first_in_t[vehicle] = t0
         if t1 > self.last_in_t.get(vehicle, float("-inf")):

@@ -11,20 +11,25 @@ It is a msgpack map:
   ``route``, ``attitude``: the key's chunks after ``raw/``) to its columns:
   ``n`` (samples), ``t_s`` and ``seq`` (one per sample: ``seq`` is the sample's own sequence number on its
   stream, exactly as a v1 single sample on ``raw/{stream}`` would carry it), and ``cols``, a map of the
-  message type's fields. Numeric columns are little-endian binary arrays: float fields ``<f8`` (n), vec3
-  ``<f8`` (n × 3, row-major), fixed-length float arrays ``<f8`` (n × length), integers ``<i8``, booleans
-  ``u1`` (0/1); strings are an array of n strings, or one string shared by every sample. A nullable float
-  is NaN where null. An optional field is either present for every sample or absent.
+  message type's fields, each an array of n values of the field's v1 type (a vec3 field: n arrays of 3
+  numbers). A string field may instead be one string shared by every sample. An optional field is either
+  present for every sample or absent.
 
-:func:`decode` checks the envelope and every column (types, lengths, finiteness, bounds, choices) with numpy
-on whole columns; :func:`encode` builds one from numpy columns; :meth:`Batch.messages` unbatches into the
-v1 message dicts a per-sample handler takes.
+:func:`decode` checks the envelope and every column in compiled code: each stream's columns are converted to a
+``msgspec.Struct`` generated from the message type (the same constraints as a v1 sample: types, lengths,
+finiteness, bounds, choices). Measured on this machine, a vehicle's 20 ms window (2 magnetometer samples,
+2 IMU samples) decodes and validates in ~12 µs as typed arrays against ~140 µs as binary numpy columns
+(numpy's per-call cost dominates at these sizes), and encodes in ~2 µs against ~75 µs.
+:func:`encode` builds one from lists or numpy columns; :meth:`Columns.messages` unbatches into the v1
+message dicts a per-sample handler takes; :meth:`Columns.array` gives a column as a numpy array.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
-from typing import Any
+from functools import cache, lru_cache
+from typing import Annotated, Any, Union
 
 import msgspec
 import numpy as np
@@ -38,23 +43,35 @@ MAX_SAMPLES = 65536
 #: streams one batch may carry
 MAX_STREAMS = 64
 _TYPES = ("mag", "imu", "gnss", "ins", "route", "attitude")
-_NUMERIC = {"float": ("<f8", 1), "vec3": ("<f8", 3), "int": ("<i8", 1), "bool": ("u1", 1)}
 
 _dec = msgspec.msgpack.Decoder()
 _enc = msgspec.msgpack.Encoder()
 
 
-def _width(f) -> tuple[str, int] | None:
-    if f.kind in _NUMERIC:
-        return _NUMERIC[f.kind]
-    if f.kind in ("floats", "mat3"):
-        n = 9 if f.kind == "mat3" else f.length
-        return ("<f8", n) if n else None
-    if f.kind == "bools" and f.length:
-        return ("u1", f.length)
-    return None
+@cache
+def _stream_struct(msg_type: str) -> type[msgspec.Struct]:
+    """Typed columns of one message type: every field an array of its v1 type (strings may be one value)."""
+    from .streams import Finite, _field_type
+
+    cols = []
+    for f in MESSAGES[msg_type].fields:
+        ft = _field_type(f)
+        col = Annotated[list[ft], msgspec.Meta(max_length=MAX_SAMPLES)]
+        if f.kind == "str":
+            col = Union[ft, col]  # noqa: UP007 - runtime type construction
+        if f.required:
+            cols.append((f.name, col))
+        else:
+            cols.append((f.name, Union[col, msgspec.UnsetType], msgspec.UNSET))  # noqa: UP007
+    cols_t = msgspec.defstruct(f"{msg_type}_columns", cols, kw_only=True)
+    return msgspec.defstruct(f"{msg_type}_stream", [
+        ("n", Annotated[int, msgspec.Meta(ge=0, le=MAX_SAMPLES)]),
+        ("t_s", Annotated[list[Finite], msgspec.Meta(max_length=MAX_SAMPLES)]),
+        ("seq", Annotated[list[Annotated[int, msgspec.Meta(ge=0)]], msgspec.Meta(max_length=MAX_SAMPLES)]),
+        ("cols", cols_t)], kw_only=True)
 
 
+@lru_cache(maxsize=4096)
 def stream_type(name: str) -> str:
     """Message type of a stream name inside a batch (``mag/1`` → mag); :class:`SchemaError` if unknown."""
     head, _, sensor = name.partition("/")
@@ -71,59 +88,45 @@ def stream_type(name: str) -> str:
 
 @dataclass
 class Columns:
-    """One stream's samples inside a batch: ``t_s`` (n,), ``seq`` (n,), ``cols`` field → array or list."""
+    """One stream's samples inside a batch: ``t_s`` and ``seq`` (lists of n), ``cols`` field → list of n
+    values (or one string shared by all samples)."""
 
     name: str
     msg_type: str
-    t_s: np.ndarray
-    seq: np.ndarray
+    t_s: list
+    seq: list
     cols: dict[str, Any]
 
     @property
     def n(self) -> int:
-        return int(self.t_s.shape[0])
+        return len(self.t_s)
 
-    def take(self, mask: np.ndarray) -> Columns:
-        """The samples where ``mask`` is true."""
-        cols = {}
-        for k, v in self.cols.items():
-            if isinstance(v, np.ndarray):
-                cols[k] = v[mask]
-            elif isinstance(v, list):
-                cols[k] = [x for x, m in zip(v, mask, strict=True) if m]
-            else:
-                cols[k] = v
-        return Columns(self.name, self.msg_type, self.t_s[mask], self.seq[mask], cols)
+    def array(self, name: str) -> np.ndarray:
+        """A numeric column (``t_s``, ``seq`` or a field) as a numpy array (n or n × width)."""
+        if name == "t_s":
+            return np.asarray(self.t_s, float)
+        if name == "seq":
+            return np.asarray(self.seq, np.int64)
+        v = self.cols[name]
+        return np.asarray(v, float) if not isinstance(v, str) else np.full(self.n, v)
+
+    def take(self, mask) -> Columns:
+        """The samples where ``mask`` (n booleans) is true."""
+        m = np.asarray(mask, bool).tolist()
+        cols = {k: (v if isinstance(v, str) else [x for x, k_ in zip(v, m, strict=True) if k_])
+                for k, v in self.cols.items()}
+        return Columns(self.name, self.msg_type, [x for x, k_ in zip(self.t_s, m, strict=True) if k_],
+                       [x for x, k_ in zip(self.seq, m, strict=True) if k_], cols)
 
     def messages(self, vehicle: str) -> list[dict]:
         """The samples as v1 message dicts (what a per-sample handler takes)."""
-        mt = MESSAGES[self.msg_type]
+        ver = MESSAGES[self.msg_type].version
         n = self.n
-        ver = mt.version
-        t = self.t_s.tolist()
-        sq = self.seq.tolist()
-        per: list[tuple[str, Any]] = []
-        for f in mt.fields:
-            if f.name not in self.cols:
-                continue
-            v = self.cols[f.name]
-            if isinstance(v, np.ndarray):
-                if f.kind == "bool":
-                    vals = v.astype(bool).tolist()
-                elif f.kind == "bools":
-                    vals = v.astype(bool).tolist()
-                elif f.kind == "float" and f.nullable:
-                    vals = [None if x != x else x for x in v.tolist()]
-                else:
-                    vals = v.tolist()
-            elif isinstance(v, list):
-                vals = v
-            else:
-                vals = [v] * n
-            per.append((f.name, vals))
+        per = [(k, [v] * n if isinstance(v, str) else v) for k, v in self.cols.items()]
         out = []
+        mt = self.msg_type
         for i in range(n):
-            m = {"type": self.msg_type, "version": ver, "vehicle": vehicle, "t_s": t[i], "seq": sq[i]}
+            m = {"type": mt, "version": ver, "vehicle": vehicle, "t_s": self.t_s[i], "seq": self.seq[i]}
             for name, vals in per:
                 m[name] = vals[i]
             out.append(m)
@@ -146,62 +149,23 @@ def _bad(fld: str, problem: str, where: str) -> SchemaError:
     return SchemaError(fld, problem, where, "batch")
 
 
-def _column(f, raw: Any, n: int, sname: str, where: str, check: bool = True) -> Any:
-    name = f"{sname}.{f.name}"
-    w = _width(f)
-    if w is not None:
-        dtype, width = w
-        if not isinstance(raw, (bytes, bytearray, memoryview)):
-            raise _bad(name, f"must be a binary {dtype} column of {n}×{width} values", where)
-        if len(raw) != n * width * np.dtype(dtype).itemsize:
-            raise _bad(name, f"has {len(raw)} bytes; {n} samples × {width} need {n * width * np.dtype(dtype).itemsize}",
-                       where)
-        a = np.frombuffer(raw, dtype=dtype)
-        if width > 1:
-            a = a.reshape(n, width)
-        if not check:
-            return a
-        if dtype == "<f8":
-            bad = ~np.isfinite(a)
-            if f.nullable and width == 1:
-                bad &= ~np.isnan(a)
-            if bad.any():
-                raise _bad(name, "must contain only finite numbers" + (" (NaN for null)" if f.nullable else ""),
-                           where)
-            if f.lo is not None and (a < f.lo).any():
-                raise _bad(name, f"has values below {f.lo:g}", where)
-            if f.hi is not None and (a > f.hi).any():
-                raise _bad(name, f"has values above {f.hi:g}", where)
-        elif dtype == "<i8":
-            if f.lo is not None and (a < f.lo).any():
-                raise _bad(name, f"has values below {f.lo:g}", where)
-            if f.hi is not None and (a > f.hi).any():
-                raise _bad(name, f"has values above {f.hi:g}", where)
-        else:  # booleans
-            if (a > 1).any():
-                raise _bad(name, "must contain only 0 or 1", where)
-        return a
-    # strings (and other variable-size kinds): one value for all, or one per sample
-    if f.kind == "str":
-        vals = [raw] if isinstance(raw, str) else raw
-        if not isinstance(vals, list) or (not isinstance(raw, str) and len(vals) != n):
-            raise _bad(name, f"must be one string or an array of {n} strings", where)
-        for v in (vals if check else ()):
-            if v is None and f.nullable:
-                continue
-            if not isinstance(v, str) or len(v) > MAX_STR:
-                raise _bad(name, f"must contain strings of at most {MAX_STR} characters", where)
-            if f.choices and v not in f.choices:
-                raise _bad(name, f"must be one of {', '.join(f.choices)}, got {v[:64]!r}", where)
-        return raw
-    raise _bad(name, f"field kind {f.kind} cannot travel in a batch", where)
+def _where_in(e: Exception, sname: str) -> str:
+    text = str(e)
+    if "`$." not in text:
+        return sname
+    path = text.split("`$.", 1)[1].split("`", 1)[0]
+    parts = [p.split("[", 1)[0] for p in path.split(".")]
+    if "missing required field `" in text:
+        parts.append(text.split("missing required field `", 1)[1].split("`", 1)[0])
+    if parts and parts[0] == "cols" and len(parts) > 1:
+        return f"{sname}.{parts[1]}"
+    return f"{sname}.{parts[0]}"
 
 
 def decode(payload: bytes, where: str = "", check: bool = True) -> Batch:
     """Decode and check a batch; raise :class:`SchemaError` naming the stream and field that is wrong.
 
-    ``check=False`` (a trusted ``clean/batch`` from ingest) reads the structure only: shapes and sizes are
-    still checked (a wrong one cannot be read), values are not scanned again.
+    ``check=False`` (a trusted ``clean/batch`` from ingest) reads the structure only.
     """
     if not isinstance(payload, (bytes, bytearray, memoryview)) or len(payload) == 0:
         raise _bad("<payload>", "is empty or not bytes", where)
@@ -221,7 +185,7 @@ def decode(payload: bytes, where: str = "", check: bool = True) -> Batch:
     vehicle, t_s, seq = m.get("vehicle"), m.get("t_s"), m.get("seq")
     if not isinstance(vehicle, str) or len(vehicle) > MAX_STR:
         raise _bad("vehicle", "must be a string", where)
-    if type(t_s) not in (int, float) or not np.isfinite(t_s):
+    if type(t_s) not in (int, float) or not math.isfinite(t_s):
         raise _bad("t_s", "must be a finite number", where)
     if type(seq) is not int or seq < 0:
         raise _bad("seq", "must be an integer ≥ 0", where)
@@ -235,54 +199,44 @@ def decode(payload: bytes, where: str = "", check: bool = True) -> Batch:
         st = stream_type(sname)
         if type(body) is not dict:
             raise _bad(sname, "must be a map with n, t_s, seq and cols", where)
-        n = body.get("n")
-        if type(n) is not int or not 0 <= n <= MAX_SAMPLES:
-            raise _bad(f"{sname}.n", f"must be an integer in 0..{MAX_SAMPLES}", where)
-        tb, sb, cols = body.get("t_s"), body.get("seq"), body.get("cols")
-        if not isinstance(tb, (bytes, bytearray)) or len(tb) != 8 * n:
-            raise _bad(f"{sname}.t_s", f"must be a binary <f8 column of {n} values", where)
-        if not isinstance(sb, (bytes, bytearray)) or len(sb) != 8 * n:
-            raise _bad(f"{sname}.seq", f"must be a binary <i8 column of {n} values", where)
-        t = np.frombuffer(tb, "<f8")
-        if check and not np.isfinite(t).all():
-            raise _bad(f"{sname}.t_s", "must contain only finite numbers", where)
-        s = np.frombuffer(sb, "<i8")
-        if check and n and s.min() < 0:
-            raise _bad(f"{sname}.seq", "must contain only integers ≥ 0", where)
-        if type(cols) is not dict:
-            raise _bad(f"{sname}.cols", "must be a map of columns", where)
-        mt = MESSAGES[st]
-        parsed: dict[str, Any] = {}
-        for f in mt.fields:
-            raw = cols.get(f.name, None) if f.name in cols else None
-            if f.name not in cols:
-                if f.required:
-                    raise _bad(f"{sname}.{f.name}", "is missing", where)
-                continue
-            parsed[f.name] = _column(f, raw, n, sname, where, check)
+        if check:
+            try:
+                s = msgspec.convert(body, _stream_struct(st), strict=True)
+            except msgspec.ValidationError as e:
+                raise _bad(_where_in(e, sname), f"is not valid: {e}", where) from None
+            n = s.n
+            cols = {k: getattr(s.cols, k) for k in s.cols.__struct_fields__
+                    if getattr(s.cols, k) is not msgspec.UNSET}
+            ts, sq = s.t_s, s.seq
+        else:
+            n, ts, sq, cols = body.get("n"), body.get("t_s"), body.get("seq"), body.get("cols")
+            if type(n) is not int or type(ts) is not list or type(sq) is not list or type(cols) is not dict:
+                raise _bad(sname, "must be a map with n, t_s, seq and cols", where)
+        if len(ts) != n or len(sq) != n:
+            raise _bad(f"{sname}.t_s", f"t_s and seq must hold n = {n} values", where)
+        for k, v in cols.items():
+            if not isinstance(v, str) and (not isinstance(v, list) or len(v) != n):
+                raise _bad(f"{sname}.{k}", f"must hold n = {n} values", where)
         if check and st == "mag":
-            sensor = parsed.get("sensor")
+            sensor = cols.get("sensor")
             want = sname.partition("/")[2]
             if (isinstance(sensor, str) and sensor != want) or (isinstance(sensor, list) and any(x != want for x in sensor)):
                 raise _bad(f"{sname}.sensor", f"must be {want!r} (the stream's sensor)", where)
-        out.streams[sname] = Columns(sname, st, t, s, parsed)
+        out.streams[sname] = Columns(sname, st, ts, sq, cols)
     return out
 
 
-def _col_bytes(f, v: Any, n: int) -> Any:
-    w = _width(f)
-    if w is None:
-        return v if isinstance(v, str) else list(v)
-    dtype, width = w
-    a = np.ascontiguousarray(np.asarray(v), dtype=dtype)
-    if a.size != n * width:
-        raise ValueError(f"column {f.name}: {a.size} values for {n} samples × {width}")
-    return a.tobytes()
+def _plain_col(v: Any) -> Any:
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, str):
+        return v
+    return list(v)
 
 
 def encode(vehicle: str, seq: int, streams: dict[str, Columns | dict]) -> bytes:
     """Encode a batch. ``streams`` maps stream names to :class:`Columns` or to dicts with ``t_s``, ``seq``
-    and ``cols`` (arrays or lists); empty streams are left out."""
+    and ``cols`` (lists or numpy arrays); empty streams are left out."""
     body = {}
     t_max = float("-inf")
     for sname, c in streams.items():
@@ -290,14 +244,13 @@ def encode(vehicle: str, seq: int, streams: dict[str, Columns | dict]) -> bytes:
             t, s, cols = c.t_s, c.seq, c.cols
         else:
             t, s, cols = c["t_s"], c["seq"], c["cols"]
-        t = np.ascontiguousarray(t, "<f8")
-        n = int(t.shape[0])
+        t = _plain_col(t)
+        n = len(t)
         if n == 0:
             continue
-        t_max = max(t_max, float(t.max()))
-        mt = MESSAGES[stream_type(sname)]
-        enc_cols = {f.name: _col_bytes(f, cols[f.name], n) for f in mt.fields if f.name in cols}
-        body[sname] = {"n": n, "t_s": t.tobytes(), "seq": np.ascontiguousarray(s, "<i8").tobytes(), "cols": enc_cols}
+        t_max = max(t_max, max(t))
+        stream_type(sname)
+        body[sname] = {"n": n, "t_s": t, "seq": _plain_col(s), "cols": {k: _plain_col(v) for k, v in cols.items()}}
     return _enc.encode({"type": "batch", "version": VERSION, "vehicle": vehicle,
                         "t_s": t_max if body else 0.0, "seq": int(seq), "streams": body})
 
@@ -308,38 +261,29 @@ def concat(parts: list[Columns]) -> Columns:
     if len(parts) == 1:
         return first
     cols: dict[str, Any] = {}
-    for k in first.cols:
+    for k, v0 in first.cols.items():
         vals = [p.cols.get(k) for p in parts]
-        if all(isinstance(v, np.ndarray) for v in vals):
-            cols[k] = np.concatenate(vals)
-        elif all(isinstance(v, str) for v in vals) and len(set(vals)) == 1:
-            cols[k] = vals[0]
+        if isinstance(v0, str) and all(v == v0 for v in vals):
+            cols[k] = v0
         else:
             merged: list = []
             for p, v in zip(parts, vals, strict=True):
-                merged.extend([v] * p.n if isinstance(v, str) else list(v))
+                merged.extend([v] * p.n if isinstance(v, str) else v)
             cols[k] = merged
-    return Columns(first.name, first.msg_type, np.concatenate([p.t_s for p in parts]),
-                   np.concatenate([p.seq for p in parts]), cols)
+    t: list = []
+    s: list = []
+    for p in parts:
+        t.extend(p.t_s)
+        s.extend(p.seq)
+    return Columns(first.name, first.msg_type, t, s, cols)
 
 
 def from_message(msg: dict) -> Columns:
     """One decoded v1 sample as a one-sample column set (for ingest's window of singles)."""
-    mt = MESSAGES[msg["type"]]
     name = f"mag/{msg['sensor']}" if msg["type"] == "mag" else msg["type"]
-    cols: dict[str, Any] = {}
-    for f in mt.fields:
-        if f.name not in msg:
-            continue
-        v = msg[f.name]
-        w = _width(f)
-        if w is None:
-            cols[f.name] = v if f.kind == "str" and isinstance(v, str) else [v]
-        elif f.kind == "float" and f.nullable and v is None:
-            cols[f.name] = np.array([np.nan])
-        else:
-            cols[f.name] = np.asarray([v], dtype=w[0]).reshape(1, -1) if w[1] > 1 else np.asarray([v], dtype=w[0])
-    return Columns(name, msg["type"], np.array([float(msg["t_s"])]), np.array([int(msg["seq"])], dtype=np.int64), cols)
+    cols = {f.name: (msg[f.name] if f.kind == "str" and isinstance(msg[f.name], str) else [msg[f.name]])
+            for f in MESSAGES[msg["type"]].fields if f.name in msg}
+    return Columns(name, msg["type"], [msg["t_s"]], [msg["seq"]], cols)
 
 
 def stream_name(info: Any) -> str:
@@ -356,11 +300,11 @@ def stream_key(kind: str, vehicle: str, name: str) -> str:
 
 
 def json_schema() -> dict:
-    """JSON Schema of the batch envelope (columns are binary: see this module's documentation)."""
+    """JSON Schema of the batch envelope (each stream's columns: arrays of the v1 field types)."""
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "title": f"magmesh batch v{VERSION}",
-        "description": "many samples of one vehicle's streams as column arrays (binary little-endian columns)",
+        "description": "many samples of one vehicle's streams as column arrays",
         "type": "object",
         "required": ["type", "version", "vehicle", "t_s", "seq", "streams"],
         "properties": {
@@ -372,8 +316,9 @@ def json_schema() -> dict:
             "streams": {"type": "object", "maxProperties": MAX_STREAMS, "additionalProperties": {
                 "type": "object", "required": ["n", "t_s", "seq", "cols"],
                 "properties": {"n": {"type": "integer", "minimum": 0, "maximum": MAX_SAMPLES},
-                               "t_s": {"contentEncoding": "binary", "description": "<f8 × n"},
-                               "seq": {"contentEncoding": "binary", "description": "<i8 × n: each sample's seq"},
+                               "t_s": {"type": "array", "items": {"type": "number"}},
+                               "seq": {"type": "array", "items": {"type": "integer", "minimum": 0},
+                                       "description": "each sample's seq on its own stream"},
                                "cols": {"type": "object"}}}},
         },
     }

@@ -98,12 +98,13 @@ class BatchingIngest:
         st = state.streams.get(skey)
         if st is None:
             st = state.streams[skey] = StreamState()
-        t = c.t_s
+        t = c.array("t_s")
         refused: list[tuple[str, str, np.ndarray, str]] = []
         bad_t = t < 0
         if bad_t.any():
             refused.append(("range", "t_s", bad_t, "must be ≥ 0"))
-        for fld, mask, sentence in streams.limit_masks(c.msg_type, c.cols, c.n, s):
+        arrays = {lim.field: c.array(lim.field) for lim in streams.LIMITS.get(c.msg_type, ()) if lim.field in c.cols}
+        for fld, mask, sentence in streams.limit_masks(c.msg_type, arrays, c.n, s):
             refused.append(("range", fld, mask, sentence))
         ok = np.ones(c.n, bool)
         for _, _, m, _ in refused:
@@ -139,7 +140,7 @@ class BatchingIngest:
         if not keep.any():
             return
         acc = c if keep.all() else c.take(keep)
-        seq = acc.seq
+        seq = acc.array("seq")
         if acc.n > 1 or st.last_seq is not None:
             prev = np.concatenate([[st.last_seq], seq[:-1]]) if st.last_seq is not None else seq[:-1]
             gaps = (seq[-len(prev):] - prev - 1) if len(prev) else np.zeros(0, np.int64)
