@@ -22,7 +22,7 @@ Keys of ``--json``:
 
 Threshold sets: the paper's field units are HMR3300 output units, 10 nT each; headings in degrees. RP, MP,
 WP as the paper defines them ("good" = heading error < 5°); WP is the RMS heading error of the samples
-recognised as valid (wp_mean_deg: mean |error|). Onset delay: median time from the first bad sample of a
+recognised as valid (wp_mean_deg: mean |error|; wp_max_deg: the worst). Onset delay: median time from the first bad sample of a
 disturbance zone to the alarm (negative: the alarm was raised on the approach).
 """
 
@@ -394,12 +394,13 @@ def format_text(r: dict) -> str:
                        ("Table 1 baseline — DMC thresholds only (unseen drives)", "dmc_threshold")):
         lines.append(title)
         lines.append(f"  {'set':10s} {'thresholds':>24s} {'RP %':>7s} {'paper':>11s} {'MP %':>7s} {'paper':>11s} "
-                     f"{'WP °':>6s} {'paper':>11s}")
+                     f"{'WP °':>6s} {'paper':>11s} {'WP max °':>8s}")
         for row in r["baselines"][key]:
             t, pp = row["thresholds"], row["paper"]
             th = f"({t['dm_nt']:.0f}, {t['ddm_nt_s']:.0f}, {t['dh_deg']:.0f}, {t['ddh_deg_s']:.0f})"
             lines.append(f"  {row['name']:10s} {th:>24s} {row['rp_pct']:7.2f} {rng(pp['rp_pct']):>11s} "
-                         f"{row['mp_pct']:7.2f} {rng(pp['mp_pct']):>11s} {row['wp_deg']:6.2f} {rng(pp['wp_deg']):>11s}")
+                         f"{row['mp_pct']:7.2f} {rng(pp['mp_pct']):>11s} {row['wp_deg']:6.2f} {rng(pp['wp_deg']):>11s} "
+                         f"{row['wp_max_deg']:8.1f}")
         lines.append("")
     table("Table 3 — FCM on its training drive", r["table3_fcm_train"])
     table("Table 4 — FCM trained once, applied to other drives", r["table4_fcm_apply"])

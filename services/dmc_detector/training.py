@@ -123,6 +123,7 @@ class Metrics:
     n: int
     n_valid: int
     n_good: int
+    wp_max_deg: float = float("nan")  # worst heading error of the valid samples
     onset_delay_s: float | None = None  # median delay from a disturbance's start to the alarm
     missed_zones: int | None = 0
     false_alarms: int | None = 0
@@ -140,7 +141,8 @@ def metrics(valid: np.ndarray, err_deg: np.ndarray) -> Metrics:
     mp = 100.0 * (valid & ~good).sum() / nv if nv else 0.0
     wp = float(np.sqrt(np.mean(err_deg[valid] ** 2))) if nv else float("nan")
     wpm = float(np.mean(err_deg[valid])) if nv else float("nan")
-    return Metrics(float(rp), float(mp), wp, wpm, int(len(valid)), nv, ng)
+    wpx = float(np.max(err_deg[valid])) if nv else float("nan")
+    return Metrics(float(rp), float(mp), wp, wpm, int(len(valid)), nv, ng, wpx)
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
