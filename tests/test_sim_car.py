@@ -393,3 +393,14 @@ def test_paper_car_loads_are_dipoles_nearer_one_sensor(paper_drives):
     assert jumps[on_circle[1:]].max() < jumps.max()
     with pytest.raises(ValueError, match="car_loads"):
         core.CarSimSettings(car_loads="magic")
+
+
+def test_publisher_paper_streets_profile():
+    s = CarPublisherSettings(layout="paper_b", profile="paper_streets", duration_s=20.0, loop=True)
+    sim = s.sim_settings(0)
+    assert (sim.mag_rate_hz, sim.mag_resolution_nt, sim.car_loads) == (8.0, 10.0, "dipoles")
+    mags = [t for t, key, _, _ in car_events(s, "car-1", max_laps=2) if key == keys.raw_mag("car-1", "1")]
+    assert len(mags) == 2 * (20 * 8 + 1) and mags[161] == pytest.approx(20.0 + 1 / 8.0)  # next lap one period on
+    assert CarPublisherSettings(layout="paper_b", profile="paper_streets", mag_rate_hz=16.0).sim_settings(0).mag_rate_hz == 16.0
+    with pytest.raises(ValueError, match="profile"):
+        CarPublisherSettings(profile="mountains")

@@ -11,7 +11,7 @@ restarts when it ends (a new route from ``seed + lap``, the same car), time runn
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 from magmesh.runtime import SimPublisher
 
@@ -20,7 +20,7 @@ from . import core
 
 @dataclass(frozen=True)
 class CarPublisherSettings:
-    layout: str = "urban_a"  # interference layout: clean | urban_a | urban_b | urban_c
+    layout: str = "urban_a"  # interference layout: clean | urban_a | urban_b | urban_c | paper_a | paper_b | paper_c
     seed: int = 1  # route and noise of the first lap (lap k uses seed + k)
     vehicle_seed: int = 7  # hard/soft iron of the car's magnetometers (the manifest's mag_params match 7)
     duration_s: float = 300.0  # length of one drive, s
@@ -33,21 +33,29 @@ class CarPublisherSettings:
     gnss_rate_hz: float = 5.0
     truth_rate_hz: float = 10.0
     mag_noise_nt: float = 30.0  # 1-σ per axis
+    profile: str = "default"  # "paper_streets": HMR3300 compasses at 8 Hz, congested streets (core.PAPER_STREETS)
 
     def __post_init__(self):
         if self.speed < 0:
             raise ValueError(f"speed must be ≥ 0, got {self.speed}")
         if self.layout not in core.LAYOUTS:
             raise ValueError(f"layout {self.layout!r} is unknown; choose one of {', '.join(core.LAYOUTS)}")
+        if self.profile not in ("default", "paper_streets"):
+            raise ValueError(f"profile {self.profile!r} is unknown; choose default or paper_streets")
         self.sim_settings(0)  # range checks of the simulator
 
     def sim_settings(self, lap: int) -> core.CarSimSettings:
-        return core.CarSimSettings(
-            seed=self.seed + (0 if self.same_route_each_lap else lap), vehicle_seed=self.vehicle_seed,
-            layout=self.layout, duration_s=self.duration_s, mag_rate_hz=self.mag_rate_hz,
-            imu_rate_hz=self.imu_rate_hz, gnss_rate_hz=self.gnss_rate_hz, truth_rate_hz=self.truth_rate_hz,
-            mag_noise_nt=self.mag_noise_nt,
-        )
+        own = {"seed": self.seed + (0 if self.same_route_each_lap else lap), "vehicle_seed": self.vehicle_seed,
+               "layout": self.layout, "duration_s": self.duration_s, "imu_rate_hz": self.imu_rate_hz,
+               "gnss_rate_hz": self.gnss_rate_hz}
+        sensor = {"mag_rate_hz": self.mag_rate_hz, "truth_rate_hz": self.truth_rate_hz,
+                  "mag_noise_nt": self.mag_noise_nt}
+        if self.profile == "paper_streets":
+            # the profile's sensor figures, unless a setting was given explicitly (differs from its default)
+            dflt = {f.name: f.default for f in fields(self)}
+            sensor = {k: v for k, v in sensor.items() if v != dflt[k]}
+            return core.paper_streets_settings(**{**own, **sensor})
+        return core.CarSimSettings(**own, **sensor)
 
 
 def car_events(settings: CarPublisherSettings, vehicle: str, max_laps: int | None = None,
@@ -63,7 +71,7 @@ def car_events(settings: CarPublisherSettings, vehicle: str, max_laps: int | Non
             on_lap(lap, drive)
         yield from core.iter_messages(drive, vehicle, t_offset_s=offset, truth=settings.truth)
         # the next lap starts one magnetometer period after this lap's last sample
-        offset += float(drive.t_mag_s[-1]) + 1.0 / settings.mag_rate_hz
+        offset += float(drive.t_mag_s[-1]) + 1.0 / drive.settings.mag_rate_hz
         lap += 1
         if not settings.loop or (max_laps is not None and lap >= max_laps):
             return
