@@ -14,7 +14,9 @@ Thread model: the server runs its own asyncio loop on a thread; :meth:`FoxgloveS
 :meth:`FoxgloveServer.send` are called from any thread. A viewer must never slow the mesh down: each
 client has a bounded queue (``backlog`` messages); when a slow client's queue is full its oldest message
 is dropped and counted (``stats()["dropped_slow_client"]``) and the client is told once per second with a
-``status`` warning.
+``status`` warning. A new subscription gets the channel's latest message at once (as a latched topic):
+the first message of a channel that appears while a client is connected is sent before the client can
+subscribe to it, and an alarm must not be missed that way.
 """
 
 from __future__ import annotations
@@ -68,6 +70,7 @@ class FoxgloveServer:
         self._lock = threading.Lock()
         self._next_id = 1
         self._clients: set[_Client] = set()
+        self._last: dict[int, tuple[int, bytes]] = {}  # channel → its latest message, for new subscribers
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._started = threading.Event()
@@ -160,7 +163,7 @@ class FoxgloveServer:
         c.wake.set()
 
     def _dispatch(self, channel_id: int, log_time_ns: int, payload: bytes) -> None:
-        header = None
+        self._last[channel_id] = (log_time_ns, payload)
         for c in self._clients:
             sub = c.subs.get(channel_id)
             if sub is None:
@@ -226,6 +229,10 @@ class FoxgloveServer:
                     status(STATUS_WARNING, f"no channel {cid}")
                     continue
                 c.subs[cid] = sid
+                last = self._last.get(cid)
+                if last is not None:  # the latest state at once (a new channel's first message comes before
+                    # any client could subscribe to it: an alarm must not be missed that way)
+                    self._enqueue(c, struct.pack("<BIQ", OP_MESSAGE_DATA, sid, last[0]) + last[1], droppable=True)
         elif op == "unsubscribe":
             gone = {int(x) for x in m.get("subscriptionIds", []) if isinstance(x, int)}
             c.subs = {cid: sid for cid, sid in c.subs.items() if sid not in gone}
