@@ -7,6 +7,11 @@ hops (raw → relay → relay → sink) with no decoding or processing. Both in 
 Figures: sustained samples/s end to end (raw samples whose DMC epoch reached the sink), latency of the DMC output
 (raw publish → dmc received) p50/p99, CPU per stage (% of one core), memory per process, messages lost, and the
 ratio pipeline / limit. Every figure is a median over ``--repeat`` runs.
+
+``wire="v2"`` (the default): the fleet publishes one batch per vehicle per ``window_s`` (contract v2, as an
+on-board agent would), ingest emits clean batches (``output=batches``, the same window) and the limit relays the
+same batches. ``wire="v1"``: every sample alone on its key, end to end, as before. Besides, ``v1_ingest`` finds
+how many vehicles publishing v1 single samples one ingest process sustains (ingest alone, clean batches out).
 """
 
 from __future__ import annotations
@@ -78,9 +83,10 @@ def _manifest(n: int, tmp: Path) -> Path:
 
 
 class Sink:
-    """Counts outputs and their latency (receive wall time − t_s) in its own thread."""
+    """Counts outputs and their latency (receive wall time − t_s) in its own thread. ``batch_stream``: the
+    outputs are batches, and the samples of that stream inside them are what is counted."""
 
-    def __init__(self, session, keyexpr: str, latency: bool):
+    def __init__(self, session, keyexpr: str, latency: bool, batch_stream: str | None = None):
         import zenoh
 
         self.sub = session.declare_subscriber(keyexpr, zenoh.handlers.FifoChannel(100_000))
@@ -88,19 +94,29 @@ class Sink:
         self.lat: list[float] = []
         self.t_last = 0.0
         self.latency = latency
+        self.batch_stream = batch_stream
         self.q: queue.Queue = queue.Queue()
         threading.Thread(target=self._run, daemon=True).start()
 
     def _run(self) -> None:
         unpack = msgpack.unpackb
+        bs = self.batch_stream
         while True:
             try:
                 s = self.sub.recv()
             except Exception:
                 return
             now = time.time()
-            self.n += 1
             self.t_last = now
+            if bs is not None:
+                st = unpack(s.payload.to_bytes())["streams"].get(bs)
+                if st is None:
+                    continue
+                self.n += st["n"]
+                if self.latency:
+                    self.lat.extend(now - x for x in st["t_s"])
+                continue
+            self.n += 1
             if self.latency:
                 self.lat.append(now - unpack(s.payload.to_bytes())["t_s"])
 
@@ -140,8 +156,9 @@ def _status(session, role: str, inst: str) -> dict:
     return {}
 
 
-def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple[str, ...], tmp: Path) -> dict:
-    """One run: ``kind`` is "pipeline" or "limit"."""
+def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple[str, ...], tmp: Path,
+             wire: str = "v2", window_s: float = 0.02) -> dict:
+    """One run: ``kind`` is "pipeline", "limit" or "ingest" (ingest alone, clean batches out)."""
     import zenoh
 
     port = _free_port()
@@ -149,8 +166,16 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
     man = _manifest(n, tmp)
     procs: dict[str, subprocess.Popen] = {}
     tokens = []
-    if kind == "pipeline":
-        procs["ingest"] = _spawn(["-m", "services.ingest", "--instance", "b-ingest"], port, tmp / "ingest.log")
+    batch_stream = None
+    ingest_args = ["-m", "services.ingest", "--instance", "b-ingest"]
+    if wire == "v2" or kind == "ingest":
+        ingest_args += ["--set", "output=batches", "--set", f"batch_window_s={window_s}"]
+    if kind == "ingest":
+        procs["ingest"] = _spawn(ingest_args, port, tmp / "ingest.log")
+        tokens.append(keys.svc_token("ingest", "b-ingest"))
+        sink_key, batch_stream = keys.clean_batch("*"), "mag/2"
+    elif kind == "pipeline":
+        procs["ingest"] = _spawn(ingest_args, port, tmp / "ingest.log")
         tokens.append(keys.svc_token("ingest", "b-ingest"))
         procs["dmc_detector"] = _spawn(["-m", "services.dmc_detector", "--instance", "b-dmc", "--manifest", str(man)],
                                        port, tmp / "dmc.log")
@@ -171,15 +196,18 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
                                  port, tmp / "relay2.log")
         tokens += [keys.svc_token("relay", "r1"), keys.svc_token("relay", "r2")]
         sink_key = "magmesh/*/benchout/mag/2"
+        if wire == "v2":
+            sink_key, batch_stream = f"magmesh/*/benchout/{keys.BATCH}", "mag/2"
     try:
         if not _wait_tokens(router, tokens):
             raise RuntimeError(f"{kind}: services did not come up (logs in {tmp})")
-        sink = Sink(router, sink_key, latency=not max_mode)
+        sink = Sink(router, sink_key, latency=not max_mode, batch_stream=batch_stream)
         time.sleep(0.5)
         start_at = time.time() + 2.0
         cpu0 = {}
         fleet_args = ["-m", "bench.fleet", "--vehicles", str(n), "--duration", str(duration_s), "--start-at",
-                      str(start_at)] + (["--max"] if max_mode else [])
+                      str(start_at), "--wire", "v1" if kind == "ingest" else wire, "--window", str(window_s)] + (
+                          ["--max"] if max_mode else [])
         fleet = subprocess.Popen([sys.executable, *fleet_args, "--connect", f"tcp/127.0.0.1:{port}"], cwd=paths.REPO,
                                  stdout=subprocess.PIPE, stderr=open(tmp / "fleet.log", "ab"), text=True)
         while time.time() < start_at:
@@ -205,8 +233,9 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         cpu1 = {k: _cpu_s(p.pid) for k, p in procs.items()}
         wall = max(t_end - t_start, 1e-6)
         statuses = {}
-        if kind == "pipeline":
+        if kind in ("pipeline", "ingest"):
             statuses["ingest"] = _status(router, "ingest", "b-ingest")
+        if kind == "pipeline":
             statuses["dmc_detector"] = _status(router, "dmc_detector", "b-dmc")
         drops = {}
         for name, st in statuses.items():
@@ -215,13 +244,15 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
                     if r != "alarm_state_unchanged":
                         drops[f"{name}:{r}"] = drops.get(f"{name}:{r}", 0) + c
         lost = max(0, expected - sink.n) + sum(drops.values())
-        if kind == "pipeline" and statuses.get("ingest"):
-            ing_in = sum(v["n"] for v in statuses["ingest"].get("in", {}).values())
+        if statuses.get("ingest"):
+            st = statuses["ingest"]  # samples received: in_total counts batches besides their samples
+            ing_in = st.get("in_total", 0) - st.get("batches_in", 0)
             lost += max(0, fl["total"] - ing_in)
         lat = np.array(sink.lat) * 1000 if sink.lat else None  # latency only means something when paced
         samples_done = fl["total"] * min(1.0, sink.n / max(expected, 1))
         return {
-            "kind": kind, "vehicles": n, "max_mode": max_mode, "duration_s": duration_s,
+            "kind": kind, "vehicles": n, "max_mode": max_mode, "duration_s": duration_s, "wire": wire,
+            "window_s": window_s if (wire == "v2" or kind == "ingest") else None,
             "offered_samples_s": fl["offered_rate"], "published_samples_s": round(fl["rate"], 1),
             "sustained_samples_s": round(samples_done / wall, 1),
             "outputs": sink.n, "expected_outputs": expected, "drained": drained, "lost": int(lost), "drops": drops,
@@ -236,8 +267,8 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         router.close()
 
 
-def _median_case(kind, n, duration_s, max_mode, stages, repeat, tmp) -> dict:
-    runs = [run_case(kind, n, duration_s, max_mode, stages, tmp) for _ in range(repeat)]
+def _median_case(kind, n, duration_s, max_mode, stages, repeat, tmp, wire="v2", window_s=0.02) -> dict:
+    runs = [run_case(kind, n, duration_s, max_mode, stages, tmp, wire, window_s) for _ in range(repeat)]
     out = dict(runs[0])
     for k in ("sustained_samples_s", "published_samples_s", "latency_ms_p50", "latency_ms_p99"):
         vals = [r[k] for r in runs if r[k] is not None]
@@ -257,50 +288,82 @@ def available_stages() -> tuple[str, ...]:
     return tuple(st)
 
 
+def _sustained(r: dict, p99_ms: float) -> bool:
+    return bool(r["lost"] == 0 and r["latency_ms_p99"] is not None and r["latency_ms_p99"] <= p99_ms
+                and r["published_samples_s"] >= 0.95 * r["offered_samples_s"]
+                and r["outputs"] >= 0.999 * r["expected_outputs"])
+
+
 def bench(vehicles: list[int], duration_s: float = 8.0, repeat: int = 1, stages: tuple[str, ...] | None = None,
-          limit_vehicles: int | None = None, progress=None) -> dict:
+          limit_vehicles: int | None = None, progress=None, wire: str = "v2", window_s: float = 0.02,
+          p99_ms: float = 100.0, v1_ingest: bool = True) -> dict:
     stages = stages or available_stages()
     tmp = Path(tempfile.mkdtemp(prefix="magmesh-bench-"))
     say = progress or (lambda s: None)
     # throughput at saturation: the same load, pipeline vs no-processing limit, same run
     n_sat = limit_vehicles or max(10, min(vehicles))
-    say(f"saturation: pipeline, {n_sat} vehicles, as fast as possible")
-    pipe_max = _median_case("pipeline", n_sat, duration_s, True, stages, repeat, tmp)
-    say(f"saturation: limit (same hops, no processing), {n_sat} vehicles")
-    lim_max = _median_case("limit", n_sat, duration_s, True, stages, repeat, tmp)
+    say(f"saturation: pipeline, {n_sat} vehicles, as fast as possible ({wire})")
+    pipe_max = _median_case("pipeline", n_sat, duration_s, True, stages, repeat, tmp, wire, window_s)
+    say(f"saturation: limit (same hops, no processing), {n_sat} vehicles ({wire})")
+    lim_max = _median_case("limit", n_sat, duration_s, True, stages, repeat, tmp, wire, window_s)
     table = []
     for n in vehicles:
-        say(f"paced at sensor rates: pipeline, {n} vehicles")
-        r = _median_case("pipeline", n, duration_s, False, stages, repeat, tmp)
-        r["sustained"] = bool(r["lost"] == 0 and r["latency_ms_p99"] <= 50.0
-                              and r["published_samples_s"] >= 0.95 * r["offered_samples_s"]
-                              and r["outputs"] >= 0.999 * r["expected_outputs"])
+        say(f"paced at sensor rates: pipeline, {n} vehicles ({wire})")
+        r = _median_case("pipeline", n, duration_s, False, stages, repeat, tmp, wire, window_s)
+        r["sustained"] = _sustained(r, p99_ms)
         table.append(r)
     ok = [r["vehicles"] for r in table if r["sustained"]]
     ratio = pipe_max["sustained_samples_s"] / max(lim_max["sustained_samples_s"], 1e-9)
+    ingest_rows = []
+    if v1_ingest:
+        for n in vehicles:  # one ingest process under v1 single-sample vehicles, until it no longer keeps up
+            say(f"v1 single-sample vehicles through one ingest: {n}")
+            r = _median_case("ingest", n, duration_s, False, ("ingest",), repeat, tmp, "v1", window_s)
+            r["sustained"] = _sustained(r, p99_ms)
+            ingest_rows.append(r)
+            if not r["sustained"]:
+                break
+    ok_ing = [r["vehicles"] for r in ingest_rows if r["sustained"]]
     return {
         "stages": list(stages),
+        "wire": wire,
+        "window_s": window_s,
+        "p99_goal_ms": p99_ms,
         "saturation": {"pipeline": pipe_max, "limit": lim_max},
         "ratio_to_limit": round(ratio, 3),
         "scaling": table,
         "max_vehicles": max(ok) if ok else 0,
+        "v1_ingest": ingest_rows,
+        "v1_ingest_max_vehicles": max(ok_ing) if ok_ing else 0,
         "logs": str(tmp),
     }
 
 
+def _row(r: dict) -> str:
+    cpu = ", ".join(f"{k} {v:.0f}" for k, v in r["cpu_pct"].items())
+    rss = ", ".join(f"{k} {v:.0f}" for k, v in r["rss_mb"].items())
+    p50 = "-" if r["latency_ms_p50"] is None else f"{r['latency_ms_p50']:.1f}"
+    p99 = "-" if r["latency_ms_p99"] is None else f"{r['latency_ms_p99']:.1f}"
+    return (f"| {r['vehicles']} | {r['offered_samples_s']} | {r['published_samples_s']:.0f} | "
+            f"{r['sustained_samples_s']:.0f} | {p50} | {p99} | {r['lost']} | {cpu} | {rss} | "
+            f"{'yes' if r['sustained'] else 'no'} |")
+
+
 def format_text(res: dict) -> str:
     p, lim = res["saturation"]["pipeline"], res["saturation"]["limit"]
-    lines = [f"stages: {' → '.join(res['stages'])}",
+    head = ["| vehicles | offered samples/s | published | sustained end to end | p50 ms | p99 ms | lost | CPU % "
+            "per stage | RSS MB | sustained |", "|---|---|---|---|---|---|---|---|---|---|"]
+    wire = res.get("wire", "v1")
+    lines = [f"stages: {' → '.join(res['stages'])}; wire {wire}"
+             + (f" (a batch per vehicle per {res['window_s'] * 1000:g} ms)" if wire == "v2" else ""),
              f"saturation ({p['vehicles']} vehicles, as fast as possible): pipeline {p['sustained_samples_s']:.0f} "
              f"samples/s, no-processing limit {lim['sustained_samples_s']:.0f} samples/s → ratio "
-             f"{res['ratio_to_limit']:.2f}",
-             "", "| vehicles | offered samples/s | published | sustained end to end | p50 ms | p99 ms | lost | CPU % "
-             "per stage | RSS MB | sustained |", "|---|---|---|---|---|---|---|---|---|---|"]
-    for r in res["scaling"]:
-        cpu = ", ".join(f"{k} {v:.0f}" for k, v in r["cpu_pct"].items())
-        rss = ", ".join(f"{k} {v:.0f}" for k, v in r["rss_mb"].items())
-        lines.append(f"| {r['vehicles']} | {r['offered_samples_s']} | {r['published_samples_s']:.0f} | "
-                     f"{r['sustained_samples_s']:.0f} | {r['latency_ms_p50']:.1f} | {r['latency_ms_p99']:.1f} | "
-                     f"{r['lost']} | {cpu} | {rss} | {'yes' if r['sustained'] else 'no'} |")
-    lines.append(f"\nmax vehicles sustained (zero loss, p99 ≤ 50 ms): {res['max_vehicles']}")
+             f"{res['ratio_to_limit']:.2f}", "", *head]
+    lines += [_row(r) for r in res["scaling"]]
+    goal = res.get("p99_goal_ms", 50.0)
+    lines.append(f"\nmax vehicles sustained (zero loss, p99 ≤ {goal:g} ms): {res['max_vehicles']}")
+    if res.get("v1_ingest"):
+        lines += ["", "v1 single-sample vehicles through one ingest (clean batches out):", "", *head]
+        lines += [_row(r) for r in res["v1_ingest"]]
+        lines.append(f"\nv1 vehicles one ingest sustains: {res['v1_ingest_max_vehicles']}")
     return "\n".join(lines)

@@ -50,6 +50,7 @@ _HEADER_NAMES = frozenset(("type", "version", "vehicle", "t_s", "seq"))
 _KNOWN_FIELDS = {name: _HEADER_NAMES | {f.name for f in mt.fields} for name, mt in messages.MESSAGES.items()}
 FIFO_CAPACITY = 4096
 STOP_GRACE_S = 1.5
+CAL_CONFIRM_TIMEOUT_S = 2.0  # wait for a calibration service to confirm a cal/params sample it published
 
 # ---- the input path's bounds (see Runner.handle_sample) ---------------------------------------
 #: largest payload accepted per message type, checked before decoding (a contract-legal message is far smaller)
@@ -379,6 +380,8 @@ class Runner:
         self._next_evict = time.monotonic() + 1.0
         self._log_last: dict[str, tuple[float, int]] = {}
         self.batch_in = False  # clean batches are unbatched here (set in start())
+        self.batches_in = 0
+        self.batches_out = 0
         self._sub_exprs: list[Any] = []
         self._wants: dict[str, bool] = {}
         service._rt = self
@@ -446,11 +449,12 @@ class Runner:
         # validated unless the fields come from a message validated on input (a service never emits what the
         # contract forbids)
         payload = messages.encode(msg, check=not trusted)
+        if msg_type == "alarm":  # the holder's own state first: an alarm query it answers after the put agrees
+            self.seq[key] = seq
+            self._alarm_sent(key, msg)
         self._publisher(key).put(payload)
         self.seq[key] = seq
         self.count_out[key].n += 1
-        if msg_type == "alarm":
-            self._alarm_sent(key, msg)
         return msg
 
     def publish_batch(self, key: str, vehicle: str, cols: dict) -> int:
@@ -486,6 +490,7 @@ class Runner:
         self._publisher(key).put(batches.encode(vehicle, seq, out))
         self.seq[key] = seq
         self.count_out[key].n += 1
+        self.batches_out += 1
         return n
 
     def republish(self, key: str, msg: dict) -> dict | None:
@@ -558,6 +563,47 @@ class Runner:
                           reason=f"cleared after a restart of {self.svc.instance}: the condition is no longer seen")
             t = self.last_in_t.get(msg["vehicle"], msg["t_s"])
             self.publish(key, "alarm", msg["vehicle"], max(t, msg["t_s"]), fields)
+
+    # ---- who may steer: calibration parameters -------------------------------------------------
+    def cal_params_trusted(self, key: str, msg: dict) -> bool:
+        """Adopt ``cal/params`` only as published by a calibration service instance.
+
+        The rule: a live instance of role ``calibration`` (liveliness ``magmesh/svc/calibration/*``) must answer
+        the parameters query of this key with this very parameter set (same ``param_id``, ``seq`` and ``t_s``).
+        A put it did not publish (a forged or stray parameter set) is refused, reported on ``rejects`` with code
+        ``untrusted``. On the secured mesh only services may publish or answer ``cal/`` at all (router ACL).
+        """
+        import zenoh
+
+        if not isinstance(self.session, zenoh.Session) or self.svc.role == "calibration":
+            return True
+        why = None
+        try:
+            live = [r for r in self.session.liveliness().get(f"{keys.ROOT}/{keys.SVC}/calibration/*",
+                                                             timeout=CAL_CONFIRM_TIMEOUT_S) if r.ok is not None]
+            if not live:
+                why = "no calibration service is live"
+            else:
+                want = (msg.get("param_id"), msg.get("seq"), msg.get("t_s"))
+                seen = []
+                for r in self.session.get(key, timeout=CAL_CONFIRM_TIMEOUT_S):
+                    if r.ok is None:
+                        continue
+                    try:
+                        m = msgpack.unpackb(r.ok.payload.to_bytes())
+                        seen.append((m.get("param_id"), m.get("seq"), m.get("t_s")))
+                    except Exception:  # noqa: BLE001 - a garbage answer confirms nothing
+                        continue
+                if want not in seen:
+                    why = "no calibration service answers for this parameter set"
+        except Exception as e:  # noqa: BLE001 - no confirmation, no adoption
+            why = f"confirmation failed ({type(e).__name__})"
+        if why is None:
+            return True
+        self.reject(key, "untrusted", f"calibration parameters on {key} (param_id {str(msg.get('param_id'))[:64]!r}, "
+                    f"seq {msg.get('seq')}) not adopted: {why}; only a calibration service instance may set them",
+                    "param_id", 0, msg.get("vehicle"), msg.get("t_s"), "cal_params")
+        return False
 
     def reject(self, key: str, code: str, reason: str, field: str | None, payload_len: int,
                vehicle: str | None, t_s: float | None, input_type: str | None) -> None:
@@ -689,6 +735,7 @@ class Runner:
             self.reject(key, "key", str(e), None, len(payload), None, None, None)
             return
         self.count_in[key].n += 1
+        self.batches_in += 1
         now = time.monotonic()
         self.key_seen[key] = now
         self.vehicle_seen[info.vehicle] = now
@@ -822,6 +869,8 @@ class Runner:
             for k in extra:  # forward-compatible extras are kept only while small: never amplified downstream
                 del msg[k]
             self.count_drop(key, "extra_fields_dropped")
+        if mtype == "cal_params" and not self.cal_params_trusted(key, msg):
+            return None
         return info, msg
 
     def dispatch(self, info: KeyInfo, msg: Any) -> None:
@@ -972,6 +1021,8 @@ class Runner:
                 "in_keys": len(self.count_in),
                 "out_keys": len(self.count_out),
                 "in_total": sum(c.n for c in list(self.count_in.values())) + self.evicted_in,
+                "batches_in": self.batches_in,  # contract v2: in_total counts batches and their samples
+                "batches_out": self.batches_out,
                 "out_total": sum(c.n for c in list(self.count_out.values())) + self.evicted_out,
                 "rejects": self.rejects_total,
                 "drops": {k: dict(v) for k, v in _top(self.drops, _sum)},
@@ -1004,6 +1055,8 @@ class Runner:
         import zenoh
 
         try:
+            if self.mode not in ("active", "retiring"):  # only the instance holding the role speaks for its alarms
+                return
             qke = query.key_expr
             with self.lock:
                 raised = list(self.raised.items())

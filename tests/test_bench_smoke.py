@@ -7,13 +7,21 @@ from bench.mesh_bench import bench, format_text
 pytestmark = pytest.mark.mesh
 
 
-def test_bench_mesh_smoke():
-    res = bench([2], duration_s=2.0, repeat=1, stages=("ingest", "dmc_detector"), limit_vehicles=2)
+@pytest.mark.parametrize("wire", ["v2", "v1"])
+def test_bench_mesh_smoke(wire):
+    res = bench([2], duration_s=2.0, repeat=1, stages=("ingest", "dmc_detector"), limit_vehicles=2, wire=wire,
+                v1_ingest=wire == "v2")
     row = res["scaling"][0]
     assert row["lost"] == 0, row
     assert row["outputs"] >= 0.99 * row["expected_outputs"] > 0
     assert res["saturation"]["limit"]["sustained_samples_s"] > 0 and res["ratio_to_limit"] > 0
     assert set(row["cpu_pct"]) >= {"ingest", "dmc_detector", "fleet"}
+    assert row["wire"] == wire
+    if wire == "v2":  # v1 single-sample vehicles through one ingest, clean batches counted sample by sample
+        lim = res["saturation"]["limit"]
+        assert lim["outputs"] >= 0.99 * lim["expected_outputs"] > 0, lim  # the limit relays the same batches
+        ing = res["v1_ingest"][0]
+        assert ing["kind"] == "ingest" and ing["lost"] == 0 and ing["outputs"] >= 0.99 * ing["expected_outputs"] > 0
     print("\n" + format_text(res))
 
 

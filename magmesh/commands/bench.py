@@ -18,6 +18,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--saturation-vehicles", type=int, default=None,
                    help="vehicles for the pipeline-vs-limit throughput run (default: the smallest count, ≥ 10)")
     m.add_argument("--stages", default=None, help="comma-separated stages (default: all available)")
+    m.add_argument("--wire", choices=("v1", "v2"), default="v2",
+                   help="v2 (default): each vehicle publishes one batch per window and ingest emits clean batches; "
+                        "v1: every sample alone on its key, end to end")
+    m.add_argument("--window", type=float, default=0.02, help="v2: seconds of samples per batch (default 0.02)")
+    m.add_argument("--p99-ms", type=float, default=100.0,
+                   help="latency goal a sustained row must meet, raw publish → dmc out p99 (default 100 ms)")
+    m.add_argument("--no-v1-ingest", action="store_true",
+                   help="skip measuring how many v1 single-sample vehicles one ingest sustains")
     m.add_argument("--json", action="store_true")
     m.set_defaults(func=run_mesh)
     c = bsub.add_parser("cores", help="each pure core against its Python peer on the same input")
@@ -40,7 +48,8 @@ def run_mesh(args: argparse.Namespace) -> int:
     vehicles = [int(x) for x in args.vehicles.split(",") if x.strip()]
     stages = tuple(s.strip() for s in args.stages.split(",")) if args.stages else None
     res = bench(vehicles, args.duration, args.repeat, stages, args.saturation_vehicles,
-                progress=lambda s: print(s, file=sys.stderr, flush=True))
+                progress=lambda s: print(s, file=sys.stderr, flush=True), wire=args.wire, window_s=args.window,
+                p99_ms=args.p99_ms, v1_ingest=not args.no_v1_ingest)
     if args.json:
         json.dump(res, sys.stdout)
         print()

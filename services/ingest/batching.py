@@ -74,6 +74,7 @@ class BatchingIngest:
     # ---- input -------------------------------------------------------------------------------------
     def on_batch_input(self, info: Any, payload: bytes, state: Any) -> None:
         key = info.key
+        self._rt.batches_in += 1
         try:
             b = batches.decode(payload, where=key)
         except SchemaError as e:
