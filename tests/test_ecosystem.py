@@ -171,11 +171,15 @@ def test_foxglove_live_channels_schemas_and_messages(tmp_path):
     ws_port = mu.free_port()
     router = mu.open_router(port)
     pub_session = mu.open_client(port)
+    # an alarm raised before the server starts: it learns it by querying, as a late joiner
+    early = dict(_alarm("car-1", 0), source="match")
+    queryable = pub_session.declare_queryable(
+        keys.alarm("car-1", "match"), lambda q: q.reply(keys.alarm("car-1", "match"), messages.encode(early)))
     proc = _spawn_cli("foxglove", "--connect", mu.endpoint(port), "--port", str(ws_port), "--quiet",
                       "--manifest", str(mu.REPO / "deploy" / "mesh.toml"),
                       env={"MAGMESH_STATE_DIR": str(tmp_path)})
     pub = _Publisher(pub_session)
-    want = ["magmesh/car-1/alarm/dmc", "magmesh/car-1/alarm/track", "magmesh/car-1/heading", "magmesh/car-1/fix/geomag", "magmesh/car-1/clean/gnss",
+    want = ["magmesh/car-1/alarm/dmc", "magmesh/car-1/alarm/track", "magmesh/car-1/alarm/match", "magmesh/car-1/heading", "magmesh/car-1/fix/geomag", "magmesh/car-1/clean/gnss",
             "/car-1/log", "/car-1/gnss/fix", "/car-1/geomag/fix", "/car-1/pose", "/tf"]
     try:
         got = asyncio.run(_foxglove_client(ws_port, want))
@@ -184,10 +188,12 @@ def test_foxglove_live_channels_schemas_and_messages(tmp_path):
         pub.thread.join(5)
         rc = mu.stop(proc, timeout=15)
         out = proc.stdout.read().decode(errors="replace")
+        queryable.undeclare()
         pub_session.close()
         router.close()
     assert rc == 0, out
-    for topic in want[:5]:
+    assert got["magmesh/car-1/alarm/match"]["msg"]["source"] == "match"
+    for topic in want[:6]:
         ch = got[topic]["channel"]
         assert ch["encoding"] == "json" and ch["schemaEncoding"] == "jsonschema"
         schema = json.loads(ch["schema"])
