@@ -8,6 +8,9 @@ hand a role over to another implementation.
 
 from __future__ import annotations
 
+import dataclasses
+import difflib
+import functools
 import json
 import logging
 import os
@@ -26,6 +29,7 @@ import msgpack
 from schemas import keys
 
 from . import __version__, zconf
+from .errors import UserError
 
 log = logging.getLogger("magmesh.supervisor")
 
@@ -58,33 +62,240 @@ class Manifest:
     processes: list[ProcessSpec]
     connect: list[str] = field(default_factory=list)  # other routers (other hosts) to link to
     zenoh_config: str | None = None  # a Zenoh JSON5 file for the router (TLS, access control, ...)
+    give_up_after: int = 5  # a process failing this many times in a row on start is given up
+
+
+class ManifestError(UserError):
+    """A mistake in a mesh manifest (or in ``magmesh up`` flags naming its processes): one paragraph, exit 2."""
+
+
+#: the tables of a manifest, the keys of [mesh] and of each [[process]]
+MANIFEST_TABLES = ("mesh", "vehicles", "process")
+MESH_KEYS = ("endpoint", "restart_backoff_s", "status_period_s", "give_up_after", "connect", "zenoh_config")
+PROCESS_KEYS = tuple(f.name for f in dataclasses.fields(ProcessSpec))
+PROCESS_REQUIRED = ("name", "module")
+#: a process that fails this many times in a row on start is given up (``[mesh] give_up_after``)
+GIVE_UP_AFTER = 5
+
+
+def _did_you_mean(word: str, known) -> str:
+    close = difflib.get_close_matches(str(word), list(known), n=1)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def _type_problem(where: str, key: str, value: Any, want: str) -> str | None:
+    ok = {"str": isinstance(value, str), "bool": isinstance(value, bool), "table": isinstance(value, dict),
+          "list of str": isinstance(value, list) and all(isinstance(x, str) for x in value),
+          "number": isinstance(value, (int, float)) and not isinstance(value, bool),
+          "list of numbers": isinstance(value, list) and bool(value)
+          and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in value),
+          "int": isinstance(value, int) and not isinstance(value, bool)}[want]
+    return None if ok else f"{where}: {key} must be a {want}, got {type(value).__name__} {value!r:.60}"
+
+
+_PROCESS_TYPES = {"name": "str", "module": "str", "vehicle": "str", "vehicles": "str", "settings": "table",
+                  "enabled": "bool", "args": "list of str"}
+_MESH_TYPES = {"endpoint": "str", "restart_backoff_s": "list of numbers", "status_period_s": "number",
+               "give_up_after": "int", "connect": "list of str", "zenoh_config": "str"}
 
 
 def load_manifest(path: str | os.PathLike) -> Manifest:
+    """Read and check the structure of a manifest; every problem is a :class:`ManifestError` naming the file,
+    the process and the key (with the known keys), never a traceback. See :func:`check_processes` for the
+    deeper check of modules, implementations and settings."""
     p = Path(path)
-    with open(p, "rb") as f:
-        raw = tomllib.load(f)
+    if not p.exists():
+        raise ManifestError(f"manifest {p}: no such file. Give the path of a mesh manifest (TOML), for example "
+                            f"deploy/mesh.toml.")
+    if not p.is_file():
+        raise ManifestError(f"manifest {p}: not a file (a mesh manifest is one TOML file, e.g. deploy/mesh.toml).")
+    try:
+        with open(p, "rb") as f:
+            raw = tomllib.load(f)
+    except tomllib.TOMLDecodeError as e:
+        raise ManifestError(f"manifest {p}: not valid TOML: {e}.") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise ManifestError(f"manifest {p}: cannot be read: {e}.") from None
+    problems: list[str] = []
+    for k in raw:
+        if k not in MANIFEST_TABLES:
+            problems.append(f"unknown table [{k}]{_did_you_mean(k, MANIFEST_TABLES)}; known: "
+                            f"{', '.join(MANIFEST_TABLES)}")
     mesh = raw.get("mesh", {})
-    procs = []
-    names = set()
-    for i, entry in enumerate(raw.get("process", [])):
+    if not isinstance(mesh, dict):
+        problems.append("[mesh] must be a table")
+        mesh = {}
+    for k, v in mesh.items():
+        if k not in MESH_KEYS:
+            problems.append(f"[mesh]: unknown key {k!r}{_did_you_mean(k, MESH_KEYS)}; known: {', '.join(MESH_KEYS)}")
+        elif (tp := _type_problem("[mesh]", k, v, _MESH_TYPES[k])) is not None:
+            problems.append(tp)
+    if isinstance(mesh.get("give_up_after"), int) and mesh["give_up_after"] < 1:
+        problems.append("[mesh]: give_up_after must be at least 1")
+    vehicles = raw.get("vehicles", {})
+    if not isinstance(vehicles, dict) or not all(isinstance(v, dict) for v in vehicles.values()):
+        problems.append("[vehicles] must hold one table per vehicle ([vehicles.car-1] ...)")
+        vehicles = {}
+    for v in vehicles:
         try:
-            spec = ProcessSpec(**entry)
-        except TypeError as e:
-            raise ValueError(f"{p}: [[process]] #{i + 1}: {e}") from None
+            keys.check_id(v, "vehicle id")
+        except keys.KeyError_ as e:
+            problems.append(f"[vehicles.{v}]: {e}")
+    entries = raw.get("process", [])
+    if not isinstance(entries, list):
+        problems.append("process must be an array of tables ([[process]] ...)")
+        entries = []
+    procs = []
+    names: set[str] = set()
+    for i, entry in enumerate(entries):
+        label = f"[[process]] #{i + 1}"
+        if not isinstance(entry, dict):
+            problems.append(f"{label}: must be a table")
+            continue
+        if isinstance(entry.get("name"), str):
+            label += f" ({entry['name']!r})"
+        bad = False
+        for k in entry:
+            if k not in PROCESS_KEYS:
+                problems.append(f"{label}: unknown key {k!r}{_did_you_mean(k, PROCESS_KEYS)}; known: "
+                                f"{', '.join(PROCESS_KEYS)}")
+                bad = True
+            elif (tp := _type_problem(label, k, entry[k], _PROCESS_TYPES[k])) is not None:
+                problems.append(tp)
+                bad = True
+        for k in PROCESS_REQUIRED:
+            if k not in entry:
+                problems.append(f"{label}: missing key {k!r} (required: {', '.join(PROCESS_REQUIRED)}; known: "
+                                f"{', '.join(PROCESS_KEYS)})")
+                bad = True
+        if bad:
+            continue
+        spec = ProcessSpec(**entry)
+        try:
+            keys.check_id(spec.name, "process name")
+            if spec.vehicle:
+                keys.check_id(spec.vehicle, "vehicle")
+            if spec.vehicles:
+                keys.check_pattern(spec.vehicles, "vehicles pattern")
+        except keys.KeyError_ as e:
+            problems.append(f"{label}: {e}")
+            continue
         if spec.name in names:
-            raise ValueError(f"{p}: process name {spec.name!r} appears twice")
-        keys.check_id(spec.name, "process name")
-        if spec.vehicle:
-            keys.check_id(spec.vehicle)
+            problems.append(f"process name {spec.name!r} appears twice")
+            continue
         names.add(spec.name)
         procs.append(spec)
+    if problems:
+        raise ManifestError(_paragraph(p, problems))
     zcfg = mesh.get("zenoh_config")
     if zcfg and not Path(zcfg).is_absolute():
         zcfg = str((p.parent / zcfg).resolve())
     return Manifest(p, mesh.get("endpoint", zconf.DEFAULT_ENDPOINT), list(mesh.get("restart_backoff_s", [0.2, 0.5, 1, 2, 5])),
-                    float(mesh.get("status_period_s", 1.0)), raw.get("vehicles", {}), procs,
-                    list(mesh.get("connect", [])), zcfg)
+                    float(mesh.get("status_period_s", 1.0)), vehicles, procs,
+                    list(mesh.get("connect", [])), zcfg, int(mesh.get("give_up_after", GIVE_UP_AFTER)))
+
+
+def _paragraph(path: Path, problems: list[str]) -> str:
+    if len(problems) == 1:
+        return f"manifest {path}: {problems[0]}."
+    return f"manifest {path}: {len(problems)} problems: " + "; ".join(problems) + "."
+
+
+# ---- what a module runs, without starting it -----------------------------------------------------
+
+
+@functools.lru_cache(maxsize=64)
+def implementations(module: str) -> tuple[dict[str, type], str]:
+    """The service classes a ``python -m`` module runs, by implementation name, and the default one.
+
+    Imports ``{module}.__main__`` (its ``if __name__ == "__main__"`` block does not run). A module listing
+    several implementations exports ``IMPLEMENTATIONS`` (and ``DEFAULT_IMPL``). Raises ``ImportError`` for a
+    module that does not exist and ``ValueError`` for one that runs no magmesh service."""
+    import importlib
+    import importlib.util
+
+    from .runtime import Service, SimPublisher
+
+    try:
+        found = importlib.util.find_spec(module)
+    except (ImportError, ValueError):
+        found = None
+    if found is None:
+        raise ImportError(f"no module named {module!r}")
+    try:
+        mod = importlib.import_module(f"{module}.__main__")
+    except ModuleNotFoundError as e:
+        if e.name in (f"{module}.__main__", module):
+            raise ImportError(f"module {module!r} cannot be run with python -m (it has no __main__)") from None
+        raise ImportError(f"module {module!r} failed to import: {type(e).__name__}: {e}") from None
+    except Exception as e:  # noqa: BLE001 - a broken module is a manifest problem, reported with its error
+        raise ImportError(f"module {module!r} failed to import: {type(e).__name__}: {e}") from None
+    impls = getattr(mod, "IMPLEMENTATIONS", None)
+    if isinstance(impls, dict) and impls:
+        return dict(impls), getattr(mod, "DEFAULT_IMPL", next(iter(impls)))
+    classes = {c.impl: c for c in vars(mod).values()
+               if isinstance(c, type) and issubclass(c, Service) and c not in (Service, SimPublisher)}
+    if not classes:
+        raise ValueError(f"module {module!r} runs no magmesh service")
+    return classes, next(iter(classes))
+
+
+def spec_impl(spec: ProcessSpec) -> str | None:
+    """The implementation a process's ``args`` ask for (``--impl NAME``), or None for the module's default."""
+    args = [str(a) for a in spec.args]
+    impl = None
+    for i, a in enumerate(args):
+        if a == "--impl" and i + 1 < len(args):
+            impl = args[i + 1]
+        elif a.startswith("--impl="):
+            impl = a.split("=", 1)[1]
+    return impl
+
+
+def check_spec(spec: ProcessSpec, impl: str | None = None) -> tuple[type, str]:
+    """Check one process against its module without starting it: module, implementation, settings (names
+    and values, against the implementation's settings class) and extra arguments. Returns the service class
+    and implementation name; raises ``ValueError`` with the reason."""
+    from .runtime import build_settings, make_parser
+
+    try:
+        impls, default = implementations(spec.module)
+    except ImportError as e:
+        raise ValueError(f"{e}; a module is a Python module run with python -m, e.g. services.dmc_detector "
+                         f"or sim_publishers.car") from None
+    name = impl or spec_impl(spec) or default
+    cls = impls.get(name)
+    if cls is None:
+        raise ValueError(f"unknown implementation {name!r} of {spec.module}; known: {', '.join(sorted(impls))}")
+    try:
+        build_settings(cls.Settings, dict(spec.settings))
+    except (ValueError, TypeError) as e:
+        raise ValueError(f"settings for {spec.module} ({name}): {e}") from None
+    extra = [str(a) for a in spec.args]
+    if "--impl" in extra:
+        i = extra.index("--impl")
+        del extra[i:i + 2]
+    extra = [a for a in extra if not a.startswith("--impl=")]
+    if extra:
+        _, unknown = make_parser(cls).parse_known_args(extra)
+        if unknown:
+            raise ValueError(f"args: {' '.join(unknown)} not understood by python -m {spec.module} (see its --help)")
+    return cls, name
+
+
+def check_processes(m: Manifest, all_processes: bool = False) -> None:
+    """Check every enabled process (or all) of a manifest with :func:`check_spec`; one paragraph listing
+    every problem (file, process, what is wrong) as a :class:`ManifestError`."""
+    problems = []
+    for spec in m.processes:
+        if not (spec.enabled or all_processes):
+            continue
+        try:
+            check_spec(spec)
+        except ValueError as e:
+            problems.append(f"process {spec.name!r}: {e}")
+    if problems:
+        raise ManifestError(_paragraph(m.path, problems))
 
 
 def _setting_arg(k: str, v: Any) -> str:
@@ -110,8 +321,15 @@ def command_for(spec: ProcessSpec, endpoint: str, manifest_path: Path, impl_over
 class Child:
     """One supervised OS process."""
 
-    def __init__(self, spec: ProcessSpec, cmd: list[str], log_path: Path, backoff: list[float]):
+    def __init__(self, spec: ProcessSpec, cmd: list[str], log_path: Path, backoff: list[float],
+                 name: str | None = None, give_up_after: int = GIVE_UP_AFTER, impl: str | None = None):
         self.spec = spec
+        self.name = name or spec.name  # the instance name (a swap's new process is not its spec's name)
+        self.impl = impl
+        self.give_up_after = give_up_after
+        #: restarted by the supervisor when it dies; off for a swap's standby process (the swap watches it)
+        self.supervised = True
+        self.given_up = False
         self.cmd = cmd
         self.log_path = log_path
         self.backoff = backoff
@@ -141,8 +359,11 @@ class Child:
         return self.proc is not None and self.proc.poll() is None
 
     def check(self, now: float) -> str | None:
-        """Restart a dead child when its backoff has passed; return an event string."""
-        if self.proc is None:
+        """Restart a dead child when its backoff has passed; return an event string.
+
+        A child that failed ``give_up_after`` times in a row, each within ``HEALTHY_AFTER_S`` of its start,
+        is given up (its last log lines are in the event) and not restarted."""
+        if self.proc is None or self.given_up or not self.supervised:
             return None
         rc = self.proc.poll()
         if rc is None:
@@ -152,15 +373,31 @@ class Child:
                 self.fails_in_row = 0  # it ran fine: this is a fault, not a crash loop
             self.died_at = now
             self.last_exit = rc
-            delay = self.backoff[min(self.fails_in_row, len(self.backoff) - 1)]
             self.fails_in_row += 1
+            if self.fails_in_row >= self.give_up_after:
+                self.given_up = True
+                tail = "\n    ".join(self.last_lines()) or "(its log is empty)"
+                return (f"{self.name} failed {self.fails_in_row} times in a row on start (last exit code {rc}); "
+                        f"given up. Last lines of {self.log_path}:\n    {tail}")
+            delay = self.backoff[min(self.fails_in_row - 1, len(self.backoff) - 1)]
             self.next_start = now + delay
-            return f"{self.spec.name} exited with code {rc}; restarting in {delay:g} s"
+            return f"{self.name} exited with code {rc}; restarting in {delay:g} s"
         if now >= self.next_start:
             self.restarts += 1
             self.start()
-            return f"{self.spec.name} restarted (restart #{self.restarts})"
+            return f"{self.name} restarted (restart #{self.restarts})"
         return None
+
+    def last_lines(self, n: int = 8) -> list[str]:
+        """The last ``n`` non-empty lines of the process's log (its error, for a process that failed)."""
+        try:
+            with open(self.log_path, "rb") as f:
+                f.seek(0, os.SEEK_END)
+                f.seek(max(0, f.tell() - 16384))
+                text = f.read().decode("utf-8", "replace")
+        except OSError:
+            return []
+        return [ln.rstrip()[:400] for ln in text.splitlines() if ln.strip()][-n:]
 
     def stop(self, sig: int = signal.SIGTERM) -> None:
         if self.alive:
@@ -188,6 +425,7 @@ class Supervisor:
         self.raised: set[str] = set()
         self.events: list[str] = []
         self.swapper = None  # set by magmesh.swap when available
+        self.keep_going = False  # a process given up stops the mesh unless set (magmesh up --keep-going)
         self.client_config = None  # ProcessSpec -> Zenoh config file of its role (magmesh up --secure)
 
     # ---- zenoh side -----------------------------------------------------------------------
@@ -276,8 +514,9 @@ class Supervisor:
                 from .swap import Swapper
 
                 self.swapper = Swapper(self)
-            return self.swapper.swap(params.get("role", ""), params.get("impl", ""),
-                                     float(params.get("timeout_s", 20)))
+            return self.swapper.swap(str(params.get("role", "")), str(params.get("impl", "")),
+                                     float(params.get("timeout_s", 20)), instance=params.get("instance") or None,
+                                     vehicles=params.get("vehicles") or None)
         if op == "restart":
             ch = self.children.get(params.get("name", ""))
             if ch is None:
@@ -292,7 +531,7 @@ class Supervisor:
         for name, ch in list(self.children.items()):
             procs[name] = {"module": ch.spec.module, "alive": ch.alive, "pid": ch.proc.pid if ch.proc else None,
                            "restarts": ch.restarts, "last_exit": ch.last_exit,
-                           "last_restart_delay_s": ch.last_restart_delay_s,
+                           "last_restart_delay_s": ch.last_restart_delay_s, "given_up": ch.given_up,
                            "uptime_s": round(now - ch.started_at, 2) if ch.alive else 0.0}
         with self.lock:
             raised = sorted(self.raised)
@@ -308,7 +547,8 @@ class Supervisor:
         cmd = command_for(spec, self.endpoint, self.m.path, impl_override, name)
         if self.client_config is not None:  # the secured mesh: each process with its role's certificate
             cmd += ["--config", self.client_config(spec)]
-        ch = Child(spec, cmd, self.log_dir / f"{name}.log", self.m.restart_backoff_s)
+        ch = Child(spec, cmd, self.log_dir / f"{name}.log", self.m.restart_backoff_s, name=name,
+                   give_up_after=self.m.give_up_after, impl=impl_override or spec_impl(spec))
         if start:
             ch.start()
         with self.lock:
@@ -369,10 +609,18 @@ class Supervisor:
         try:
             while not self.stop_event.wait(0.05):
                 now = time.monotonic()
+                gave_up = False
                 for ch in list(self.children.values()):
                     ev = ch.check(now)
                     if ev:
                         self.event(ev)
+                        if ch.given_up:
+                            gave_up = True
+                            if self.quiet:  # the reason reaches the terminal even without the status line
+                                print(f"magmesh up: {ev}", file=sys.stderr, flush=True)
+                if gave_up and not self.keep_going:
+                    self.event("stopping the mesh: a process was given up (magmesh up --keep-going keeps the "
+                               "rest running)")
                 if not self.quiet:
                     while n_events < len(self.events):
                         if tty:
@@ -389,10 +637,18 @@ class Supervisor:
                             print(self.line(), flush=True)
                 if deadline and now >= deadline:
                     break
+                if gave_up and not self.keep_going:
+                    break
         finally:
             if tty:
                 print()
             self.shutdown()
+        given_up = sorted(n for n, c in self.children.items() if c.given_up)
+        if given_up:
+            print(f"magmesh up: given up on {', '.join(given_up)} (failed on start "
+                  f"{self.m.give_up_after} times in a row; see the lines above and the logs in {self.log_dir})",
+                  file=sys.stderr, flush=True)
+            return 1
         return 0
 
     def shutdown(self) -> None:

@@ -38,6 +38,14 @@ class SwapError(RuntimeError):
     pass
 
 
+def _is_id(v: Any) -> bool:
+    try:
+        keys.check_id(v)
+        return True
+    except keys.KeyError_:
+        return False
+
+
 class Swapper:
     def __init__(self, sup: Any, warmup_s: float = 3.0, lead_s: float = 0.5, stall_s: float = 3.0):
         self.sup = sup
@@ -55,27 +63,116 @@ class Swapper:
                 return res
         raise SwapError(f"{instance} did not answer {req.get('op')} within {timeout:g} s")
 
-    def _holder(self, role: str) -> tuple[str, Any]:
-        deadline = time.monotonic() + 5
-        while time.monotonic() < deadline:
-            for inst, ch in list(self.sup.children.items()):
-                if not ch.alive:
-                    continue
-                try:
-                    st = self._control(role, inst, {"op": "state"}, timeout=1.0)
-                except SwapError:
-                    continue
-                if st.get("mode") == "active":
-                    return inst, ch
-            time.sleep(0.2)
-        raise SwapError(f"no running instance holds the role {role!r}")
+    def _role_of(self, ch: Any) -> str | None:
+        from .supervisor import implementations
 
-    def swap(self, role: str, impl: str, timeout_s: float = 20.0) -> dict:
+        try:
+            impls, _ = implementations(ch.spec.module)
+        except (ImportError, ValueError):
+            return None
+        roles = {c.role for c in impls.values()}
+        return roles.pop() if len(roles) == 1 else None
+
+    @staticmethod
+    def _describe(inst: str, impl: str, ch: Any) -> str:
+        return f"{inst} ({impl}, vehicles {ch.spec.vehicles or '*'})"
+
+    def _candidates(self, role: str) -> list[tuple[str, Any, dict]]:
+        """The running instances that hold ``role`` (mode active), with their state reply."""
+        found = []
+        for inst, ch in list(self.sup.children.items()):
+            if not ch.alive or self._role_of(ch) != role:
+                continue
+            try:
+                st = self._control(role, inst, {"op": "state"}, timeout=2.0)
+            except SwapError:
+                continue
+            if st.get("mode") == "active":
+                found.append((inst, ch, st))
+        return found
+
+    def _choose(self, role: str, impl: str, instance: str | None, vehicles: str | None) -> tuple[str, Any]:
+        """Which instance to hand over. With ``instance`` or ``vehicles`` given, the one that matches; else the
+        one instance the new implementation can replace: an instance already running ``impl``, or whose
+        manifest settings ``impl`` does not know (e.g. the quasi-static detector's ``level``), is not a
+        candidate by default. Several candidates: refused with the list."""
+        from .supervisor import check_spec, implementations
+
+        try:
+            keys.check_id(role, "role")
+            keys.check_id(impl, "implementation")
+            if vehicles is not None:
+                keys.check_pattern(vehicles, "vehicles pattern")
+        except keys.KeyError_ as e:
+            raise SwapError(str(e)) from None
+        roles = sorted({r for ch in list(self.sup.children.values()) if (r := self._role_of(ch))})
+        if role not in roles:
+            raise SwapError(f"no process of this mesh serves the role {role!r}; roles: {', '.join(roles) or 'none'}")
+        deadline = time.monotonic() + 5
+        cands = self._candidates(role)
+        while not cands and time.monotonic() < deadline:
+            time.sleep(0.2)
+            cands = self._candidates(role)
+        if not cands:
+            raise SwapError(f"no running instance holds the role {role!r}")
+        listing = ", ".join(self._describe(i, st.get("impl", "?"), ch) for i, ch, st in cands)
+        if instance is not None:
+            chosen = [c for c in cands if c[0] == instance]
+            if not chosen:
+                raise SwapError(f"no running instance {instance!r} holds the role {role!r}; instances: {listing}")
+        elif vehicles is not None:
+            import zenoh
+
+            want = zenoh.KeyExpr(f"{keys.ROOT}/{vehicles}")
+            chosen = [c for c in cands if want.intersects(zenoh.KeyExpr(f"{keys.ROOT}/{c[1].spec.vehicles or '*'}"))
+                      or any(want.intersects(zenoh.KeyExpr(f"{keys.ROOT}/{v}")) for v in c[2].get("last_in_t", {})
+                             if _is_id(v))]
+            if not chosen:
+                raise SwapError(f"no instance of {role!r} serves vehicles {vehicles!r}; instances: {listing}")
+        else:
+            chosen = cands
+        impls, _ = implementations(chosen[0][1].spec.module)
+        if impl not in impls:
+            names = ", ".join(f"{i}-{impl}" for i, _, _ in chosen)
+            raise SwapError(f"{names} not started: {role} has no implementation {impl!r}; known: "
+                            f"{', '.join(sorted(impls))}")
+        why: dict[str, str] = {}
+        fit = []
+        for inst, ch, st in chosen:
+            if st.get("impl") == impl:
+                why[inst] = f"already runs {impl}"
+                continue
+            try:
+                check_spec(ch.spec, impl)
+            except ValueError as e:
+                why[inst] = str(e)
+                continue
+            fit.append((inst, ch, st))
+        explicit = instance is not None or vehicles is not None
+        if explicit and len(chosen) == 1 and not fit:
+            raise SwapError(f"{chosen[0][0]} cannot be swapped to {impl}: {why[chosen[0][0]]}")
+        if len(fit) == 1:
+            return fit[0][0], fit[0][1]
+        if not fit:
+            raise SwapError(f"no instance of {role!r} can be swapped to {impl}: "
+                            + "; ".join(f"{i}: {w}" for i, w in why.items()))
+        raise SwapError(f"several instances of {role!r} could be swapped to {impl}: "
+                        + ", ".join(self._describe(i, st.get("impl", "?"), ch) for i, ch, st in fit)
+                        + ". Name one with --instance NAME or --vehicles PATTERN.")
+
+    @staticmethod
+    def _last_words(ch: Any) -> str:
+        """The end of a failed process's log (its error), for the swap's reply."""
+        lines = ch.last_lines(4)
+        return " | ".join(lines) + f" (log: {ch.log_path})" if lines else f"its log is empty ({ch.log_path})"
+
+    def swap(self, role: str, impl: str, timeout_s: float = 20.0, instance: str | None = None,
+             vehicles: str | None = None) -> dict:
         t0 = time.monotonic()
         try:
-            old_inst, old_child = self._holder(role)
+            old_inst, old_child = self._choose(role, impl, instance, vehicles)
         except SwapError as e:
-            return {"ok": False, "error": str(e)}
+            return {"ok": False, "error": str(e), "holder": instance}
         base = old_child.spec.name
         new_inst = f"{base}-{impl}"
         n = 2
@@ -86,6 +183,7 @@ class Swapper:
         spec = old_child.spec
         new_child = self.sup.add_child(spec, impl_override=impl, instance=new_inst, start=False)
         new_child.cmd.append("--standby")
+        new_child.supervised = False  # the swap watches it: not restarted (nor reported as restarting) meanwhile
         new_child.start()
         retired = False
         try:
@@ -94,8 +192,8 @@ class Swapper:
             vehicles = set(old_state.get("last_in_t", {}))
             while True:
                 if not new_child.alive:
-                    raise SwapError(f"{new_inst} exited with code {new_child.proc.returncode} before it was ready "
-                                    f"(log: {new_child.log_path})")
+                    raise SwapError(f"{new_inst} exited with code {new_child.proc.returncode} before it was ready: "
+                                    f"{self._last_words(new_child)}")
                 if time.monotonic() - t0 > timeout_s:
                     raise SwapError(f"{new_inst} was not warm within {timeout_s:g} s")
                 try:
@@ -122,7 +220,8 @@ class Swapper:
             hand_deadline = time.monotonic() + max(timeout_s, 30.0)
             while True:
                 if not new_child.alive:
-                    raise SwapError(f"{new_inst} exited with code {new_child.proc.returncode} during the hand-over")
+                    raise SwapError(f"{new_inst} exited with code {new_child.proc.returncode} during the hand-over: "
+                                    f"{self._last_words(new_child)}")
                 if time.monotonic() > hand_deadline:
                     raise SwapError(f"{old_inst} did not reach the cut-over point in time")
                 hand = self._control(role, old_inst, {"op": "state"})
@@ -152,6 +251,7 @@ class Swapper:
             return {"ok": False, "error": reason, "holder": old_inst}
         # 6: the new one holds the role; a later restart of it must not come back in standby
         new_child.cmd.remove("--standby")
+        new_child.supervised = True
         self.sup.remove_child(old_inst)
         took = time.monotonic() - t0
         self.sup.event(f"swap {role}: {new_inst} ({impl}) took over from {old_inst} in {took:.1f} s")

@@ -13,6 +13,7 @@ after ``--duration``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import signal
@@ -54,6 +55,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "jsonschema schemas and Foxglove types (foxglove.Log, LocationFix, PoseInFrame, "
                         "FrameTransform) that Foxglove opens as they are (also replayable)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress line")
+    p.add_argument("--timeout", type=float, default=10.0, metavar="S",
+                   help="seconds to wait for the connection to the mesh (default 10)")
     zconf.add_zenoh_args(p)
 
 
@@ -84,7 +87,9 @@ def record(
         from ..foxglove_mcap import FoxgloveMcapWriter as writer_cls
     else:
         writer_cls = RecordingWriter
-    with zenoh.open(conf) as session, writer_cls(output, info=info, compression=compression) as writer:
+    # ``conf`` is a Zenoh configuration, or an open session (kept open: the caller closes it)
+    session_cm = contextlib.nullcontext(conf) if isinstance(conf, zenoh.Session) else zenoh.open(conf)
+    with session_cm as session, writer_cls(output, info=info, compression=compression) as writer:
         subs = [(e, session.declare_subscriber(e, zenoh.handlers.FifoChannel(FIFO_CAPACITY))) for e in exprs]
         live = None
         if liveliness:
@@ -183,7 +188,7 @@ def format_counts(counts: dict, path: str | Path) -> str:
 
 def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    conf = zconf.config_from_args(args)
+    session = zconf.open_client(args, args.timeout, "magmesh record")
     stop = threading.Event()
 
     def _on_signal(signum, frame):
@@ -198,8 +203,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"\rrecording: {c['written']} messages, {c['keys']} keys, {c['skipped']} not written",
                   end="", file=sys.stderr, flush=True)
 
-    counts = record(conf, args.output, args.key_exprs, args.duration, not args.no_liveliness, args.compression,
-                    stop, progress, exclude=args.exclude, encoding=args.encoding)
+    with session:
+        counts = record(session, args.output, args.key_exprs, args.duration, not args.no_liveliness,
+                        args.compression, stop, progress, exclude=args.exclude, encoding=args.encoding)
     if tty:
         print(file=sys.stderr)
     print(format_counts(counts, args.output))

@@ -27,6 +27,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--insecure", action="store_true",
                    help="allow an endpoint beyond loopback without TLS and access control (anyone who reaches "
                    "it can steer the mesh)")
+    p.add_argument("--keep-going", action="store_true",
+                   help="keep the other processes running when one is given up (it failed on start "
+                   "[mesh] give_up_after times in a row, default 5); the exit code is still 1")
     p.add_argument("--quiet", action="store_true", help="no status line")
     p.add_argument("--log-level", default="INFO")
     p.set_defaults(func=run)
@@ -34,26 +37,33 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..runtime import setup_logging
-    from ..supervisor import Supervisor, load_manifest
+    from ..supervisor import ManifestError, Supervisor, check_processes, load_manifest
 
     setup_logging(args.log_level)
+    # the whole manifest is checked before anything starts: structure, modules, implementations, settings
     m = load_manifest(args.manifest)
-    if args.only:
+    names = [p.name for p in m.processes]
+    if args.only is not None:
         wanted = [n.strip() for n in args.only.split(",") if n.strip()]
-        known = {p.name for p in m.processes}
-        missing = [n for n in wanted if n not in known]
-        if missing:
-            raise SystemExit(f"--only: no process named {', '.join(missing)} in {args.manifest}")
+        missing = [n for n in wanted if n not in names]
+        if missing or not wanted:
+            raise ManifestError(f"--only {args.only!r}: no process named {', '.join(missing) or '(none given)'} in "
+                                f"{m.path}; its processes: {', '.join(names)}.")
         for p in m.processes:
             p.enabled = p.name in wanted
     for item in args.set:
         target, sep, value = item.partition("=")
         name, dot, key = target.partition(".")
         procs = [p for p in m.processes if p.name == name]
-        if not (sep and dot and procs):
-            raise SystemExit(f"--set {item!r}: expected PROCESS.NAME=VALUE with a process of the manifest")
-        procs[0].settings[key] = value
+        if not (sep and dot and key.strip()):
+            raise ManifestError(f"--set {item!r}: expected PROCESS.NAME=VALUE, e.g. sim-car-1.speed=2.")
+        if not procs:
+            raise ManifestError(f"--set {item!r}: no process named {name!r} in {m.path}; its processes: "
+                                f"{', '.join(names)}.")
+        procs[0].settings[key.strip()] = value
+    check_processes(m)
     sup = Supervisor(m, endpoint=args.endpoint, log_dir=Path(args.log_dir) if args.log_dir else None, quiet=args.quiet)
+    sup.keep_going = args.keep_going
     from .. import secure
 
     problem = secure.exposure_error(sup.endpoint, m.zenoh_config, bool(args.secure), args.insecure)
