@@ -19,12 +19,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
+from magmesh.align import TimeAligner
 from magmesh.runtime import Service
 from schemas import keys
 from services.physical import refuse_unphysical
 
 from . import core
-from .core import CompassParams, FeatureSettings, HysteresisSettings, Pairer, Thresholds
+from .core import CompassParams, FeatureSettings, HysteresisSettings, Thresholds
 
 
 @dataclass(frozen=True)
@@ -32,6 +35,7 @@ class Settings:
     sensor_a: str = "1"  # the reference compass (its heading is published)
     sensor_b: str = "2"
     pair_tolerance_s: float = 0.005  # samples of the two compasses closer than this form an epoch
+    pair_max_wait_s: float = 10.0  # wall-clock seconds a compass sample waits for its partner (then counted)
     dm_threshold_nt: float = Thresholds.dm_nt  # V_Δm
     ddm_threshold_nt_s: float = Thresholds.ddm_nt_s  # V_dΔm
     dh_threshold_deg: float = Thresholds.dh_deg  # V_Δh
@@ -64,7 +68,7 @@ class Settings:
 
 @dataclass
 class VehicleState:
-    pairer: Pairer
+    aligner: TimeAligner  # joins the two compasses by sample time (magmesh/align.py)
     detector: Any
     declination_rad: float = 0.0
     params: dict[str, CompassParams] = field(default_factory=dict)
@@ -108,7 +112,9 @@ class DmcDetectorService(Service):
     def new_vehicle(self, vehicle: str) -> VehicleState:
         cfg = self.vehicles_config.get(vehicle, {}) or {}
         dh_ref = float(cfg.get("dh_ref_rad", 0.0))
-        st = VehicleState(Pairer(self.sensors, self.settings.pair_tolerance_s), self.make_detector(vehicle, dh_ref),
+        st = VehicleState(TimeAligner(self.sensors, self.settings.pair_tolerance_s,
+                                      float(getattr(self.settings, "pair_max_wait_s", 10.0))),
+                          self.make_detector(vehicle, dh_ref),
                           declination_rad=float(cfg.get("declination_rad", 0.0)))
         self._load_manifest_params(vehicle, cfg, st)
         return st
@@ -132,11 +138,13 @@ class DmcDetectorService(Service):
         if info.kind == "cal":
             self._on_params(info, msg, state)
             return
-        pairs, dropped = state.pairer.push(info.sensor, msg["t_s"], msg["b_nt"])
-        if dropped:
-            self.count_drop(info.key, "unpaired", dropped)
-        for t_s, b_a, b_b in pairs:
-            self._on_epoch(info, state, t_s, b_a, b_b)
+        joined, gave = state.aligner.push(info.sensor, msg["t_s"], msg["b_nt"])
+        for g in gave:  # its partner never came (passed), came too late (expired), or too many waited
+            self.count_drop(keys.clean_mag(info.vehicle, g.stream),
+                            "unpaired" if g.reason == "passed" else f"unpaired_{g.reason}")
+        a, b = self.sensors
+        for j in joined:
+            self._on_epoch(info, state, j.t_s, np.asarray(j.values[a], float), np.asarray(j.values[b], float))
 
     def _on_params(self, info, msg: dict, state: VehicleState) -> None:
         if msg["status"] not in ("ok", "manifest"):
@@ -230,6 +238,7 @@ class DmcDetectorService(Service):
                       "params": {s: {"origin": st.param_origin.get(s), "param_id": p.param_id, "model": p.model}
                                  for s, p in st.params.items()},
                       "cal_params_2d_not_used": dict(st.ignored_2d),
+                      "aligner": st.aligner.counts(),
                       "flags": det.flags, "internal_states": det.internal_states}
         return {"detector": out}
 
