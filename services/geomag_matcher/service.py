@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from magmesh.align import CoverWait
 from magmesh.geomap import GridMap, core_field_enu_nt, load_map
 from magmesh.runtime import Service, build_settings
 from schemas import keys
@@ -57,7 +58,8 @@ class Settings:
     lat_deg: float = 45.4  # default reference place of the map (IGRF core field)
     lon_deg: float = -75.7
     alt_m: float = 300.0
-    ins_buffer: int = 200  # INS samples kept for time interpolation
+    ins_buffer: int = 200  # INS samples kept for time interpolation (and field samples waiting for the INS)
+    ins_max_wait_s: float = 10.0  # wall-clock seconds a field sample waits for the INS to reach its time
     max_ins_gap_s: float = 30.0  # a field sample farther than this from any INS sample is dropped
     restart_jump_s: float = 60.0  # INS time going back more than this: a new run, the vehicle's matcher restarts
 
@@ -65,18 +67,19 @@ class Settings:
 class VehicleMatch:
     """Per-vehicle state: the matcher, recent INS samples, field samples waiting for INS."""
 
-    def __init__(self, buffer: int):
+    def __init__(self, buffer: int, max_wait_s: float = 10.0):
         self.matcher: GeomagMatcher | None = None  # built on the first scalar field sample
         self.ins_t: deque = deque(maxlen=buffer)
         self.ins_p: deque = deque(maxlen=buffer)
-        self.pending: deque = deque(maxlen=buffer)  # (t_s, f_nt)
+        # field samples (t_s, f_nt) wait until the INS reaches their time (magmesh/align.py)
+        self.wait = CoverWait(max_wait_s=max_wait_s, max_pending=buffer, stream="field")
         self.alarm_raised = False
         self.unusable = False  # its map or settings failed to load: its samples are counted as drops
 
     def reset(self) -> None:
         self.ins_t.clear()
         self.ins_p.clear()
-        self.pending.clear()
+        self.wait.reset()
         if self.matcher is not None:
             self.matcher.reset()
 
@@ -144,7 +147,7 @@ class GeomagMatcherService(Service):
         )
 
     def new_vehicle(self, vehicle: str) -> VehicleMatch:
-        return VehicleMatch(self.settings.ins_buffer)
+        return VehicleMatch(self.settings.ins_buffer, self.settings.ins_max_wait_s)
 
     def _build_matcher(self, vehicle: str) -> GeomagMatcher | None:
         vcfg = self.vehicles_config.get(vehicle, {}) or {}
@@ -173,6 +176,7 @@ class GeomagMatcherService(Service):
                 return
             state.ins_t.append(t)
             state.ins_p.append(np.asarray(msg["pos_enu_m"][:2], float))
+            released, gave = state.wait.advance(t)
         elif info.kind == "clean" and info.stream == "mag":
             if "f_nt" not in msg:
                 self.count_drop(info.key, "no_scalar_field")  # a vector-only vehicle: nothing to match
@@ -183,21 +187,17 @@ class GeomagMatcherService(Service):
             if state.unusable:
                 self.count_drop(info.key, "vehicle_map_or_settings_unusable")
                 return
-            if len(state.pending) == state.pending.maxlen:
-                self.count_drop(info.key, "waiting_for_ins_overflow")  # the oldest waiting sample goes
-            state.pending.append((msg["t_s"], msg["f_nt"]))
+            released, gave = state.wait.push(msg["t_s"], msg["f_nt"])
         else:
             self.count_drop(info.key, "unexpected_key")
             return
+        for g in gave:  # the oldest waiting sample went (overflow), or the INS stayed behind too long (expired)
+            self.count_drop(info.key, f"waiting_for_ins_{g.reason}")
         if state.matcher is not None:
-            self._drain(info, state)
+            self._drain(info, state, released)
 
-    def _drain(self, info, state: VehicleMatch) -> None:
-        while state.pending:
-            t, f = state.pending[0]
-            if not state.ins_t or t > state.ins_t[-1]:
-                return  # wait for the INS to catch up
-            state.pending.popleft()
+    def _drain(self, info, state: VehicleMatch, released: list) -> None:
+        for t, f in released:
             p = state.ins_at(t, self.settings.max_ins_gap_s)
             if p is None:
                 self.count_drop(keys.clean_ins(info.vehicle), "no_ins_at_field_time")
