@@ -63,35 +63,13 @@ _JSON_KIND = {
 
 
 def json_schema(msg_type: str) -> dict:
-    """JSON Schema of one magmesh message type, generated from :data:`schemas.messages.MESSAGES`."""
+    """JSON Schema of one magmesh message type: the streams table's (:func:`schemas.streams.json_schema`,
+    generated from the contract), titled for MCAP."""
+    from schemas import streams
+
     mt = messages.MESSAGES[msg_type]
-    props: dict[str, dict] = {}
-    required: list[str] = []
-    for f in (*messages.HEADER, *mt.fields):
-        p = dict(_JSON_KIND[f.kind])
-        p["description"] = f.doc
-        if f.choices:
-            p["enum"] = list(f.choices)
-        if f.lo is not None:
-            p["minimum"] = f.lo
-        if f.hi is not None:
-            p["maximum"] = f.hi
-        if f.length is not None and p.get("type") == "array":
-            p["minItems"] = p["maxItems"] = f.length
-        if f.nullable:
-            p = {"anyOf": [p, {"type": "null"}], "description": f.doc}
-        props[f.name] = p
-        if f.required:
-            required.append(f.name)
-    return {
-        "$schema": "https://json-schema.org/draft/2020-12/schema",
-        "title": f"{SCHEMA_PREFIX}{mt.name} v{mt.version}",
-        "description": mt.doc + " (msgpack map on the wire)",
-        "type": "object",
-        "properties": props,
-        "required": required,
-        "additionalProperties": True,
-    }
+    return {**streams.json_schema(msg_type), "title": f"{SCHEMA_PREFIX}{mt.name} v{mt.version}",
+            "description": mt.doc + " (msgpack map on the wire)"}
 
 
 def sample_time_ns(t_s: float | None) -> int:

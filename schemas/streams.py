@@ -278,11 +278,22 @@ def json_schema(msg_type: str) -> dict:
     sch = msgspec.json.schema(struct_for(msg_type))
     name = msg_type
     body = sch.get("$defs", {}).get(name, sch)
-    body = dict(body)
+    body = _drop_inf_bounds(dict(body))
+    body["additionalProperties"] = True  # unknown extra fields are kept (forward compatible)
     body["title"] = f"magmesh {msg_type} v{MESSAGES[msg_type].version}"
     body["description"] = MESSAGES[msg_type].doc
     body["$schema"] = "https://json-schema.org/draft/2020-12/schema"
     return body
+
+
+def _drop_inf_bounds(node: Any) -> Any:
+    """The ±DBL_MAX bounds that make a float finite in msgspec mean "any number" to a JSON Schema reader."""
+    if isinstance(node, dict):
+        return {k: _drop_inf_bounds(v) for k, v in node.items()
+                if not (k in ("minimum", "maximum") and abs(v) == _DBL_MAX)}
+    if isinstance(node, list):
+        return [_drop_inf_bounds(v) for v in node]
+    return node
 
 
 _untyped = msgspec.msgpack.Decoder()
