@@ -1292,12 +1292,31 @@ def setup_logging(level: str = "INFO", as_json: bool = False) -> None:
     root.setLevel(level.upper())
 
 
-def make_parser(cls: type[Service]) -> argparse.ArgumentParser:
+def _program_name(cls: type[Service]) -> str:
+    """``python -m PACKAGE`` as the user typed it (not ``__main__.py``)."""
+    spec = getattr(sys.modules.get("__main__"), "__spec__", None)
+    name = getattr(spec, "name", None) or ""
+    if name.endswith(".__main__"):
+        return f"python -m {name[: -len('.__main__')]}"
+    return f"python -m {cls.__module__.rsplit('.', 1)[0]}"
+
+
+def make_parser(cls: type[Service], implementations: dict[str, type] | None = None) -> argparse.ArgumentParser:
+    """The command line of a service. ``implementations`` (name -> class) adds ``--impl`` for a role with
+    several (the chosen one's settings are listed)."""
     doc = (sys.modules[cls.__module__].__doc__ or cls.__doc__ or "").strip()
     epilog = (f"role: {cls.role}   implementation: {cls.impl}\n"
               f"consumes: {', '.join(cls.CONSUMES) or '-'}\nproduces: {', '.join(cls.PRODUCES) or '-'}\n"
-              f"(keys are magmesh/{{vehicle}}/...)\n\nsettings (--set NAME=VALUE):\n{settings_help(cls.Settings)}")
-    p = argparse.ArgumentParser(description=doc, epilog=epilog, formatter_class=argparse.RawDescriptionHelpFormatter)
+              f"(keys are magmesh/{{vehicle}}/...)\n\nsettings of {cls.impl} (--set NAME=VALUE):\n"
+              f"{settings_help(cls.Settings)}")
+    if implementations:
+        lines = [f"  {n:<12} {((c.__doc__ or '').strip().splitlines() or [''])[0]}" for n, c in implementations.items()]
+        epilog += ("\n\nimplementations (--impl NAME; --impl NAME --help lists its settings):\n" + "\n".join(lines))
+    p = argparse.ArgumentParser(prog=_program_name(cls), description=doc, epilog=epilog,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    if implementations:
+        p.add_argument("--impl", choices=list(implementations), default=cls.impl,
+                       help=f"the implementation to run (default {cls.impl}): {', '.join(implementations)}")
     zconf.add_zenoh_args(p)
     g = p.add_argument_group("magmesh")
     g.add_argument("--instance", default=None, help="instance name (default: <impl>-<pid>)")
@@ -1384,8 +1403,8 @@ def run(svc: Service, conf: Any, ready: threading.Event | None = None, standby: 
         svc.log.info("stopped")
 
 
-def main(cls: type[Service], argv: list[str] | None = None) -> None:
-    parser = make_parser(cls)
+def main(cls: type[Service], argv: list[str] | None = None, implementations: dict[str, type] | None = None) -> None:
+    parser = make_parser(cls, implementations)
     args = parser.parse_args(argv)
     setup_logging(args.log_level, args.log_json)
     svc = service_from_args(cls, args)

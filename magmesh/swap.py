@@ -133,9 +133,11 @@ class Swapper:
             chosen = cands
         impls, _ = implementations(chosen[0][1].spec.module)
         if impl not in impls:
-            names = ", ".join(f"{i}-{impl}" for i, _, _ in chosen)
-            raise SwapError(f"{names} not started: {role} has no implementation {impl!r}; known: "
+            names = ", ".join(f"{ch.spec.name}-{impl}" for _, ch, _ in chosen)
+            err = SwapError(f"{names} not started: {role} has no implementation {impl!r}; known: "
                             f"{', '.join(sorted(impls))}")
+            err.holder = chosen[0][0] if len(chosen) == 1 else None
+            raise err
         why: dict[str, str] = {}
         fit = []
         for inst, ch, st in chosen:
@@ -172,7 +174,7 @@ class Swapper:
         try:
             old_inst, old_child = self._choose(role, impl, instance, vehicles)
         except SwapError as e:
-            return {"ok": False, "error": str(e), "holder": instance}
+            return {"ok": False, "error": str(e), "holder": getattr(e, "holder", None) or instance}
         base = old_child.spec.name
         new_inst = f"{base}-{impl}"
         n = 2

@@ -11,4 +11,4 @@ from .impls import IMPLEMENTATIONS, pop_impl_arg
 
 if __name__ == "__main__":
     impl, argv = pop_impl_arg(sys.argv[1:])
-    main(IMPLEMENTATIONS[impl], argv)
+    main(IMPLEMENTATIONS[impl], argv, IMPLEMENTATIONS)
