@@ -54,8 +54,20 @@ PAPER_TABLE2 = [{"wp_deg": [40.1, 49.6], "rp_pct": [86.2, 89.7], "mp_pct": [25.6
 #: FCM trained on sample 1, applied to samples 2 and 3 (Table 4); on its own samples (Table 3)
 PAPER_FCM_UNSEEN = {"rp_pct": [73.9, 75.1], "mp_pct": [5.8, 5.9], "wp_deg": [5.7, 5.9]}
 PAPER_FCM_TRAIN = {"rp_pct": [76.9, 80.2], "mp_pct": [5.4, 6.1], "wp_deg": [5.5, 5.8]}
+#: nT per HMR3300 output unit: the paper's field thresholds (200, 100, …) are in these units
+FIELD_UNIT_NT = 10.0
 #: scales of the loose set (2000 nT, 1000 nT/s, 8°, 8°/s) that trace the threshold stage's RP–MP curve
 CURVE_SCALES = tuple(round(0.2 + 0.05 * i, 2) for i in range(17))
+
+
+def _positive(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (v > 0 and math.isfinite(v)):
+        raise argparse.ArgumentTypeError(f"must be a positive number of nT, got {text!r}")
+    return v
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -63,6 +75,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration-s", type=float, default=300.0, help="length of each simulated drive, s")
     p.add_argument("--features", choices=["paper", "extended"], default=None,
                    help="FCM feature set for fcm_unseen (default: the committed model's recipe; both are tabulated)")
+    p.add_argument("--field-unit-nt", type=_positive, default=FIELD_UNIT_NT,
+                   help="nT per HMR3300 field unit for the paper's threshold sets (default 10: ~0.1 mG)")
     p.add_argument("--no-speed", action="store_true", help="skip the FCM speed comparison")
     p.add_argument("--no-quasistatic", action="store_true", help="skip the quasi-static detector")
 
@@ -267,16 +281,18 @@ def run(args: argparse.Namespace) -> dict:
     train = [T.simulate_drive(lay, seed, dur) for lay, seed in T.PAPER_TRAIN_DRIVES]
     unseen = [T.simulate_drive(lay, seed, dur, cal_seed=cal) for lay, seed, cal in unseen_spec]
     unseen_layouts = [d for d in unseen if d.layout not in {t.layout for t in train}]
+    judged = unseen_layouts or unseen  # every headline row is scored on the layouts never seen in training
 
     # baselines: the paper's threshold sets, one compass (its Table 2) and the DMC stage 1 (its Table 1)
-    sets = [(f"paper_set{i + 1}", core.Thresholds(a * 10.0, b * 10.0, c, d))
+    unit = float(getattr(args, "field_unit_nt", FIELD_UNIT_NT))
+    sets = [(f"paper_set{i + 1}", core.Thresholds(a * unit, b * unit, c, d))
             for i, (a, b, c, d) in enumerate(core.PAPER_TABLE1_SETS)]
     single_rows, dmc_rows = [], []
     for i, (name, th) in enumerate(sets):
         thr = {"dm_nt": th.dm_nt, "ddm_nt_s": th.ddm_nt_s, "dh_deg": th.dh_deg, "ddh_deg_s": th.ddh_deg_s}
-        single_rows.append(_row(name, T.evaluate(T.single_valid(unseen, th), unseen), thresholds=thr,
+        single_rows.append(_row(name, T.evaluate(T.single_valid(judged, th), judged), thresholds=thr,
                                 paper=PAPER_TABLE2[i]))
-        dmc_rows.append(_row(name, T.evaluate(T.threshold_valid(unseen, th), unseen), thresholds=thr,
+        dmc_rows.append(_row(name, T.evaluate(T.threshold_valid(judged, th), judged), thresholds=thr,
                              paper=PAPER_TABLE1[i]))
     for rows in (single_rows, dmc_rows):
         for row in rows:
@@ -302,7 +318,6 @@ def run(args: argparse.Namespace) -> dict:
                                T.evaluate(T.fcm_valid(unseen_layouts, mdl), unseen_layouts)))
     fs = getattr(args, "features", None) or T.DEFAULT_FEATURE_SET
     chosen = models[f"{fs}/{'heading_error' if T.DEFAULT_USE_REFERENCE else 'centre_norm'}"]
-    judged = unseen_layouts or unseen  # the goal: layouts never seen in training
     m_unseen = T.evaluate(T.fcm_valid(judged, chosen), judged)
     fcm_unseen = {"rp_pct": round(m_unseen.rp_pct, 3), "mp_pct": round(m_unseen.mp_pct, 3),
                   "wp_deg": round(m_unseen.wp_deg, 3), "wp_mean_deg": round(m_unseen.wp_mean_deg, 3),
@@ -328,9 +343,12 @@ def run(args: argparse.Namespace) -> dict:
 
     result: dict = {
         "drives": {"train": [d.name for d in train], "unseen": [d.name for d in unseen],
+                   "judged": [d.name for d in judged], "bad_pct": round(100.0 * float(np.mean(np.concatenate(
+                       [d.heading_err_deg for d in judged]) >= T.GOOD_DEG)), 2),
                    "duration_s": dur, "calibration_error": {"offset_nt": T.CAL_OFFSET_ERR_NT,
                                                             "matrix_frac": T.CAL_MATRIX_ERR}},
         "good_deg": T.GOOD_DEG,
+        "field_unit_nt": unit,
         "goal": GOAL,
         "baselines": {"single_threshold": single_rows, "dmc_threshold": dmc_rows},
         "table3_fcm_train": table3,
@@ -344,7 +362,7 @@ def run(args: argparse.Namespace) -> dict:
     }
     if not getattr(args, "no_quasistatic", False):
         qs_rows = []
-        qs_drives = unseen[:2] if quick else unseen
+        qs_drives = judged[:2] if quick else judged
         for name, st in (("paper_form", quasistatic.QuasiStaticSettings(variance_of="components",
                                                                          dm_threshold_nt=0.0)),
                          ("default", quasistatic.QuasiStaticSettings())):
