@@ -72,6 +72,18 @@ def test_threshold_curve_falls_with_tighter_thresholds():
     assert eval_dmc._gain(curve, 0.0, -1.0)["rp_gained_at_equal_mp_pct"] is None  # no threshold reaches MP < 0
 
 
+def test_committed_paper_streets_model_matches_its_recipe():
+    from services.dmc_detector import fcm
+    from services.dmc_detector import training as T
+
+    m = fcm.FcmModel.load(fcm.PAPER_STREETS_MODEL)
+    assert m.training["drives"] == [f"{lay}/seed{seed}" for lay, seed in T.PAPER_TRAIN_DRIVES]
+    # the windows the features were computed with (consecutive 8 Hz samples), not the 50 Hz defaults
+    assert (m.feature_settings.smooth_window_s, m.feature_settings.rate_window_s) == (
+        T.PAPER_FEATURES.smooth_window_s, T.PAPER_FEATURES.rate_window_s)
+    assert m.feature_set == T.DEFAULT_FEATURE_SET and m.training["cluster_order"] == "heading_error"
+
+
 def test_eval_dmc_quick():
     r = eval_dmc.run(_args(quick=True, no_speed=True, no_quasistatic=True))
     _check(r)
