@@ -362,6 +362,7 @@ class Runner:
         self.alarm_published: dict[str, str] = {}  # alarm key -> last state published ("raised"/"cleared")
         self.suppressed = 0
         self.in_seq: dict[str, int] = {}
+        self.params_sent: dict[str, list] = {}  # cal/params key -> [param_id, seq, t_s] last published
         self.alarm_declared: dict[str, str] = {}  # alarm key -> last state the service logic declared
         self.reconcile_at: float | None = None
         self.first_in_t: dict[str, float] = {}
@@ -452,6 +453,8 @@ class Runner:
         if msg_type == "alarm":  # the holder's own state first: an alarm query it answers after the put agrees
             self.seq[key] = seq
             self._alarm_sent(key, msg)
+        elif msg_type == "cal_params":  # what this instance set, for consumers to confirm (cal_params_trusted)
+            self.params_sent[key] = [msg.get("param_id"), seq, t_s]
         self._publisher(key).put(payload)
         self.seq[key] = seq
         self.count_out[key].n += 1
@@ -568,41 +571,41 @@ class Runner:
     def cal_params_trusted(self, key: str, msg: dict) -> bool:
         """Adopt ``cal/params`` only as published by a calibration service instance.
 
-        The rule: a live instance of role ``calibration`` (liveliness ``magmesh/svc/calibration/*``) must answer
-        the parameters query of this key with this very parameter set (same ``param_id``, ``seq`` and ``t_s``).
-        A put it did not publish (a forged or stray parameter set) is refused, reported on ``rejects`` with code
-        ``untrusted``. On the secured mesh only services may publish or answer ``cal/`` at all (router ACL).
+        The rule: a live instance of role ``calibration`` must report, in its status (``cal_params_sent``), this
+        very parameter set as the last it published on this key (same ``param_id``, ``seq`` and ``t_s``). A put it
+        did not publish (a forged or stray parameter set) is refused and reported on ``rejects`` (code ``other``,
+        reason "untrusted: ..."). On the secured mesh only services may publish ``cal/`` or answer status at all
+        (router ACL), so the check cannot be fooled there.
         """
         import zenoh
 
         if not isinstance(self.session, zenoh.Session) or self.svc.role == "calibration":
             return True
-        why = None
+        want = [msg.get("param_id"), msg.get("seq"), msg.get("t_s")]
+        why = "no live calibration service instance reports having published this parameter set"
         try:
-            live = [r for r in self.session.liveliness().get(f"{keys.ROOT}/{keys.SVC}/calibration/*",
-                                                             timeout=CAL_CONFIRM_TIMEOUT_S) if r.ok is not None]
-            if not live:
-                why = "no calibration service is live"
-            else:
-                want = (msg.get("param_id"), msg.get("seq"), msg.get("t_s"))
-                seen = []
-                for r in self.session.get(key, timeout=CAL_CONFIRM_TIMEOUT_S):
+            deadline = time.monotonic() + CAL_CONFIRM_TIMEOUT_S
+            while why and time.monotonic() < deadline:
+                for r in self.session.get(f"{keys.ROOT}/{keys.SVC}/calibration/*/status",
+                                             timeout=CAL_CONFIRM_TIMEOUT_S):
                     if r.ok is None:
                         continue
                     try:
-                        m = msgpack.unpackb(r.ok.payload.to_bytes())
-                        seen.append((m.get("param_id"), m.get("seq"), m.get("t_s")))
+                        st = msgpack.unpackb(r.ok.payload.to_bytes())
                     except Exception:  # noqa: BLE001 - a garbage answer confirms nothing
                         continue
-                if want not in seen:
-                    why = "no calibration service answers for this parameter set"
+                    if isinstance(st, dict) and st.get("role") == "calibration" and \
+                            (st.get("cal_params_sent") or {}).get(key) == want:
+                        why = None
+                if why:  # a status asked a moment before the put was sent: ask once more
+                    time.sleep(0.05)
         except Exception as e:  # noqa: BLE001 - no confirmation, no adoption
             why = f"confirmation failed ({type(e).__name__})"
         if why is None:
             return True
-        self.reject(key, "untrusted", f"calibration parameters on {key} (param_id {str(msg.get('param_id'))[:64]!r}, "
-                    f"seq {msg.get('seq')}) not adopted: {why}; only a calibration service instance may set them",
-                    "param_id", 0, msg.get("vehicle"), msg.get("t_s"), "cal_params")
+        self.reject(key, "other", f"untrusted: calibration parameters on {key} (param_id "
+                    f"{str(msg.get('param_id'))[:64]!r}, seq {msg.get('seq')}) not adopted: {why}; only a calibration "
+                    f"service instance may set them", "param_id", 0, msg.get("vehicle"), msg.get("t_s"), "cal_params")
         return False
 
     def reject(self, key: str, code: str, reason: str, field: str | None, payload_len: int,
@@ -1034,6 +1037,7 @@ class Runner:
                 "mode": self.mode,
                 "holds_role": self.mode in ("active", "retiring"),
                 "suppressed": self.suppressed,
+                "cal_params_sent": dict(list(self.params_sent.items())[:4096]),
             }
         try:
             st.update(_plain(self.svc.status_extra()))

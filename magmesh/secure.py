@@ -4,7 +4,8 @@ Every process presents a certificate of the mesh's own authority; its common nam
 
 - ``magmesh-service``: the services. Subscribe to everything; publish the derived keys (``clean/``,
   ``rejects``, ``cal/``, ``dmc``, ``heading``, ``fix/``, ``track``, ``alarm/``); answer queries (status,
-  control, alarms, cal/params). They call no query themselves: no control key of another process.
+  control, alarms, cal/params). The only query they call is the calibration services' status (to confirm
+  parameters before adopting them): no control key of another process.
 - ``magmesh-vehicle-{vehicle}``: one per vehicle of the manifest. Publishes that vehicle's ``raw/`` and
   ``truth/`` keys only, reads nothing, and may answer status only under ``magmesh/svc/sim/``.
 - ``magmesh-operator``: operators' tools. Subscribe to everything and call any query (status, alarms,
@@ -63,6 +64,9 @@ def access_control(vehicles: list[str], operators: list[str] | None = None) -> d
         _rule("service-receive", ["egress"], ["put", "delete"], [f"{R}/**", ADV]),
         _rule("service-answer", ["ingress"], ["declare_queryable", "reply"], [f"{R}/**", ADV]),
         _rule("service-asked", ["egress"], ["query"], [f"{R}/**", ADV]),
+        # a service confirms a cal/params sample with the calibration services' status before adopting it
+        _rule("service-confirm", ["ingress"], ["query"], [f"{svc}/calibration/*/status"]),
+        _rule("service-confirmed", ["egress"], ["reply"], [f"{svc}/calibration/*/status"]),
         _rule("service-presence", ["ingress"], ["liveliness_token"], [f"{svc}/**", ADV]),
         _rule("service-watch", ["ingress"], ["declare_liveliness_subscriber", "liveliness_query"], [f"{svc}/**"]),
         _rule("service-watch-receive", ["egress"], ["liveliness_token"], [f"{svc}/**"]),
@@ -76,7 +80,7 @@ def access_control(vehicles: list[str], operators: list[str] | None = None) -> d
                 {"id": "operators", "cert_common_names": ["magmesh-operator"] + [f"magmesh-{o}" for o in operators or []]}]
     policies = [{"id": "services", "subjects": ["services"],
                  "rules": ["service-publish", "service-subscribe", "service-receive", "service-answer", "service-asked",
-                           "service-presence", "service-watch", "service-watch-receive"]},
+                           "service-confirm", "service-confirmed", "service-presence", "service-watch", "service-watch-receive"]},
                 {"id": "operators", "subjects": ["operators"],
                  "rules": ["operator-watch", "operator-receive", "operator-presence"]}]
     # a vehicle's simulator or recorder may answer status and control queries, but only as a publisher (sim)

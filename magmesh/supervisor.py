@@ -423,6 +423,7 @@ class Supervisor:
         self.last_status: dict[str, dict] = {}
         self.alarm_counts: dict[str, int] = {}
         self.raised: set[str] = set()
+        self.alarms_ignored = 0  # alarm samples whose state the holding instance did not confirm
         self.events: list[str] = []
         self.swapper = None  # set by magmesh.swap when available
         self.keep_going = False  # a process given up stops the mesh unless set (magmesh up --keep-going)
@@ -484,14 +485,38 @@ class Supervisor:
             try:
                 msg = msgpack.unpackb(s.payload.to_bytes())
                 k = str(s.key_expr)
+                claimed = msg.get("state") if isinstance(msg, dict) else None
+                held = self.alarm_held(k)
                 with self.lock:
-                    if msg.get("state") == "raised":
-                        self.raised.add(k)
+                    if held and k not in self.raised:
                         self.alarm_counts[k] = self.alarm_counts.get(k, 0) + 1
+                    if held:
+                        self.raised.add(k)
                     else:
                         self.raised.discard(k)
+                    if claimed != ("raised" if held else "cleared"):
+                        self.alarms_ignored += 1  # a transition its holder does not confirm (forged or stale)
+                        log.warning("alarm %s: %r not confirmed by the instance holding it; ignored", k[:200],
+                                    str(claimed)[:32])
             except Exception:
                 continue
+
+    def alarm_held(self, key: str) -> bool:
+        """Whether a live service instance holds ``key`` raised, asked of the instances themselves.
+
+        The supervisor's list of raised alarms follows the holders, not the samples: a transition only makes it
+        ask the services' alarm queryables (answered only by an instance holding the role, from its own state),
+        so a forged "cleared" (or "raised") from anyone else changes nothing."""
+        for rep in self.session.get(key, timeout=1.0):
+            if rep.ok is None:
+                continue
+            try:
+                m = msgpack.unpackb(rep.ok.payload.to_bytes())
+            except Exception:
+                continue
+            if isinstance(m, dict) and m.get("state") == "raised":
+                return True
+        return False
 
     def _poll_status(self) -> None:
         while not self.stop_event.wait(self.m.status_period_s):
@@ -538,7 +563,7 @@ class Supervisor:
         return {"type": "status", "version": 1, "role": "supervisor", "impl": "supervisor", "instance": self.name,
                 "pid": os.getpid(), "magmesh_version": __version__, "uptime_s": round(now - self.started, 2),
                 "endpoint": self.endpoint, "manifest": str(self.m.path), "processes": procs,
-                "alarms_raised": raised, "log_dir": str(self.log_dir)}
+                "alarms_raised": raised, "alarms_ignored": self.alarms_ignored, "log_dir": str(self.log_dir)}
 
     # ---- process side ---------------------------------------------------------------------
     def add_child(self, spec: ProcessSpec, impl_override: str | None = None, instance: str | None = None,
