@@ -30,5 +30,7 @@ def test_bench_cores_smoke():
 
     iv = cores_bench.ingest_validation(n=500, repeats=1)
     assert iv["decode_validate_us"] > iv["msgpack_unpack_only_us"] > 0
+    iw = cores_bench.ingest_wire(vehicles=2, windows=5, repeats=1)
+    assert iw["v1_in_singles_out_us_per_sample"] > 0 and iw["v2_in_batches_out_us_per_sample"] > 0
     cf = cores_bench.calibration_fit(repeats=1)
     assert cf["arls_ms"] > 0 and cf["scipy_least_squares_ms"] > 0
