@@ -69,7 +69,8 @@ STATUS_TOP_KEYS = 50
 LOG_EVERY_S = 10.0
 #: drop reasons that are loss: what could not be delivered or recovered. ``rejected:*`` are refusals; every
 #: other reason is a skip by design (e.g. a stream not used, an alarm state unchanged)
-LOST_REASONS = frozenset(("upstream_gap", "handler_error", "queue_overflow", "invalid_output"))
+LOST_REASONS = frozenset(("upstream_gap", "handler_error", "queue_overflow", "invalid_output",
+                          "lost_during_restart"))
 
 
 _ENCODINGS: dict[str, Any] = {}
@@ -113,6 +114,10 @@ class Service:
     RAW_BATCHES: bool = False
     #: decode inputs before on_message (ingest turns this off to validate raw bytes itself)
     DECODE_INPUTS: bool = True
+    #: the logic takes a restored raised alarm as its own (see :meth:`holds_alarm`) and clears it itself when the
+    #: condition goes; otherwise the runtime clears one the restarted logic does not raise again once it has seen
+    #: enough input (``alarm_reconcile_s`` of sample time and ``alarm_reconcile_outputs`` outputs for the vehicle)
+    ADOPTS_RESTORED_ALARMS: bool = False
 
     def __init__(self, settings: Any = None, instance: str | None = None, vehicle_pattern: str = "*",
                  vehicles_config: dict | None = None):
@@ -188,6 +193,12 @@ class Service:
 
     def state_for(self, vehicle: str) -> Any:
         return self._runtime.state_for(vehicle)
+
+    def holds_alarm(self, vehicle: str, source: str) -> bool:
+        """Whether the mesh's alarm ``source`` of ``vehicle`` stands raised as this instance holds it (restored
+        after a restart, or taken over in a swap): a logic that latches its alarms starts its latch from this."""
+        rt = self._rt
+        return rt is not None and rt.alarm_published.get(keys.alarm(vehicle, source)) == "raised"
 
     @property
     def vehicle_states(self) -> dict[str, Any]:
@@ -363,8 +374,14 @@ class Runner:
         self.suppressed = 0
         self.in_seq: dict[str, int] = {}
         self.params_sent: dict[str, list] = {}  # cal/params key -> [param_id, seq, t_s] last published
+        self.journal = None  # magmesh.journal.Journal: last input/output seq per key, survives kill -9
+        self.resumed_in: set[str] = set()  # input keys whose first gap after a restart is lost_during_restart
+        self.resumed_from: dict | None = None  # what the journal of the run before a crash said
+        self.clean_stop = False
         self.alarm_declared: dict[str, str] = {}  # alarm key -> last state the service logic declared
         self.reconcile_at: float | None = None
+        self.reconcile_pending: dict[str, str] = {}  # restored raised alarm key -> vehicle, not yet decided
+        self.out_since_start: dict[str, int] = {}  # vehicle -> outputs published (while reconciling only)
         self.first_in_t: dict[str, float] = {}
         self.last_in_t: dict[str, float] = {}
         # input-path bookkeeping: what the sample being handled did, when keys and vehicles were last heard
@@ -458,6 +475,10 @@ class Runner:
         self._publisher(key).put(payload)
         self.seq[key] = seq
         self.count_out[key].n += 1
+        if self.journal is not None:
+            self.journal.set("o" + key, seq)
+        if self.reconcile_pending and msg_type not in ("alarm", "reject"):
+            self.out_since_start[vehicle] = self.out_since_start.get(vehicle, 0) + 1
         return msg
 
     def publish_batch(self, key: str, vehicle: str, cols: dict) -> int:
@@ -549,23 +570,75 @@ class Runner:
         for k, v in data.get("seqs", {}).items():
             self.seq[k] = int(v)
         if self.raised:
-            # give the restarted logic time to see the condition again before clearing what it no longer sees
-            self.reconcile_at = time.monotonic() + float(getattr(self.svc.settings, "alarm_reconcile_s", 5.0) or 5.0)
             self.svc.log.info("restored %d raised alarm(s) from before the restart", len(self.raised))
+            if not self.svc.ADOPTS_RESTORED_ALARMS:
+                # each stays raised until the restarted logic has seen enough input to decide (reconcile_alarms)
+                self.reconcile_pending = {k: m.get("vehicle") for k, m in self.raised.items()}
+                self.reconcile_at = time.monotonic() + 0.5
+
+    # ---- seq journal across restarts (magmesh/journal.py) ---------------------------------------
+    def resume_journal(self) -> None:
+        """Read what the run before a crash handled and sent; continue its output seqs; count what was missed."""
+        from .journal import Journal
+        from .paths import state_dir
+
+        try:
+            self.journal = Journal(state_dir() / "journal" / f"{self.svc.role}.{self.svc.instance}.seq")
+            prev = self.journal.load() if self.mode == "active" else {}
+            self.journal.open(prev)
+        except OSError as e:
+            self.journal = None
+            self.last_error = f"seq journal unavailable: {e}"
+            return
+        if not prev:
+            return
+        n_in = n_out = 0
+        for k, v in prev.items():
+            if k[:1] == "o":
+                self.seq[k[1:]] = max(self.seq.get(k[1:], -1), int(v))
+                n_out += 1
+            elif k[:1] == "i":
+                self.in_seq[k[1:]] = int(v)
+                self.resumed_in.add(k[1:])
+                n_in += 1
+        self.resumed_from = {"inputs": n_in, "outputs": n_out}
+        self.svc.log.info("resumed after a crash: %d input and %d output seqs from the journal", n_in, n_out)
+
+    def remove_journal(self) -> None:
+        j, self.journal = self.journal, None
+        if j is not None:
+            j.remove()
 
     def reconcile_alarms(self) -> None:
-        """After a restart: clear a restored raised alarm that the service's logic has not raised again."""
+        """After a restart: clear a restored raised alarm only once the restarted logic has seen enough input for
+        its vehicle to decide (``alarm_reconcile_s`` seconds of sample time and ``alarm_reconcile_outputs``
+        outputs), and has not raised it again. A restart alone never clears anything; an alarm whose logic has
+        declared it (raised or cleared) since is the logic's again."""
         self.reconcile_at = None
+        s = self.svc.settings
+        need_s = float(getattr(s, "alarm_reconcile_s", 5.0) or 5.0)
+        need_n = int(getattr(s, "alarm_reconcile_outputs", 10) or 10)
         with self.lock:
-            raised = list(self.raised.items())
-        for key, msg in raised:
-            if self.alarm_declared.get(key) == "raised":
+            raised = dict(self.raised)
+        for key, vehicle in list(self.reconcile_pending.items()):
+            msg = raised.get(key)
+            if msg is None or key in self.alarm_declared:
+                del self.reconcile_pending[key]  # cleared meanwhile, or decided by the logic itself
                 continue
+            span = self.last_in_t.get(vehicle, 0.0) - self.first_in_t.get(vehicle, float("inf"))
+            if span < need_s or self.out_since_start.get(vehicle, 0) < need_n:
+                continue
+            del self.reconcile_pending[key]
             fields = {k: v for k, v in msg.items() if k not in ("type", "version", "vehicle", "t_s", "seq")}
             fields.update(state="cleared", service=self.svc.instance,
-                          reason=f"cleared after a restart of {self.svc.instance}: the condition is no longer seen")
-            t = self.last_in_t.get(msg["vehicle"], msg["t_s"])
-            self.publish(key, "alarm", msg["vehicle"], max(t, msg["t_s"]), fields)
+                          reason=f"cleared after a restart of {self.svc.instance}: the condition is not seen in "
+                                 f"{span:.1f} s of input since")
+            t = self.last_in_t.get(vehicle, msg["t_s"])
+            self.publish(key, "alarm", vehicle, max(t, msg["t_s"]), fields)
+        if self.reconcile_pending:
+            self.reconcile_at = time.monotonic() + 0.5
+        else:
+            self.out_since_start.clear()
 
     # ---- who may steer: calibration parameters -------------------------------------------------
     def cal_params_trusted(self, key: str, msg: dict) -> bool:
@@ -773,6 +846,9 @@ class Runner:
         per = [(si, c.messages(info.vehicle)) for si, c in wanted]
         if len(per) == 1:
             order = [(0, i) for i in range(len(per[0][1]))]
+        elif sum(c.n for _, c in wanted) <= 64:  # a vehicle's window: a plain sort beats numpy's call cost
+            order = [(j, i) for _, j, i in sorted((t, j, i) for j, (_, c) in enumerate(wanted)
+                                                 for i, t in enumerate(c.t_s))]
         else:
             import numpy as np
 
@@ -902,11 +978,15 @@ class Runner:
                 self.count_rebase("seq_jump")
                 self.log_limited("seq-rebase", "seq of %s jumped from %d to %d: re-based, not counted as loss",
                                  key, last, sq)
-            elif gap > 0:
-                self.drops[key]["upstream_gap"] += gap  # lost before it reached us: visible, not silent
+            elif gap > 0:  # lost before it reached us (or while this instance was down): visible, not silent
+                self.drops[key]["lost_during_restart" if key in self.resumed_in else "upstream_gap"] += gap
             elif gap < 0:
                 self.count_rebase("seq_back")  # a publisher that restarted its counter (or a repeat)
         self.in_seq[key] = sq
+        if self.resumed_in:
+            self.resumed_in.discard(key)
+        if self.journal is not None:
+            self.journal.set("i" + key, sq)
         t, v = msg["t_s"], info.vehicle
         if v not in self.first_in_t:
             self.first_in_t[v] = t
@@ -1038,6 +1118,7 @@ class Runner:
                 "holds_role": self.mode in ("active", "retiring"),
                 "suppressed": self.suppressed,
                 "cal_params_sent": dict(list(self.params_sent.items())[:4096]),
+                "resumed_from_journal": self.resumed_from,
             }
         try:
             st.update(_plain(self.svc.status_extra()))
@@ -1182,6 +1263,7 @@ class Runner:
             self._spawn(self._reader, qx, kexpr)
         if self.mode == "active":
             self.restore_alarms()
+        self.resume_journal()
         svc.on_start()
         self.token = self.session.liveliness().declare_token(keys.svc_token(svc.role, svc.instance))
         svc.log.info("started %s/%s (impl %s) on %s", svc.role, svc.instance, svc.impl,
@@ -1268,6 +1350,8 @@ class Runner:
             svc.on_stop()
         except Exception as e:
             svc.log.error("on_stop failed: %s", e)
+        if self.clean_stop:
+            self.remove_journal()
         try:
             if self.token is not None:
                 self.token.undeclare()
@@ -1377,9 +1461,10 @@ def run(svc: Service, conf: Any, ready: threading.Event | None = None, standby: 
 
     def _on_signal(signum: int, frame: Any) -> None:
         svc.log.info("signal %d: stopping", signum)
+        runner.clean_stop = True  # a planned stop: the seq journal goes (nothing to account for at the next start)
         runner.stop()
         # a hard deadline: never hang on exit
-        timer = threading.Timer(STOP_GRACE_S, lambda: os._exit(0))
+        timer = threading.Timer(STOP_GRACE_S, lambda: (runner.remove_journal(), os._exit(0)))
         timer.daemon = True
         timer.start()
 
@@ -1400,6 +1485,7 @@ def run(svc: Service, conf: Any, ready: threading.Event | None = None, standby: 
                 runner.loop()
         else:
             runner.loop()
+        runner.clean_stop = runner.stop_event.is_set()
     finally:
         runner.stop()
         runner.close()

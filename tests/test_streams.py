@@ -158,3 +158,22 @@ def test_runtime_unbatches_for_per_sample_services_in_time_order(tmp_path, monke
     assert r.drops[m1]["upstream_gap"] == 1  # seq 2 never came
     assert r.count_in[m1].n == 3 and keys.clean_mag("car-1", "2") not in r.count_in  # not subscribed: skipped
     assert r.last_in_t["car-1"] == 0.04
+
+
+def test_runtime_unbatches_a_long_batch_in_time_order(tmp_path, monkeypatch):
+    import zenoh
+
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
+    svc = _PerSample(instance="p-2")
+    r = Runner(svc, _Session())
+    r._sub_exprs = [zenoh.KeyExpr(k) for k in svc.subscriptions()]
+    r.batch_in = True
+    n = 60  # 180 samples: ordered on whole columns
+    payload = batch.encode("car-1", 0, {
+        "mag/1": {"t_s": np.arange(n) * 0.02, "seq": np.arange(n), "cols": {"sensor": "1", "b_nt": _field(n)}},
+        "imu": {"t_s": np.arange(2 * n) * 0.01 + 0.001, "seq": np.arange(2 * n),
+                "cols": {"gyro_rad_s": np.zeros((2 * n, 3)), "accel_m_s2": np.zeros((2 * n, 3))}}})
+    r.handle_sample(keys.clean_batch("car-1"), payload)
+    times = [t for _, t, _ in svc.got]
+    assert len(times) == 3 * n and times == sorted(times)
+    assert [s for k, _, s in svc.got if k == keys.clean_imu("car-1")] == list(range(2 * n))
