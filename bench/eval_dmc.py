@@ -1,4 +1,4 @@
-"""``magmesh eval dmc``: DMC interference recognition on seeded simulated drives (ALGORITHMS.md §1, §2).
+"""``magmesh eval dmc``: DMC interference recognition on seeded simulated drives (docs/methods.md#dmc, #quasi-static).
 
 Drives come from the car simulator's paper-streets profile (``sim_publishers.car.core.PAPER_STREETS``:
 HMR3300 compasses at 8 Hz, layouts ``paper_a``/``paper_b``/``paper_c``), each compensated with the

@@ -5,7 +5,7 @@ For each layout and seed, :func:`sim_publishers.car.core.simulate` is run and me
 - single-compass heading error inside each source's zone (compass 1, measured field compensated with the
   car's true calibration, levelled with the true attitude, against the true heading) and outside every
   zone (no source's field above ``active_field_nt``);
-- the DMC features of ALGORITHMS.md §1 on the same compensated fields: Δm_k = |h_k| − R (3-D strength),
+- the DMC features of docs/methods.md#dmc on the same compensated fields: Δm_k = |h_k| − R (3-D strength),
   Δh = h_1 − h_2 (level-compass headings, Δh_r = 0 with the true calibration), and their rates, both
   between consecutive 50 Hz samples and between 0.2 s window means 0.5 s apart (what a detector that
   smooths before differentiating sees) — inside disturbed epochs (truth ``disturbed``) and outside;

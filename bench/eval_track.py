@@ -1,4 +1,4 @@
-"""Track monitor evaluation: the paper's two alarm-time tables and undisturbed flights (ALGORITHMS.md §4).
+"""Track monitor evaluation: the paper's two alarm-time tables and undisturbed flights (docs/methods.md#track).
 
 Seeded multirotor flights (``sim_publishers.multirotor.core``): 5 fast-ramp (+0.06 G/s) and 5 slow-ramp
 (+0.0125 G/s) flights with the onsets of the paper's Tables 1–2, plus undisturbed flights. Each flight's

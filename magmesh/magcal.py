@@ -1,6 +1,6 @@
 """Magnetometer calibration parameters: the model, applying it, and the quadric decomposition.
 
-Model (ALGORITHMS.md §5, reconstructed): the sensor reads ``m = K⁻¹ h + b + n`` where ``h`` is the
+Model (docs/methods.md#calibration): the sensor reads ``m = K⁻¹ h + b + n`` where ``h`` is the
 true field (|h| = R at the site), ``b`` the hard-iron offset and ``K⁻¹`` soft iron, scale factor
 and misalignment lumped together. The compensation is::
 

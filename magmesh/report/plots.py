@@ -314,7 +314,7 @@ def _spread(r: np.ndarray) -> float:
 def correlation_surface(grid, h_nt: np.ndarray, ins_m: np.ndarray, radius_cells: int = 12, demean: bool = False,
                         ordered: bool = True):
     """Hausdorff distance of the measured anomaly sequence against the map strip for every whole-cell
-    shift of the INS track within ``radius_cells`` (the pre-match surface of ALGORITHMS.md §3).
+    shift of the INS track within ``radius_cells`` (the pre-match surface of docs/methods.md#geomag).
 
     ``ordered``: sample i is compared with strip point i only (max |h_i − r_i|, the matcher's default);
     otherwise the paper's set distance. ``demean`` removes both means (when the main field is unknown).

@@ -1,6 +1,6 @@
 """The report's summary figures per vehicle (plain Python numbers; also written as summary.json).
 
-Metrics follow ALGORITHMS.md: DMC recognition rate RP, error rate MP and accuracy WP of the samples
+Metrics follow docs/methods.md#metrics: DMC recognition rate RP, error rate MP and accuracy WP of the samples
 recognised as valid ("good" = heading error < 5°); alarm delays against the recording's own
 disturbance truth (``truth/sources``); heading error against ``truth/pose``.
 """

@@ -1,4 +1,4 @@
-"""Adaptive robust least squares (ARLS) with the IGG-III weight function (ALGORITHMS.md §5).
+"""Adaptive robust least squares (ARLS) with the IGG-III weight function (docs/methods.md#calibration).
 
 Same model as Two-Step (two_step.py), ``V = A X − L`` with equivalent weights P re-computed from
 the standardised residuals at every iteration (Yang 1996, the paper's ref. [8])::

@@ -1,4 +1,4 @@
-"""Online GNSS-aided hard-iron EKF for a vehicle that cannot tumble its sensor (ALGORITHMS.md §2).
+"""Online GNSS-aided hard-iron EKF for a vehicle that cannot tumble its sensor (docs/methods.md#hard-iron-ekf).
 
 State ``x = b = [b_x, b_y, b_z]`` (nT), the hard-iron offset, a random constant (plus an optional
 random walk); with ``estimate_mount_yaw`` a fourth state δψ, the constant heading bias of the sensor's

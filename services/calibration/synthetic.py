@@ -1,7 +1,7 @@
 """Seeded synthetic magnetometer clouds with known calibration truth (for tests and the evaluation).
 
 Sensor model (the inverse of the compensation, magmesh.magcal): ``m = D h + b + n`` with
-``M_true = D⁻¹``. Gross errors are injected the way the ARLS paper did (ALGORITHMS.md §5): a
+``M_true = D⁻¹``. Gross errors are injected the way the ARLS paper did (docs/methods.md#calibration): a
 fraction of the samples, in a few contiguous bursts, displaced by a disturbance of a given size
 relative to the field (10% in its 2-D test, 20% in its 3-D test).
 """

@@ -1,4 +1,4 @@
-"""Two-Step least-squares ellipse (2-D) and ellipsoid (3-D) calibration (ALGORITHMS.md §5, §1).
+"""Two-Step least-squares ellipse (2-D) and ellipsoid (3-D) calibration (docs/methods.md#calibration).
 
 Step 1 (linear least squares). With |h| = R the raw samples lie on the quadric
 ``(m − b)ᵀ W (m − b) = 1``. Written in the paper's linear form ``A X = L`` with ``L = 1``

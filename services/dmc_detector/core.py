@@ -1,6 +1,6 @@
 """Differential magnetic compass (DMC): static compensation, features and the stage-1 threshold test.
 
-Pure numpy; never imports zenoh. Method: ALGORITHMS.md §1 (Hao, Yang, Huang, NUAA).
+Pure numpy; never imports zenoh. Method: docs/methods.md#dmc (Hao, Yang, Huang, NUAA).
 
 Two compasses a few centimetres apart see a distant field (the Earth's) alike and a nearby source
 differently. Per compass k the field is statically compensated, h_k = M_k (m_k − o_k), then at epoch i

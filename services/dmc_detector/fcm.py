@@ -1,4 +1,4 @@
-"""Stage 2 of the DMC detector: fuzzy c-means (FCM) recognition and the credibility K_c (ALGORITHMS.md §1).
+"""Stage 2 of the DMC detector: fuzzy c-means (FCM) recognition and the credibility K_c (docs/methods.md#dmc-fcm).
 
 Pure numpy; never imports zenoh.
 

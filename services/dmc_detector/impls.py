@@ -1,9 +1,9 @@
 """The implementations of the ``dmc_detector`` role, by name.
 
-``threshold``    stage 1 of §1: four threshold tests on the two compasses       (service.py)
-``fcm``          loose stage 1, then fuzzy c-means credibility K_c > 0.8 (§1)    (trained centres)
+``threshold``    stage 1: four threshold tests on the two compasses             (service.py)
+``fcm``          loose stage 1, then fuzzy c-means credibility K_c > 0.8         (trained centres)
 ``single``       one compass: |Δm| and dΔm only, the paper's Table 2 baseline
-``quasistatic``  one magnetometer + gyro: window variance and heading-change test (§2)
+``quasistatic``  one magnetometer + gyro: window variance and heading-change test
 """
 
 from __future__ import annotations
@@ -140,7 +140,7 @@ class QuasiStaticServiceSettings:
 
 
 class QuasiStaticDmcDetector(DmcDetectorService):
-    """One magnetometer + gyro: sliding-window variance and magnetometer-vs-gyro heading change (§2)."""
+    """One magnetometer + gyro: sliding-window variance and magnetometer-vs-gyro heading change (docs/methods.md#quasi-static)."""
 
     impl = "quasistatic"
     Settings = QuasiStaticServiceSettings

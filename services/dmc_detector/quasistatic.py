@@ -1,4 +1,4 @@
-"""Quasi-static magnetic field detection for a vehicle with one magnetometer (ALGORITHMS.md §2).
+"""Quasi-static magnetic field detection for a vehicle with one magnetometer (docs/methods.md#quasi-static).
 
 Pure numpy; never imports zenoh. Liu et al. (AIRCAS): over a sliding window of length L the field is
 quasi-static (Earth field + the vehicle's own, i.e. trustworthy for heading) when

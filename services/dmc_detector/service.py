@@ -1,4 +1,4 @@
-"""DMC detector: recognises dynamic magnetic interference from two compasses (ALGORITHMS.md §1).
+"""DMC detector: recognises dynamic magnetic interference from two compasses (docs/methods.md#dmc).
 
 Consumes  magmesh/{vehicle}/clean/mag/1, clean/mag/2   the two compasses of the DMC, paired by time
           magmesh/{vehicle}/cal/params/{sensor}        static compensation; overrides the manifest's
@@ -244,6 +244,6 @@ class DmcDetectorService(Service):
 
 
 class ThresholdDmcDetector(DmcDetectorService):
-    """Stage 1 only: the four threshold tests of §1."""
+    """Stage 1 only: the four threshold tests of the differential compass (docs/methods.md#dmc)."""
 
     impl = "threshold"

@@ -3,7 +3,7 @@
 Pure numpy (the car simulator is imported only when a drive is simulated). Used by
 ``magmesh train dmc`` and ``magmesh eval dmc``.
 
-Metrics (ALGORITHMS.md §1): a sample is *good* when its heading error is < 5°.
+Metrics (docs/methods.md#metrics): a sample is *good* when its heading error is < 5°.
 RP (recognition rate) = recognised-as-valid good samples / all good samples;
 MP (error rate) = recognised-as-valid samples that are not good / all recognised-as-valid;
 WP = heading accuracy of the recognised-as-valid samples (reported as RMS and mean |error|).

@@ -1,7 +1,7 @@
 """Correlation geomagnetic matching: Hausdorff scoring, one-cell pre-match with SSDA, bilinear fine match, M-of-N.
 
 Pure numpy; never imports zenoh. Method: Liu, Zhou, Yang, Li, *Geomagnetic matching location using
-correlative method* (docs: ALGORITHMS.md §3). Notation follows the paper:
+correlative method* (docs/methods.md#geomag). Notation follows the paper:
 
 - measured sequence H_N = [h_1 … h_N] (anomaly, nT) with the INS positions S_N; increments
   Δx_i, Δy_i give, for a candidate start S_0 = (I_0, J_0), the reference positions

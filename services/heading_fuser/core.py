@@ -8,7 +8,7 @@ Pure numpy; never imports zenoh. Usable on its own::
         f.update(gyro, accel, mag, dt_s=0.01)          # mag may be None (no sample this step)
         heading, pitch, roll = f.euler()
 
-Method (ALGORITHMS.md §2, Liu et al.; §1, Hao et al.):
+Method (docs/methods.md#heading, Liu et al.; #dmc, Hao et al.):
 
 * Attitude quaternion ``q`` (body FLU → ENU) propagated with the bias-corrected gyro,
   ``q_{k+1} = q_k ⊗ exp(½ (ω − b_g) T)`` — the closed form of §2's ``(I + T/2 · Ω(ω)) q`` (eq. 2.1).
@@ -351,7 +351,7 @@ class HeadingFilter:
 
     # ---- alignment ----------------------------------------------------------------------------
     def align(self, accel_m_s2, mag_nt) -> None:
-        """Set the attitude from one (averaged) accel + mag pair (ALGORITHMS.md §2 initial attitude)."""
+        """Set the attitude from one (averaged) accel + mag pair (docs/methods.md#heading, initial attitude)."""
         up = np.asarray(accel_m_s2, float)
         up = up / np.linalg.norm(up)
         m = np.asarray(mag_nt, float)

@@ -5,7 +5,7 @@ CONSUMES  magmesh/{vehicle}/clean/imu             gyro + accelerometer (drives t
           magmesh/{vehicle}/clean/mag/{sensor}    fallback when no cal/mag arrives: compensated here with the
                                                   latest cal/params, else the manifest's ``mag_params``
           magmesh/{vehicle}/cal/params/{sensor}   parameters for that fallback
-          magmesh/{vehicle}/dmc                   the DMC's ``valid`` flag (ALGORITHMS.md §1)
+          magmesh/{vehicle}/dmc                   the DMC's ``valid`` flag (docs/methods.md#dmc)
 PRODUCES  magmesh/{vehicle}/heading               heading/pitch/roll, 1-σ, mode, mag innovation and test ratio
           magmesh/{vehicle}/alarm/heading         heading σ past ``heading_alarm_std_rad`` while not magnetic
 

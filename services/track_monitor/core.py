@@ -1,6 +1,6 @@
 """Track monitor core: cross-track deviation, heading-innovation and combined magnetic-anomaly detectors.
 
-Pure Python/numpy; never imports zenoh. Method: He, Luo, Wu (seed paper 003, ALGORITHMS.md §4).
+Pure Python/numpy; never imports zenoh. Method: He, Luo, Wu (docs/methods.md#track).
 
 * Cross-track deviation (eq. 6): d = |(X − A) × (B − A)| / |B − A|, horizontal, from RTK GNSS. The
   track detector raises when d > ``track_threshold_m`` (1 m in the paper, where the mission fails) on

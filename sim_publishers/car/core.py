@@ -189,7 +189,7 @@ LAYOUTS: dict[str, tuple[SourceSpec, ...]] = {
         SourceSpec("bridge_1", "bridge", straight=2, frac=0.75, length_m=35.0, strength=1.3, stop_s=5.0),
         SourceSpec("truck_2", "truck", straight=4, frac=0.5, speed_m_s=16.0, same_direction=True, strength=1.3),
     ),
-    # "paper streets": the conditions of ALGORITHMS.md §1's road data (see PAPER_STREETS and the README):
+    # "paper streets": the conditions of the DMC paper's road data (docs/methods.md#dmc) (see PAPER_STREETS and the README):
     # extended steel structures at metres (field nearly uniform over the 10 cm baseline), vehicles keeping
     # pace in the next lane and queueing beside the car, steel bridge decks with rebar and expansion joints
     "paper_a": (
