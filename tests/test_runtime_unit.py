@@ -59,8 +59,16 @@ def test_restart_restores_alarm_state_and_clears_what_is_no_longer_seen(tmp_path
     assert s2.out == []  # the logic raised it again: it stays raised
     r3, s3 = _runner(tmp_path, monkeypatch)
     r3.restore_alarms()
-    r3.reconcile_alarms()  # nothing raised it since the restart: cleared, seq continues
+    r3.reconcile_alarms()  # a restart alone clears nothing: the restarted logic has seen no input yet
+    assert s3.out == [] and key in r3.raised
+    r3.first_in_t["car-1"], r3.last_in_t["car-1"] = 100.0, 104.0  # 4 s of input: less than alarm_reconcile_s
+    r3.out_since_start["car-1"] = 50
+    r3.reconcile_alarms()
+    assert s3.out == []
+    r3.last_in_t["car-1"] = 105.5  # enough input to decide, and nothing raised it again: cleared, seq continues
+    r3.reconcile_alarms()
     assert [(m["state"], m["seq"]) for _, m in s3.out] == [("cleared", 1)]
+    assert "5.5 s of input" in s3.out[0][1]["reason"]
     r4, s4 = _runner(tmp_path, monkeypatch)
     r4.restore_alarms()
     assert r4.reconcile_at is None and not r4.raised

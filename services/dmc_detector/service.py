@@ -87,6 +87,7 @@ class DmcDetectorService(Service):
     impl = "threshold"
     Settings = Settings
     CONSUMES = ("clean/mag/{sensor}", "cal/params/{sensor}")
+    ADOPTS_RESTORED_ALARMS = True  # the latch takes the mesh's alarm state (_adopt_published_alarm)
     PRODUCES = ("dmc", "alarm/dmc")
 
     # ---- hooks for implementations ---------------------------------------------------------

@@ -105,6 +105,7 @@ class GeomagMatcherService(Service):
     impl = "hausdorff_ssda"
     Settings = Settings
     CONSUMES = ("clean/mag/{sensor} (f_nt)", "clean/ins")
+    ADOPTS_RESTORED_ALARMS = True  # a restored raised match alarm stays until a fix shows the divergence gone
     PRODUCES = ("fix/geomag", "alarm/match")
 
     def __init__(self, *a, **kw):
@@ -147,7 +148,9 @@ class GeomagMatcherService(Service):
         )
 
     def new_vehicle(self, vehicle: str) -> VehicleMatch:
-        return VehicleMatch(self.settings.ins_buffer, self.settings.ins_max_wait_s)
+        st = VehicleMatch(self.settings.ins_buffer, self.settings.ins_max_wait_s)
+        st.alarm_raised = self.holds_alarm(vehicle, "match")  # after a restart: the latch as the mesh knows it
+        return st
 
     def _build_matcher(self, vehicle: str) -> GeomagMatcher | None:
         vcfg = self.vehicles_config.get(vehicle, {}) or {}

@@ -9,8 +9,11 @@ CONSUMES  magmesh/{vehicle}/clean/imu             gyro + accelerometer (drives t
 PRODUCES  magmesh/{vehicle}/heading               heading/pitch/roll, 1-σ, mode, mag innovation and test ratio
           magmesh/{vehicle}/alarm/heading         heading σ past ``heading_alarm_std_rad`` while not magnetic
 
-The filter is :class:`services.heading_fuser.core.HeadingFilter`; this file is wiring only. Manifest
-vehicle keys used: ``declination_rad`` and ``mag_params.{sensor}`` (offset_nt, matrix, field_radius_nt).
+The filter is :class:`services.heading_fuser.core.HeadingFilter` (``--impl ekf``, the default) or the
+``vqf`` library's VQF (``--impl vqf``, :mod:`services.heading_fuser.vqf_impl`); this file is wiring only.
+Manifest vehicle keys used: ``declination_rad``, ``heading_profile`` (a name from
+:mod:`services.heading_fuser.profiles`, e.g. ``imu_only``) and ``mag_params.{sensor}`` (offset_nt,
+matrix, field_radius_nt). New calibration parameters re-base the filter's field reference.
 """
 
 from __future__ import annotations
@@ -20,12 +23,14 @@ import math
 from collections import deque
 from dataclasses import dataclass, field
 
+import time
+
 from magmesh.magcal import MagParams
 from magmesh.runtime import Service
 from schemas import keys
 from services.physical import refuse_unphysical
 
-from . import core
+from . import core, profiles
 
 MAX_PENDING = 2000
 
@@ -35,9 +40,11 @@ class Settings(core.Settings):
     """Service settings: every filter setting (see core.Settings) plus the wiring ones below."""
 
     sensor: str = "1"  # which magnetometer steers the heading
+    profile: str = ""  # base settings (profiles.py); "" → the vehicle's heading_profile, else road_vehicle
     publish_period_s: float = 0.1  # heading messages at most this often (sample time; 0: every IMU sample)
     cal_timeout_s: float = 1.0  # without cal/mag for this long, fall back to clean/mag + parameters
     dmc_timeout_s: float = 2.0  # a DMC verdict older than this is ignored (the filter's own checks remain)
+    dmc_wait_wall_s: float = 1.0  # a magnetometer sample waits at most this long (wall clock) for its verdict
     mag_wait_s: float = 0.2  # the IMU waits at most this long (sample time) for the magnetometer stream;
     # later samples are levelled with the attitude of their own time (kept for a few seconds)
     max_imu_gap_s: float = 1.0  # a longer gap in the IMU stream restarts the filter
@@ -66,34 +73,59 @@ class VehicleState:
 
 
 class HeadingFuser(Service):
+    """The project's quaternion EKF with DMC switching and guarded re-acquisition (core.py)."""
+
     role = "heading_fuser"
     impl = "ekf"
     Settings = Settings
     CONSUMES = ("clean/imu", "cal/mag/{sensor}", "clean/mag/{sensor}", "cal/params/{sensor}", "dmc")
+    ADOPTS_RESTORED_ALARMS = True  # a restored raised heading alarm stays until the filter's σ falls again
     PRODUCES = ("heading", "alarm/heading")
 
     def subscriptions(self) -> list[str]:
         p, s = self.vehicle_pattern, self.settings.sensor
         return [keys.clean_imu(p), keys.cal_mag(p, s), keys.clean_mag(p, s), keys.cal_params(p, s), keys.dmc(p)]
 
+    def profile_name(self, vehicle: str) -> str:
+        cfg = self.vehicles_config.get(vehicle, {}) or {}
+        return self.settings.profile or str(cfg.get("heading_profile") or profiles.ROAD_VEHICLE)
+
     def core_settings(self, vehicle: str) -> core.Settings:
-        names = {f.name for f in dataclasses.fields(core.Settings)}
-        values = {n: getattr(self.settings, n) for n in names}
+        """The profile's settings, then every filter setting given to this service (one that differs
+        from the default) on top, then the vehicle's declination."""
+        values = profiles.values(self.profile_name(vehicle))
+        for f in dataclasses.fields(core.Settings):
+            v = getattr(self.settings, f.name)
+            if v != f.default and not (isinstance(v, float) and math.isnan(v) and math.isnan(f.default)):
+                values[f.name] = v
         cfg = self.vehicles_config.get(vehicle, {}) or {}
         if "declination_rad" in cfg:
             values["declination_rad"] = float(cfg["declination_rad"])
         return core.Settings(**values)
 
+    def make_filter(self, settings: core.Settings):
+        return core.HeadingFilter(settings)
+
+    def on_start(self) -> None:
+        super().on_start()
+        for vehicle in self.vehicles_config:
+            name = self.profile_name(vehicle)
+            if name not in profiles.PROFILES:
+                raise SystemExit(f"heading_fuser: vehicle {vehicle}: unknown heading profile {name!r}; known: "
+                                 f"{', '.join(profiles.PROFILES)}")
+
     def new_vehicle(self, vehicle: str) -> VehicleState:
-        st = VehicleState(core.HeadingFilter(self.core_settings(vehicle)))
+        st = VehicleState(self.make_filter(self.core_settings(vehicle)))
+        st.alarm_raised = self.holds_alarm(vehicle, "heading")  # after a restart: the latch as the mesh knows it
         table = ((self.vehicles_config.get(vehicle, {}) or {}).get("mag_params") or {}).get(self.settings.sensor)
         if table:
             try:
                 st.params, st.param_source = MagParams.from_message(table), "manifest"
             except (TypeError, ValueError) as e:
                 self.log.error("vehicle %s: manifest mag_params.%s unusable: %s", vehicle, self.settings.sensor, e)
-        self.log.info("vehicle %s: heading filter started (declination %.2f°, fallback parameters: %s)", vehicle,
-                      math.degrees(st.filter.settings.declination_rad), st.param_source)
+        self.log.info("vehicle %s: heading filter %s started (profile %s, declination %.2f°, fallback parameters: %s)",
+                      vehicle, self.impl, self.profile_name(vehicle), math.degrees(st.filter.settings.declination_rad),
+                      st.param_source)
         return st
 
     # ---- inputs -------------------------------------------------------------------------------
@@ -123,7 +155,15 @@ class HeadingFuser(Service):
                 self._on_mag(info, msg["t_s"], state.params.apply(msg["b_nt"]), state)
         elif kind == "cal" and stream == "params":
             if msg["status"] in ("ok", "manifest"):
-                state.params, state.param_source = MagParams.from_message(msg), "cal"
+                new = MagParams.from_message(msg)
+                changed = state.params is not None and not _same_params(state.params, new)
+                state.params, state.param_source = new, "cal"
+                if changed:
+                    # the calibrated field changes scale and direction with the parameters: the field
+                    # reference learned under the old ones is re-learned, the magnetometer stays in use
+                    self.log.info("vehicle %s: new calibration parameters at t=%.2f s: field reference re-based",
+                                  info.vehicle, msg["t_s"])
+                    state.filter.rebase_field_reference()
             else:
                 self.count_drop(info.key, f"parameters with status {msg['status']!r} not used")
         elif kind == "dmc":
@@ -136,7 +176,7 @@ class HeadingFuser(Service):
             self.count_drop(info.key, "no IMU sample yet")
             return
         st.newest_mag_t = t if st.newest_mag_t is None else max(st.newest_mag_t, t)
-        st.pending_mag.append((t, b_nt, info.key))
+        st.pending_mag.append((t, b_nt, info.key, time.monotonic()))
         if len(st.pending_mag) > MAX_PENDING:
             self.count_drop(st.pending_mag.popleft()[2], "neither the IMU nor the DMC verdict reached its time")
         self._drain(info.vehicle, st)
@@ -158,7 +198,7 @@ class HeadingFuser(Service):
                 if st.dmc_hist:
                     if st.dmc_hist[-1][0] >= t - 1e-6:
                         dmc = self._verdict_at(st, t)
-                    elif st.newest_imu_t - st.dmc_hist[-1][0] <= self.settings.dmc_timeout_s:
+                    elif self._verdict_due(st, mag):
                         ready = False  # the verdict for this time is on its way
                 if ready:
                     st.pending_mag.popleft()
@@ -169,7 +209,7 @@ class HeadingFuser(Service):
                 break
             if mag is not None and mag[0] < imu[0] - 1e-9 and st.last_imu_t is not None and mag[0] <= st.last_imu_t + 1e-6:
                 # that magnetometer sample waits for its DMC verdict: the IMU goes on (up to the timeout)
-                if st.newest_imu_t - mag[0] <= self.settings.dmc_timeout_s and len(st.pending_imu) < MAX_PENDING:
+                if self._verdict_due(st, mag) and len(st.pending_imu) < MAX_PENDING:
                     break
             elif (st.newest_mag_t is not None and imu[0] > st.newest_mag_t + 1e-6
                     and st.newest_imu_t - st.newest_mag_t <= self.settings.mag_wait_s
@@ -195,6 +235,19 @@ class HeadingFuser(Service):
             if t - st.last_pub_t >= self.settings.publish_period_s - 1e-9:
                 st.last_pub_t = t
                 self._publish(vehicle, t, st)
+
+    def _verdict_due(self, st: VehicleState, mag: tuple) -> bool:
+        """Whether a magnetometer sample still waits for its DMC verdict: while the DMC stream is alive
+        and the sample has waited less than ``dmc_wait_wall_s`` of wall-clock time. Bounded in wall
+        time, not sample time, so that at any replay speed a verdict that is merely late (a busy
+        detector) is still used, and one that never comes holds the heading back at most that long.
+        The verdict's own age in sample time (``dmc_timeout_s``) still ends the wait when the
+        detector has stopped."""
+        if not st.dmc_hist:
+            return False
+        if mag[0] - st.dmc_hist[-1][0] > self.settings.dmc_timeout_s:
+            return False  # the detector has fallen silent: its last verdict is too old to wait on
+        return time.monotonic() - mag[3] < self.settings.dmc_wait_wall_s
 
     @staticmethod
     def _verdict_at(st: VehicleState, t: float) -> bool | None:
@@ -252,7 +305,24 @@ class HeadingFuser(Service):
                 "heading_std_deg": round(math.degrees(f.internal_states.heading_std_rad), 2),
                 "mag_test_ratio": f.internal_states.mag_test_ratio,
                 "param_source": st.param_source,
+                "profile": self.profile_name(vehicle),
+                "field_rebases": getattr(f, "n_rebases", 0),
                 "dmc_valid": st.dmc_valid,
                 "alarm_raised": st.alarm_raised,
             }
         return {"vehicles": out}
+
+
+REBASE_CHANGE_FRAC = 0.005  # parameters that move the calibrated field by less than this do not re-base
+
+
+def _same_params(a: MagParams, b: MagParams) -> bool:
+    """Whether two parameter sets calibrate alike: the largest change of the calibrated field, over
+    raw fields on the sphere of ``a`` (its offset ± radius along each axis), relative to the radius,
+    is below :data:`REBASE_CHANGE_FRAC`."""
+    import numpy as np
+
+    r = float(a.field_radius_nt) or 50_000.0
+    raw = a.offset + r * np.vstack([np.eye(3), -np.eye(3)])
+    d = np.linalg.norm(a.apply(raw) - b.apply(raw), axis=1)
+    return bool(np.max(d) / r < REBASE_CHANGE_FRAC)

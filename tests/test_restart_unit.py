@@ -1,0 +1,119 @@
+"""Restarts, in process: the seq journal survives a kill, a restarted instance counts what it missed and
+continues its seqs, and a restored raised alarm is never cleared by the restart itself."""
+
+from __future__ import annotations
+
+from magmesh.journal import Journal
+from magmesh.runtime import Runner, Service
+from schemas import keys, messages
+
+
+class _Pub:
+    def __init__(self, out, key):
+        self.out, self.key = out, key
+
+    def put(self, payload):
+        self.out.append((self.key, messages.decode(payload)))
+
+
+class _Session:
+    def __init__(self):
+        self.out = []
+
+    def declare_publisher(self, key, **kw):
+        return _Pub(self.out, key)
+
+
+class _Relay(Service):
+    """Republishes every clean magnetometer sample on cal/mag (one output per input)."""
+
+    role = "relay"
+    impl = "relay"
+
+    def on_message(self, info, msg, state):
+        self.publish(keys.cal_mag(info.vehicle, "1"), "mag", info.vehicle, msg["t_s"], sensor="1", b_nt=msg["b_nt"])
+
+
+class _Latch(_Relay):
+    ADOPTS_RESTORED_ALARMS = True
+
+
+def _feed(r: Runner, seqs) -> None:
+    for sq in seqs:
+        r.handle_sample(keys.clean_mag("car-1", "1"), messages.encode(messages.make(
+            "mag", "car-1", 10.0 + 0.02 * sq, sq, sensor="1", b_nt=[20000.0, 1000.0, -40000.0])))
+
+
+def _runner(tmp_path, monkeypatch, cls=_Relay):
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
+    sess = _Session()
+    r = Runner(cls(instance="relay-1"), sess)
+    r.restore_alarms()
+    r.resume_journal()
+    return r, sess
+
+
+def test_journal_survives_a_kill_and_goes_with_a_clean_stop(tmp_path):
+    j = Journal(tmp_path / "x.seq")
+    j.open({})
+    for i in range(1000):
+        j.set("ia", i)
+    j.set("ob", 7)
+    # no close, no flush: a kill -9 leaves the page cache as it is
+    assert Journal(tmp_path / "x.seq").load() == {"ia": 999, "ob": 7}
+    j2 = Journal(tmp_path / "x.seq")
+    j2.open(j2.load())  # a second crash right after the restart still knows the first one's values
+    assert Journal(tmp_path / "x.seq").load() == {"ia": 999, "ob": 7}
+    j2.remove()
+    assert Journal(tmp_path / "x.seq").load() == {}
+
+
+def test_restart_counts_what_it_missed_and_continues_its_seqs(tmp_path, monkeypatch):
+    r, s = _runner(tmp_path, monkeypatch)
+    _feed(r, range(0, 50))
+    assert r.resumed_from is None and [m["seq"] for _, m in s.out] == list(range(50))
+    # killed: nothing of r is closed. A new process of the same instance misses inputs 50..69
+    r2, s2 = _runner(tmp_path, monkeypatch)
+    assert r2.resumed_from == {"inputs": 1, "outputs": 1}
+    _feed(r2, range(70, 80))
+    key = keys.clean_mag("car-1", "1")
+    assert r2.drops[key]["lost_during_restart"] == 20
+    assert r2.drops[key].get("upstream_gap", 0) == 0
+    assert [m["seq"] for _, m in s2.out] == list(range(50, 60)), "output seq did not continue"
+    _feed(r2, range(82, 83))  # a later gap is an ordinary upstream gap
+    assert r2.drops[key]["upstream_gap"] == 2 and r2.drops[key]["lost_during_restart"] == 20
+    # a clean stop: the next start is a fresh one
+    r2.clean_stop = True
+    r2.close()
+    r3, s3 = _runner(tmp_path, monkeypatch)
+    _feed(r3, range(200, 201))
+    assert r3.resumed_from is None and not r3.drops[key]
+    assert [m["seq"] for _, m in s3.out] == [0]
+
+
+def test_restored_alarm_is_not_cleared_by_the_restart(tmp_path, monkeypatch):
+    r, s = _runner(tmp_path, monkeypatch)
+    r.svc.alarm("car-1", "dmc", "raised", "warning", "interference", 2.0, 1.0, 10.0)
+    akey = keys.alarm("car-1", "dmc")
+    # a latching logic takes the alarm over: the runtime never clears it, the logic does when the condition goes
+    r2, s2 = _runner(tmp_path, monkeypatch, _Latch)
+    assert r2.svc.holds_alarm("car-1", "dmc") and not r2.reconcile_pending
+    _feed(r2, range(0, 2000))  # 40 s of input in which the logic does not speak
+    r2.reconcile_alarms()
+    assert [m for _, m in s2.out if m["type"] == "alarm"] == [] and akey in r2.raised
+    r2.svc.alarm("car-1", "dmc", "cleared", "warning", "field clean again", 0.1, 1.0, 60.0)
+    assert [(m["state"], m["seq"]) for _, m in s2.out if m["type"] == "alarm"] == [("cleared", 1)]
+
+
+def test_restored_alarm_of_a_non_latching_logic_waits_for_input(tmp_path, monkeypatch):
+    r, _ = _runner(tmp_path, monkeypatch)
+    r.svc.alarm("car-1", "dmc", "raised", "warning", "interference", 2.0, 1.0, 10.0)
+    r2, s2 = _runner(tmp_path, monkeypatch)
+    alarms = lambda: [m for _, m in s2.out if m["type"] == "alarm"]  # noqa: E731
+    r2.reconcile_alarms()
+    _feed(r2, range(0, 100))  # 2 s of sample time: not enough to decide
+    r2.reconcile_alarms()
+    assert alarms() == []
+    _feed(r2, range(100, 400))  # 8 s: the logic had its chance to raise it again and did not
+    r2.reconcile_alarms()
+    assert [m["state"] for m in alarms()] == ["cleared"] and "after a restart" in alarms()[0]["reason"]
