@@ -292,11 +292,13 @@ class HeadingFilter:
         self.mag_delay_s = s.mag_delay_s
         self._lag = MagLagEstimator(s.mag_delay_max_s) if s.mag_delay_online else None
         self._acc_lp_i: np.ndarray | None = None  # accelerometer low-passed in the gyro-integrated frame
-        self._rest_gyro_lp = np.zeros(3)
-        self._rest_acc_lp: np.ndarray | None = None
+        self._rest_gyro_lp = [0.0, 0.0, 0.0]
+        self._rest_acc_lp: list | None = None
         self._rest_since_t: float | None = None
         self.at_rest = False
         self._noise_gyro_var = s.rest_gyro_noise_rad_s**2  # learned at rest
+        self._rebase_pending = False  # the field reference is to be learned again (rebase_field_reference)
+        self.n_rebases = 0
         self._noise_acc_var = s.rest_accel_noise_m_s2**2
 
     @property
@@ -472,16 +474,18 @@ class HeadingFilter:
         """Rest: low-passed |ω| and the accelerometer's deviation from its low-pass both small for
         ``rest_min_s``. While at rest the gyro and accelerometer noise variances are learned."""
         s = self.settings
-        g = np.asarray(gyro, float)
-        a = np.asarray(accel, float)
         k = min(1.0, dt / s.rest_filter_tau_s)
-        self._rest_gyro_lp += k * (g - self._rest_gyro_lp)
+        gl, b = self._rest_gyro_lp, self.bias
         if self._rest_acc_lp is None:
-            self._rest_acc_lp = a.copy()
-        self._rest_acc_lp += k * (a - self._rest_acc_lp)
-        da = a - self._rest_acc_lp
-        quiet = (float(np.linalg.norm(self._rest_gyro_lp - self.bias)) < s.rest_gyro_rad_s
-                 and float(np.linalg.norm(da)) < s.rest_accel_m_s2)
+            self._rest_acc_lp = [accel[0], accel[1], accel[2]]
+        al = self._rest_acc_lp
+        for i in range(3):
+            gl[i] += k * (gyro[i] - gl[i])
+            al[i] += k * (accel[i] - al[i])
+        da0, da1, da2 = accel[0] - al[0], accel[1] - al[1], accel[2] - al[2]
+        dg0, dg1, dg2 = gl[0] - b[0], gl[1] - b[1], gl[2] - b[2]
+        quiet = (dg0 * dg0 + dg1 * dg1 + dg2 * dg2 < s.rest_gyro_rad_s**2
+                 and da0 * da0 + da1 * da1 + da2 * da2 < s.rest_accel_m_s2**2)
         if not quiet:
             self._rest_since_t = None
             self.at_rest = False
@@ -491,9 +495,9 @@ class HeadingFilter:
         self.at_rest = self.t_s - self._rest_since_t >= s.rest_min_s
         if self.at_rest:
             kn = min(1.0, dt / 10.0)  # noise variances averaged over ~10 s of rest
-            dg = g - self._rest_gyro_lp
-            self._noise_gyro_var += kn * (float(dg @ dg) / 3.0 - self._noise_gyro_var)
-            self._noise_acc_var += kn * (float(da @ da) / 3.0 - self._noise_acc_var)
+            e0, e1, e2 = gyro[0] - gl[0], gyro[1] - gl[1], gyro[2] - gl[2]
+            self._noise_gyro_var += kn * ((e0 * e0 + e1 * e1 + e2 * e2) / 3.0 - self._noise_gyro_var)
+            self._noise_acc_var += kn * ((da0 * da0 + da1 * da1 + da2 * da2) / 3.0 - self._noise_acc_var)
 
     def _zero_rate(self, gyro) -> None:
         """At rest the gyro measures its bias: z = ω, H = [0, I], R = the learned per-sample noise."""
@@ -605,6 +609,12 @@ class HeadingFilter:
             fl.quasi_static = not (var_fail or head_fail)
             if s.adaptive_noise:
                 gain = max(s.adaptive_gain_variance if var_fail else 1.0, s.adaptive_gain_heading if head_fail else 1.0)
+        if self._rebase_pending:
+            # a new calibration: the reference is learned again from the next quasi-static window; until
+            # then the field is judged by its steadiness and the innovation gate alone
+            sample_bad = window_bad = False
+            if self._window.full(t) and not (var_fail or head_fail):
+                self._set_reference(mb, md, "re-based after a calibration change")
         fl.field_inconsistent = window_bad or sample_bad
         window_ok = self._window.full(t) and not window_bad
         disturbed = window_bad or not fl.dmc_valid
@@ -707,6 +717,27 @@ class HeadingFilter:
         fl.mag_fused = fused
         return fused
 
+    def _set_reference(self, strength_nt: float, dip_rad: float, why: str) -> None:
+        log.debug("t=%.2f s: field reference %.0f nT / %.1f° → %.0f nT / %.1f° (%s)", self.t_s, self.ref_field_nt,
+                  math.degrees(self.ref_dip_rad), strength_nt, math.degrees(dip_rad), why)
+        self.ref_field_nt, self.ref_dip_rad = float(strength_nt), float(dip_rad)
+        self._rebase_pending = False
+        self.n_rebases += 1
+
+    def rebase_field_reference(self) -> None:
+        """The magnetometer's calibration changed: learn the field reference (strength, dip) again.
+
+        Until a quasi-static window has given the new reference, the field is not judged against the
+        old one (which belonged to the old calibration); a gyro-only mode held only because the field
+        was off that reference ends (the DMC's verdict still counts). A filter not yet aligned learns
+        it at alignment anyway."""
+        if not self.aligned:
+            return
+        self._rebase_pending = True
+        self._window.clear()
+        if self.mode == "gyro_only" and self.flags.dmc_valid:
+            self._set_mode("recovering", "calibration changed: field reference re-based")
+
     def _fuse_mag_vector(self, m: np.ndarray, R_m: np.ndarray, var_unit: float) -> None:
         """Field-direction update (§2's magnetometer observation) for a field that passed every check.
 
@@ -780,7 +811,7 @@ class MagLagEstimator:
     """
 
     def __init__(self, max_delay_s: float = 0.05, step_s: float = 0.002, min_rate_rad_s: float = 0.5,
-                 min_samples: int = 500):
+                 min_samples: int = 300, period_s: float = 0.01):
         self.grid = np.arange(0.0, max_delay_s + 1e-12, step_s)
         self.step_s = step_s
         self.cost = np.zeros(len(self.grid))
@@ -788,28 +819,36 @@ class MagLagEstimator:
         self.min_rate = min_rate_rad_s
         self.min_samples = min_samples
         self.delay_s = 0.0
-        self._gt: deque = deque(maxlen=64)
-        self._gw: deque = deque(maxlen=64)
+        self.period_s = period_s  # at most one residual per this period (the cost of the estimate)
+        self._n_buf = 64
+        self._gt = np.full(self._n_buf, -np.inf)  # ring buffer of gyro times and rates
+        self._gw = np.zeros((self._n_buf, 3))
+        self._i = 0
         self._prev: tuple | None = None
+        self._last_t = -math.inf
 
     def add_gyro(self, t: float, gyro) -> None:
-        self._gt.append(t)
-        self._gw.append((gyro[0], gyro[1], gyro[2]))
+        j = self._i % self._n_buf
+        self._gt[j] = t
+        self._gw[j] = gyro
+        self._i += 1
 
     def add_mag(self, t: float, m: np.ndarray, ref_nt: float) -> None:
         prev, self._prev = self._prev, (t, m)
-        if prev is None or not self._gt or t - prev[0] <= 0.0 or t - prev[0] > 0.1:
+        if prev is None or self._i < self._n_buf or t - prev[0] <= 0.0 or t - prev[0] > 0.1 or t - self._last_t < self.period_s:
             return
+        self._last_t = t
         if ref_nt and abs(math.sqrt(float(m @ m)) / ref_nt - 1.0) > 0.1:
             return
         tm = 0.5 * (t + prev[0])
-        if tm - self.grid[-1] < self._gt[0]:
+        order = (np.arange(self._n_buf) + self._i) % self._n_buf  # oldest first
+        gt = self._gt[order]
+        if tm - self.grid[-1] < gt[0]:
             return
         dm = (m - prev[1]) / (t - prev[0])
         mm = 0.5 * (m + prev[1])
-        gt = np.asarray(self._gt)
         idx = np.clip(np.searchsorted(gt, tm - self.grid), 1, len(gt) - 1)
-        w_all = np.asarray(self._gw)
+        w_all = self._gw[order]
         # linear interpolation of the gyro at each candidate time
         t0, t1 = gt[idx - 1], gt[idx]
         f = np.clip((tm - self.grid - t0) / np.maximum(t1 - t0, 1e-9), 0.0, 1.0)[:, None]
@@ -819,7 +858,7 @@ class MagLagEstimator:
         r = dm + np.cross(w, mm)
         self.cost += np.einsum("ij,ij->i", r, r)
         self.n += 1
-        if self.n >= self.min_samples and self.n % 50 == 0:
+        if self.n >= self.min_samples and self.n % 20 == 0:
             c = self.cost
             j = int(np.argmin(c))
             frac = 0.0
