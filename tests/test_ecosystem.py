@@ -116,14 +116,14 @@ class _Publisher:
             s.put(keys.heading("car-1"), messages.encode(_heading("car-1", seq)))
             s.put(keys.alarm("car-1", "dmc"), messages.encode(_alarm("car-1", seq, "raised" if seq % 2 else "cleared")))
             s.put(keys.fix_geomag("car-1"), messages.encode(_geomag("car-1", seq)))
-            if seq == 40:  # one transition on a key not seen before: reaches a client only as a latched message
-                s.put(keys.alarm("car-1", "track"), messages.encode(dict(_alarm("car-1", 0), source="track")))
             seq += 1
             time.sleep(0.05)
 
 
-async def _foxglove_client(port, want_topics, timeout_s=60.0):
-    """Speak foxglove.websocket.v1: wait for the advertised channels, subscribe, decode a message of each."""
+async def _foxglove_client(port, want_topics, timeout_s=150.0, on_live=None):
+    """Speak foxglove.websocket.v1: wait for the advertised channels, subscribe, decode a message of each.
+
+    ``on_live`` is called once, when the first live heading arrives (the server's mesh tap is then running)."""
     import websockets
 
     deadline = time.monotonic() + timeout_s
@@ -162,6 +162,9 @@ async def _foxglove_client(port, want_topics, timeout_s=60.0):
             assert frame[0] == 0x01
             sid, log_ns = struct.unpack_from("<IQ", frame, 1)
             ch = chans[subs[sid]]
+            if on_live is not None and ch["topic"] == "magmesh/car-1/heading":
+                on_live()
+                on_live = None
             got.setdefault(ch["topic"], {"channel": ch, "msg": json.loads(frame[13:]), "log_ns": log_ns})
         return got
 
@@ -182,7 +185,10 @@ def test_foxglove_live_channels_schemas_and_messages(tmp_path):
     want = ["magmesh/car-1/alarm/dmc", "magmesh/car-1/alarm/track", "magmesh/car-1/alarm/match", "magmesh/car-1/heading", "magmesh/car-1/fix/geomag", "magmesh/car-1/clean/gnss",
             "/car-1/log", "/car-1/gnss/fix", "/car-1/geomag/fix", "/car-1/pose", "/tf"]
     try:
-        got = asyncio.run(_foxglove_client(ws_port, want))
+        # one transition on a key not seen before, while the client is connected: it reaches the client only as
+        # the channel's latched latest message (it is sent before the client can subscribe to the new channel)
+        got = asyncio.run(_foxglove_client(ws_port, want, on_live=lambda: pub_session.put(
+            keys.alarm("car-1", "track"), messages.encode(dict(_alarm("car-1", 0), source="track")))))
     finally:
         pub.stop.set()
         pub.thread.join(5)
@@ -341,7 +347,7 @@ def test_ros2_bridge_puts_cdr_under_rmw_zenoh_keys_with_tokens(tmp_path):
     mag = messages.make("mag", "car-1", 1.0, 1, sensor="1", b_nt=[21000.0, -1500.0, -42000.0])
     imu = messages.make("imu", "car-1", 1.0, 1, gyro_rad_s=[0.01, -0.02, 0.3], accel_m_s2=[0.1, 0.2, 9.81])
     cols = batch.from_message(messages.make("mag", "car-1", 1.0, 1, sensor="2", b_nt=[1.0, 2.0, 3.0]))
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + 120
     seq = 0
     try:
         while time.monotonic() < deadline:
@@ -432,7 +438,7 @@ def test_zenoh_cli_prints_decoded_magmesh_messages(tmp_path):
     reader = threading.Thread(target=lambda: lines.extend(iter(p.stdout.readline, b"")), daemon=True)
     reader.start()
     try:
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + 120
         seq = 0
         while time.monotonic() < deadline:
             seq += 1
