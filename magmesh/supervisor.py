@@ -330,6 +330,7 @@ class Child:
         #: restarted by the supervisor when it dies; off for a swap's standby process (the swap watches it)
         self.supervised = True
         self.given_up = False
+        self.start_failures = 0  # exits of its own within HEALTHY_AFTER_S of the start, in a row
         self.cmd = cmd
         self.log_path = log_path
         self.backoff = backoff
@@ -374,10 +375,16 @@ class Child:
             self.died_at = now
             self.last_exit = rc
             self.fails_in_row += 1
-            if self.fails_in_row >= self.give_up_after:
+            # a start failure is an exit of its own (a setting, a missing file, a bad module) soon after the
+            # start; a process killed by a signal (kill -9, a fault drill) is restarted however often it happens
+            if rc >= 0 and now - self.started_at < HEALTHY_AFTER_S:
+                self.start_failures += 1
+            elif rc >= 0:
+                self.start_failures = 0
+            if self.start_failures >= self.give_up_after:
                 self.given_up = True
                 tail = "\n    ".join(self.last_lines()) or "(its log is empty)"
-                return (f"{self.name} failed {self.fails_in_row} times in a row on start (last exit code {rc}); "
+                return (f"{self.name} failed {self.start_failures} times in a row on start (last exit code {rc}); "
                         f"given up. Last lines of {self.log_path}:\n    {tail}")
             delay = self.backoff[min(self.fails_in_row - 1, len(self.backoff) - 1)]
             self.next_start = now + delay

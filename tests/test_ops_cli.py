@@ -404,3 +404,27 @@ def test_a_swap_standby_process_is_not_restarted_or_misnamed(tmp_path):
     ev = ch.check(time.monotonic())
     assert ev.startswith("dmc-broad-1-threshold exited with code 1"), ev
     assert ch.last_lines() == ["threshold: unknown setting(s) level"]
+
+
+def test_give_up_counts_own_exits_on_start_not_kills(tmp_path):
+    import signal
+
+    from magmesh.supervisor import Child, ProcessSpec
+
+    spec = ProcessSpec(name="p", module="services.ingest")
+    failing = Child(spec, [sys.executable, "-c", "import sys; sys.exit(3)"], tmp_path / "f.log", [0.0],
+                    give_up_after=2)
+    killed = Child(spec, [sys.executable, "-c", "import time; time.sleep(60)"], tmp_path / "k.log", [0.0],
+                   give_up_after=2)
+    for _ in range(4):
+        for ch in (failing, killed):
+            if ch.given_up:
+                continue
+            ch.start()
+            if ch is killed:
+                ch.stop(signal.SIGKILL)
+            ch.proc.wait(WAIT_S)
+            ch.check(time.monotonic())
+            ch.died_at = None  # the next start is immediate (the test starts it)
+    assert failing.given_up and failing.start_failures == 2
+    assert not killed.given_up and killed.start_failures == 0
