@@ -14,7 +14,8 @@ Thread model: the server runs its own asyncio loop on a thread; :meth:`FoxgloveS
 :meth:`FoxgloveServer.send` are called from any thread. A viewer must never slow the mesh down: each
 client has a bounded queue (``backlog`` messages); when a slow client's queue is full its oldest message
 is dropped and counted (``stats()["dropped_slow_client"]``) and the client is told once per second with a
-``status`` warning. A new subscription gets the channel's latest message at once (as a latched topic):
+``status`` warning; if the server's own loop falls behind the mesh, the oldest undispatched messages are
+dropped and counted too (``stats()["dropped_server_behind"]``). A new subscription gets the channel's latest message at once (as a latched topic):
 the first message of a channel that appears while a client is connected is sent before the client can
 subscribe to it, and an alarm must not be missed that way.
 """
@@ -71,6 +72,12 @@ class FoxgloveServer:
         self._next_id = 1
         self._clients: set[_Client] = set()
         self._last: dict[int, tuple[int, bytes]] = {}  # channel → its latest message, for new subscribers
+        # messages handed over by send() and not yet dispatched by the loop (bounded: the loop may fall behind)
+        self._inbox: deque = deque()
+        self._inbox_lock = threading.Lock()
+        self._drain_scheduled = False
+        self.inbox_max = 16 * int(backlog)
+        self.dropped_server = 0
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._started = threading.Event()
@@ -100,7 +107,7 @@ class FoxgloveServer:
 
     def stats(self) -> dict:
         return {"channels": len(self._channels), "clients": len(self._clients), "clients_seen": self.clients_seen,
-                "sent": self.sent, "dropped_slow_client": self.dropped}
+                "sent": self.sent, "dropped_slow_client": self.dropped, "dropped_server_behind": self.dropped_server}
 
     # ---- channels and data (any thread) --------------------------------------------------------
 
@@ -116,8 +123,25 @@ class FoxgloveServer:
         return cid
 
     def send(self, channel_id: int, log_time_ns: int, payload: bytes) -> None:
-        if self._loop is not None:
-            self._loop.call_soon_threadsafe(self._dispatch, channel_id, int(log_time_ns), payload)
+        if self._loop is None:
+            return
+        with self._inbox_lock:
+            if len(self._inbox) >= self.inbox_max:
+                self._inbox.popleft()
+                self.dropped_server += 1
+            self._inbox.append((channel_id, int(log_time_ns), payload))
+            if self._drain_scheduled:
+                return
+            self._drain_scheduled = True
+        self._loop.call_soon_threadsafe(self._drain)
+
+    def _drain(self) -> None:
+        with self._inbox_lock:
+            items = list(self._inbox)
+            self._inbox.clear()
+            self._drain_scheduled = False
+        for item in items:
+            self._dispatch(*item)
 
     # ---- loop side -----------------------------------------------------------------------------
 

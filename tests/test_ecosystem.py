@@ -222,6 +222,51 @@ def test_foxglove_live_channels_schemas_and_messages(tmp_path):
     assert "foxglove:" in out and "dropped for slow clients" in out
 
 
+def test_foxglove_server_counts_every_message_it_does_not_deliver():
+    """A client that does not keep up loses its oldest messages, each one counted; nothing vanishes silently."""
+    from magmesh.foxglove_ws import FoxgloveServer
+
+    server = FoxgloveServer(port=0, backlog=8).start()
+    n = 400
+    payload = b"x" * 20_000
+
+    async def run():
+        import websockets
+
+        async with websockets.connect(f"ws://127.0.0.1:{server.port}", subprotocols=["foxglove.websocket.v1"],
+                                      max_size=None) as ws:
+            cid = server.add_channel("/big", "big", json.dumps({"type": "object"}))
+            while True:
+                m = json.loads(await asyncio.wait_for(ws.recv(), 30))
+                if m["op"] == "advertise" and any(c["id"] == cid for c in m["channels"]):
+                    break
+            await ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 5, "channelId": cid}]}))
+            deadline = time.monotonic() + 30
+            while not any(c.subs for c in list(server._clients)):
+                assert time.monotonic() < deadline
+                await asyncio.sleep(0.05)
+            for i in range(n):
+                server.send(cid, i, payload)
+            data, warned = 0, False
+            while True:
+                st = server.stats()
+                if data + st["dropped_slow_client"] + st["dropped_server_behind"] == n:
+                    return data, warned, st
+                frame = await asyncio.wait_for(ws.recv(), 30)
+                if isinstance(frame, bytes):
+                    assert struct.unpack_from("<I", frame, 1)[0] == 5 and frame[13:] == payload
+                    data += 1
+                else:
+                    warned = warned or ("too slow" in json.loads(frame).get("message", ""))
+
+    try:
+        data, warned, st = asyncio.run(run())
+    finally:
+        server.stop()
+    assert st["dropped_slow_client"] > 0 and warned
+    assert data + st["dropped_slow_client"] + st["dropped_server_behind"] == n and data >= 1
+
+
 def test_foxglove_bad_flags_get_one_clear_paragraph(tmp_path):
     p = _spawn_cli("foxglove", "--origin", "car-1=north", "--port", str(mu.free_port()))
     out = p.communicate(timeout=60)[0].decode()

@@ -214,5 +214,5 @@ def _summary(bridge: FoxgloveBridge, server: FoxgloveServer) -> str:
     extra = "".join(f", {k}: {v}" for k, v in sorted(bridge.conv.skipped.items()))
     return (f"foxglove: {c['forwarded']} magmesh messages on {s['channels']} channels, "
             f"{s['sent']} frames sent to {s['clients']} client(s), {s['dropped_slow_client']} dropped for slow "
-            f"clients, {c['undecodable']} undecodable, {c['not a magmesh key']} outside the key contract{extra}")
+            f"clients, {s['dropped_server_behind']} dropped with the server behind, {c['undecodable']} undecodable, {c['not a magmesh key']} outside the key contract{extra}")
 
