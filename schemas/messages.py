@@ -451,8 +451,16 @@ def _check(f: Field, v: Any, where: str, mtype: str) -> Any:
 def validate(msg: Any, where: str = "", expected_type: str | None = None) -> dict:
     """Check a decoded message against the contract; return it (numbers normalised to float).
 
-    Raises :class:`SchemaError` naming the field and the problem.
+    Raises :class:`SchemaError` naming the field and the problem. Runs the compiled validator
+    (:func:`schemas.streams.fast_validate`); what it refuses goes through :func:`validate_reference`.
     """
+    from .streams import fast_validate
+
+    return fast_validate(msg, where, expected_type)
+
+
+def validate_reference(msg: Any, where: str = "", expected_type: str | None = None) -> dict:
+    """The reference validator (pure Python): the same result as :func:`validate`, with the error texts."""
     if not isinstance(msg, dict):
         raise SchemaError("<payload>", f"must be a msgpack map, got {type(msg).__name__}", where)
     for k in msg:
@@ -522,7 +530,7 @@ def decode_reference(payload: bytes | bytearray | memoryview, where: str = "", e
     except Exception as e:  # msgpack raises several exception types for bad bytes
         detail = str(e)[:80] or _MSGPACK_ERRORS.get(type(e).__name__, "malformed bytes")
         raise SchemaError("<payload>", f"is not valid msgpack ({type(e).__name__}: {detail})", where) from None
-    return validate(msg, where, expected_type)
+    return validate_reference(msg, where, expected_type)
 
 
 def peek_type(payload: bytes) -> str | None:

@@ -322,6 +322,25 @@ def fast_decode(payload: bytes, where: str = "", expected_type: str | None = Non
     return out
 
 
+def fast_validate(msg: Any, where: str = "", expected_type: str | None = None) -> dict:
+    """:func:`schemas.messages.validate` in compiled code (same result); the reference writes any error."""
+    try:
+        t = msg["type"] if type(msg) is dict else None
+        if expected_type is not None and t != expected_type:
+            raise ValueError
+        if any(type(k) is not str for k in msg):
+            raise ValueError
+        s = msgspec.convert(msg, struct_for(t), strict=True)
+    except Exception:
+        return messages.validate_reference(msg, where, expected_type)
+    out = dict(msg)
+    for name in s.__struct_fields__:
+        v = getattr(s, name)
+        if v is not msgspec.UNSET:
+            out[name] = v
+    return out
+
+
 def validation_error(e: Exception, where: str, msg_type: str | None) -> SchemaError:
     """A msgspec validation error as a :class:`SchemaError` naming the field."""
     text = str(e)
