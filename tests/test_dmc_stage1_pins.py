@@ -279,3 +279,176 @@ def test_single_compass_baseline_sees_compass_one_only():
     single.reset()
     ds = [single.update(float(t[i]), b1d[i], b2[i], P1_3D, P2_3D, DECL) for i in range(100)]
     assert all(d.failed == ("dm",) for d in ds)
+
+
+# ---- what an alarm says -----------------------------------------------------------------------------
+
+
+def test_alarm_description_names_the_failing_tests_worst_first_with_values():
+    # |Δm| 2000 nT (2× its threshold) and |Δh| 4° (1.33×): both named, Δm first, with value and threshold
+    det = core.ThresholdDetector(core.ThresholdDetectorSettings(
+        thresholds=TH, hysteresis=core.HysteresisSettings(raise_after_s=0.1, clear_after_s=0.2)))
+    assert det.flags == {"alarm_raised": False, "valid": False, "warming": True} and det.internal_states == {}
+    t = np.arange(100) / RATE_HZ
+    b1 = _reading(P1_3D, np.full(100, PSI), np.full(100, 1.0 + 2000.0 / B3_NT), np.full(100, BZ_NT))
+    b2 = _reading(P2_3D, np.full(100, PSI + math.radians(4.0)), np.ones(100), np.full(100, BZ_NT))
+    ds = [det.update(float(t[i]), b1[i], b2[i], P1_3D, P2_3D, DECL) for i in range(100)]
+    raised = [d for d in ds if d.transition == "raised"]
+    assert len(raised) == 1 and raised[0].t_s == pytest.approx(0.1, abs=1e-9)
+    d = raised[0]
+    assert d.failed == ("dm", "dh")
+    assert d.ratios["dm"] == pytest.approx(2.0, rel=1e-9) and d.ratios["dh"] == pytest.approx(4.0 / 3.0, rel=1e-9)
+    reason, value, thr, unit = det.describe(d)
+    assert (value, thr, unit) == (pytest.approx(2000.0, rel=1e-9), TH.dm_nt, "nT")
+    assert reason == ("Magnetic interference suspected: field-strength error |Δm| 2e+03 nT exceeds 1e+03 nT; "
+                      "relative heading difference |Δh| 4 deg exceeds 3 deg.")
+    assert det.flags == {"alarm_raised": True, "valid": False, "warming": False}
+    assert det.internal_states == {"ratios": ds[-1].ratios, "credibility": 0.0}
+    # the field comes back: cleared after clear_after_s, and the reason says so
+    b1c = _reading(P1_3D, np.full(100, PSI), np.ones(100), np.full(100, BZ_NT))
+    b2c = _reading(P2_3D, np.full(100, PSI), np.ones(100), np.full(100, BZ_NT))
+    ds = [det.update(2.0 + float(t[i]), b1c[i], b2c[i], P1_3D, P2_3D, DECL) for i in range(100)]
+    cleared = [d for d in ds if d.transition == "cleared"]
+    # the 2000 nT step back is itself a rate (dΔm) until the rate windows are past it: then clear_after_s more
+    assert len(cleared) == 1 and 2.0 + FS.history_s - 0.1 <= cleared[0].t_s <= 2.0 + FS.history_s + 0.2 + 1e-9
+    assert {d.failed for d in ds if not d.stage1_pass} == {("ddm",), ("ddm", "ddh")}  # the 4° step back too
+    assert det.describe(cleared[0]) == ("Magnetic heading is trustworthy again: every interference test passes.",
+                                        None, None, "")
+    assert det.flags["alarm_raised"] is False and det.internal_states["credibility"] == 1.0
+
+
+# ---- the rest of the core: batch edges, pairing, baseline, parameters, latch ------------------------
+
+
+def _ref_ready(t, sw, rw):
+    """Ready per the definition: smooth + rate of input seen, and a mean rate_window_s back exists."""
+    return np.array([t[i] - t[0] >= sw + rw - 1e-9 and any(t[k] <= t[i] - rw for k in range(i + 1))
+                     for i in range(len(t))])
+
+
+def test_batch_headings_default_declination_and_empty_input():
+    t = np.arange(60) / RATE_HZ
+    b1 = _reading(P1_3D, np.full(60, PSI), np.ones(60), np.full(60, BZ_NT))
+    b2 = _reading(P2_3D, np.full(60, PSI + 0.05), np.ones(60), np.full(60, BZ_NT))
+    f = core.features_batch(t, b1, b2, P1_3D, P2_3D, DECL)
+    np.testing.assert_allclose(f.heading_rad, PSI, atol=1e-9)
+    np.testing.assert_allclose(f.heading2_rad, PSI + 0.05, atol=1e-9)
+    f0 = core.features_batch(t, b1, b2, P1_3D, P2_3D)  # declination defaults to 0
+    np.testing.assert_allclose(f0.heading_rad, PSI - DECL, atol=1e-9)
+    e = core.features_batch(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), P1_3D, P2_3D)
+    assert len(e.t_s) == 0 and e.dm_nt.shape == (0, 2) and e.rates_ready.shape == (0,)
+
+
+def test_a_gap_of_exactly_max_gap_does_not_restart_the_windows():
+    # times in exact binary fractions: a step of 1.0 s is max_gap_s, not above it
+    s = FeatureSettings(smooth_window_s=0.25, rate_window_s=0.5, max_gap_s=1.0)
+    t = np.r_[np.arange(8) * 0.25, 1.75 + 1.0 + np.arange(8) * 0.25]
+    b = _reading(P1_3D, np.full(len(t), PSI), np.ones(len(t)), np.full(len(t), BZ_NT))
+    f = core.features_batch(t, b, b, P1_3D, P1_3D, DECL, s)
+    assert f.rates_ready[8], "a gap equal to max_gap_s must not restart the windows"
+    t2 = t.copy()
+    t2[8:] += 0.25  # now above it: restart
+    f2 = core.features_batch(t2, b, b, P1_3D, P1_3D, DECL, s)
+    assert not f2.rates_ready[8] and f2.rates_ready[11]
+    tr = core.FeatureTracker(s)
+    assert [bool(tr.update(float(ti), b[i], b[i], P1_3D, P1_3D, DECL).rates_ready[0]) for i, ti in enumerate(t2)] \
+        == list(f2.rates_ready)
+
+
+@pytest.mark.parametrize("sw,rw,dt", [(0.25, 0.5, 0.25), (0.001, 0.5, 0.3), (0.2, 0.5, 0.02)])
+def test_ready_boundary_batch_streaming_and_definition_agree(sw, rw, dt):
+    s = FeatureSettings(smooth_window_s=sw, rate_window_s=rw)
+    t = np.arange(12) * dt
+    b = _reading(P1_3D, np.full(12, PSI), np.ones(12), np.full(12, BZ_NT))
+    f = core.features_batch(t, b, b, P1_3D, P1_3D, DECL, s)
+    tr = core.FeatureTracker(s)
+    stream = [bool(tr.update(float(ti), b[i], b[i], P1_3D, P1_3D, DECL).rates_ready[0]) for i, ti in enumerate(t)]
+    np.testing.assert_array_equal(f.rates_ready, _ref_ready(t, sw, rw))
+    assert stream == list(f.rates_ready)
+
+
+def test_pairer_tolerance_drops_and_pending_limit():
+    with pytest.raises(ValueError):
+        core.Pairer(("1", "1"))
+    with pytest.raises(ValueError):
+        core.Pairer(("1",))
+    with pytest.raises(ValueError):
+        core.Pairer(("1", "2"), tolerance_s=-0.1)
+    exact = core.Pairer(("1", "2"), tolerance_s=0.0)  # zero tolerance: equal times only
+    assert exact.push("1", 1.0, [1, 0, 0]) == ([], 0)
+    pairs, d = exact.push("2", 1.0, [2, 0, 0])
+    assert d == 0 and len(pairs) == 1 and pairs[0][0] == 1.0
+    p = core.Pairer(("1", "2"), tolerance_s=0.25)
+    with pytest.raises(ValueError):
+        p.push("3", 0.0, [0, 0, 0])
+    assert p.push("1", 0.0, [1, 0, 0]) == ([], 0)
+    pairs, d = p.push("2", 0.25, [2, 0, 0])  # |Δt| = tolerance: still a pair, at the first sensor's time
+    assert d == 0 and [(pt, list(a), list(b)) for pt, a, b in pairs] == [(0.0, [1, 0, 0], [2, 0, 0])]
+    for ti in (1.0, 1.25, 1.5):
+        p.push("1", ti, [1, 0, 0])
+    pairs, d = p.push("2", 1.75, [2, 0, 0])  # 1.0 and 1.25 can never pair now; 1.5 is exactly in tolerance
+    assert d == 2 and len(pairs) == 1 and pairs[0][0] == 1.5
+    q = core.Pairer(("1", "2"), tolerance_s=0.01, max_pending=3)
+    assert [q.push("1", float(i), [0, 0, 0])[1] for i in range(3)] == [0, 0, 0]  # exactly max_pending held
+    assert q.push("1", 3.0, [0, 0, 0])[1] == 1 and len(q.pending["1"]) == 3
+    q.reset()
+    assert all(len(v) == 0 for v in q.pending.values())
+
+
+def test_single_compass_baseline_publishes_compass_one_features_only():
+    single = core.SingleCompassDetector()
+    t = np.arange(100) / RATE_HZ
+    ramp = 1.0 + (-900.0 + 1500.0 * t) / B3_NT
+    b1 = _reading(P1_3D, np.full(100, PSI), np.full(100, 1.0 + 1200.0 / B3_NT), np.full(100, BZ_NT))
+    b2 = _reading(P2_3D, np.full(100, PSI + 0.2), ramp, np.full(100, BZ_NT))
+    ds = [single.update(float(t[i]), b1[i], b2[i], P1_3D, P2_3D) for i in range(100)]  # default declination 0
+    d = ds[-1]
+    assert d.dm_nt == [pytest.approx(1200.0, abs=1e-6), 0.0] and d.ddm_nt_s[1] == 0.0
+    assert d.ratios == {"dm": pytest.approx(1.2, rel=1e-9), "ddm": pytest.approx(0.0, abs=1e-9)}
+    assert d.failed == ("dm",) and d.dh_rad == 0.0
+    assert d.heading_rad == pytest.approx(PSI - DECL, abs=1e-9)
+    # its rate test: compass 1 ramping at 1500 nT/s fails dΔm alone
+    single.reset()
+    b1r = _reading(P1_3D, np.full(60, PSI), ramp[:60], np.full(60, BZ_NT))
+    ds = [single.update(float(t[i]), b1r[i], b2[i], P1_3D, P2_3D, DECL) for i in range(60)]
+    assert ds[-1].failed == ("ddm",) and ds[-1].ratios["ddm"] == pytest.approx(1.5, rel=0.04)
+    r = core.single_compass_ratios(core.features_batch(t[:60], b1r, b1r, P1_3D, P1_3D, DECL), TH)
+    assert r.shape == (60, 2) and r[-1, 1] == pytest.approx(1.5, rel=0.04) and r[-1, 0] < 1.0
+
+
+def test_compass_params_radius_model_and_mapping():
+    eye = tuple(np.eye(3).ravel())
+    assert CompassParams((0, 0, 0), eye, 0.5).field_radius_nt == 0.5  # any positive radius
+    for bad in (0.0, -1.0, float("inf"), float("nan")):
+        with pytest.raises(ValueError):
+            CompassParams((0, 0, 0), eye, bad)
+    with pytest.raises(ValueError):
+        CompassParams((0, 0, 0), eye, 1.0, model="1d")
+    m = {"offset_nt": [1, 2, 3], "matrix": [[2, 0, 0], [0, 1, 0], [0, 0, 1]], "field_radius_nt": 40000}
+    p = CompassParams.from_mapping(m)
+    assert p.param_id == "manifest" and p.model == "3d" and p.matrix == (2.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0)
+    assert CompassParams.from_mapping({**m, "param_id": "1-arls-7"}).param_id == "1-arls-7"
+    assert CompassParams.from_mapping({**m, "param_id": "x"}, param_id="given").param_id == "given"
+
+
+def test_thresholds_scaled_and_latch_batch_and_state():
+    th = Thresholds(1000.0, 500.0, 3.0, 2.0).scaled(0.5)
+    assert (th.dm_nt, th.ddm_nt_s, th.dh_deg, th.ddh_deg_s) == (500.0, 250.0, 1.5, 1.0)
+    hs = core.HysteresisSettings(raise_after_s=0.3, clear_after_s=1.0)
+    t = np.arange(0, 6, 0.1)
+    valid = ~((t > 1.0) & (t < 3.0))
+    latch = core.AlarmLatch(hs)
+    looped = np.array([(latch.update(float(ti), bool(v)), latch.raised)[1] for ti, v in zip(t, valid, strict=True)])
+    np.testing.assert_array_equal(core.latch_batch(t, valid, hs), looped)
+    assert looped.any() and not looped[0] and not looped[-1]
+    st = latch.state()
+    assert st == {"raised": False, "raised_t_s": pytest.approx(1.4, abs=1e-9), "invalid_since": None,
+                  "valid_since": pytest.approx(3.0, abs=1e-9)}
+    latch.adopt(True, 7.5)
+    assert latch.raised and latch.raised_t_s == 7.5
+    latch.adopt(False, 9.0)
+    assert not latch.raised and latch.raised_t_s is None
+    det = core.ThresholdDetector()
+    det.update(0.0, [BH_NT, 0, BZ_NT], [BH_NT, 0, BZ_NT], P1_3D, P2_3D)
+    det.reset()
+    assert det.last is None and det.internal_states == {} and det.flags["warming"]

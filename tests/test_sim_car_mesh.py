@@ -99,7 +99,7 @@ def test_car_publisher_streams_every_message_in_order_and_paces_real_time():
             rows = got.get(key, [])
         assert len(rows) == 201
         wall = rows[-1][2] - rows[0][2]
-        assert 3.5 < wall < 8.0, wall  # paced: never faster; slower only under heavy load
+        assert wall > 3.5, wall  # paced: never faster than real time (slower is load, not checked)
     finally:
         for p in procs:
             _stop(p)
