@@ -23,8 +23,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     names = sorted(m.name for m in pkgutil.iter_modules(commands.__path__) if not m.name.startswith("_"))
     first = next((a for a in (argv or []) if not a.startswith("-")), None)
-    if argv is not None and first in names:
-        names = [first]
+    if argv is not None and first is not None and first.replace("-", "_") in names:
+        names = [first.replace("-", "_")]  # ros2-bridge lives in ros2_bridge.py
     for name in names:
         m = importlib.import_module(f"{commands.__name__}.{name}")
         if hasattr(m, "register"):
