@@ -196,6 +196,8 @@ def run(args: argparse.Namespace) -> int:
             last[0] = time.monotonic()
             print(_summary(bridge, server), flush=True)
 
+    where = ", ".join(args.connect or []) or (args.config or zconf.default_endpoint())
+    print(f"connecting to the mesh at {where} (waiting for its router if it is not up yet)", flush=True)
     try:
         with zenoh.open(conf) as session:
             for k, payload in _raised_alarms(session, exprs):

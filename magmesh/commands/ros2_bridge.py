@@ -161,6 +161,8 @@ def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     last = [time.monotonic()]
+    where = ", ".join(args.connect or []) or (args.config or zconf.default_endpoint())
+    print(f"connecting to the mesh at {where} (waiting for its router if it is not up yet)", flush=True)
     with zenoh.open(conf) as session:
         bridge = Ros2Bridge(session, args.domain_id, args.distro, args.node_name, args.namespace, args.stamp)
         print(f"ROS 2 bridge: node {args.namespace.rstrip('/')}/{args.node_name} in domain {args.domain_id} "
