@@ -610,12 +610,15 @@ class Supervisor:
         restarts = sum(c.restarts for c in list(self.children.values()))
         rate_in = sum(v.get("rate_hz", 0) for s in st.values() for v in s.get("in", {}).values())
         rejects = sum(s.get("rejects", 0) for s in st.values())
-        drops = sum(s.get("drops_total", 0) for s in st.values())
+        # lost (could not be delivered or recovered) leads; refusals and skips by design are apart from it
+        lost = sum(s.get("lost_total", 0) for s in st.values())
+        skipped = sum(s.get("skipped_total", 0) for s in st.values())
         with self.lock:
             raised = sorted(k.split("/", 1)[1] for k in self.raised)
         up = time.monotonic() - self.started
         return (f"magmesh up {up:6.0f}s | {alive}/{len(self.children)} processes, {len(st)} services answering"
-                f" | in {rate_in:7.0f} msg/s | rejects {rejects} drops {drops} | restarts {restarts}"
+                f" | lost {lost} | in {rate_in:7.0f} msg/s | rejected {rejects} skipped {skipped}"
+                f" | restarts {restarts}"
                 f" | alarms raised: {', '.join(raised) if raised else 'none'}")
 
     def run(self, duration_s: float | None = None) -> int:

@@ -78,7 +78,7 @@ def _fmt_rate(d) -> str:
 
 
 def render(result: dict) -> str:
-    rows = [("ROLE", "INSTANCE", "IMPL", "HOLDS", "UP s", "IN/s", "OUT/s", "REJECTS", "DROPS", "VEHICLES", "NOTE")]
+    rows = [("ROLE", "INSTANCE", "IMPL", "HOLDS", "UP s", "IN/s", "OUT/s", "LOST", "REJECTED/SKIPPED", "VEHICLES", "NOTE")]
     for s in result["services"]:
         st = s["status"]
         try:
@@ -108,7 +108,7 @@ def _row(s: dict, st: dict) -> tuple:
     vehicles = st.get("vehicles", [])
     return (s["role"], s["instance"], str(st.get("impl", "?")), "yes" if st.get("holds_role", True) else "no",
             f"{_num(st.get('uptime_s')):.0f}", _fmt_rate(st.get("in", {})), _fmt_rate(st.get("out", {})),
-            str(st.get("rejects", "?")), str(st.get("drops_total", "?")),
+            str(st.get("lost_total", "?")), f"{st.get('rejects', '?')}/{st.get('skipped_total', '?')}",
             ",".join(map(str, vehicles if isinstance(vehicles, list) else []))[:30], note[:80])
 
 
