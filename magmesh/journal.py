@@ -21,6 +21,8 @@ from pathlib import Path
 SLOTS = 8192  # keys per journal (in + out); a key beyond that is not journalled (counted in ``full``)
 _EMPTY = -(2**63)
 _FMT = struct.Struct("<q")
+#: slots 0..3: slot index of the input key being handled, its seq, outputs sent when it began, outputs sent
+_RESERVED = ("~slot", "~seq", "~sent_at_begin", "~sent")
 
 
 class Journal:
@@ -38,12 +40,18 @@ class Journal:
             raw = self.path.read_bytes()
         except (OSError, ValueError):
             return {}
-        out = {}
-        for i, name in enumerate(names if isinstance(names, list) else []):
+        out: dict = {}
+        names = names if isinstance(names, list) else []
+        for i, name in enumerate(names):
             if (i + 1) * 8 <= len(raw):
                 v = _FMT.unpack_from(raw, i * 8)[0]
-                if v != _EMPTY and isinstance(name, str):
+                if isinstance(name, str) and (v != _EMPTY or name == "~slot"):
                     out[name] = v
+        if names[:4] == list(_RESERVED):
+            out["~names"] = names
+        else:  # not a journal of this layout: nothing usable about a sample in progress
+            for k in _RESERVED:
+                out.pop(k, None)
         return out
 
     def open(self, previous: dict[str, int]) -> None:
@@ -58,8 +66,11 @@ class Journal:
             os.close(fd)
         self.slot = {}
         self._write_index([])
+        for k in _RESERVED:  # fixed slots 0..3: the sample in progress and the outputs sent
+            self.set(k, _EMPTY if k == "~slot" else 0)
         for k, v in list(previous.items())[:SLOTS]:
-            self.set(k, v)
+            if not k.startswith("~"):
+                self.set(k, v)
 
     def _write_index(self, names: list[str]) -> None:
         tmp = self.index_path.with_suffix(".tmp")
@@ -83,6 +94,37 @@ class Journal:
             _FMT.pack_into(mm, i * 8, int(value))
         except (ValueError, OSError):  # closed by a stop in progress: nothing left to account for
             return
+
+    def begin(self, key: str, seq: int, n_sent: int) -> None:
+        """A sample starts being handled: its key's slot, its seq, and the outputs sent so far."""
+        if key not in self.slot:
+            self.set(key, _EMPTY)  # a new key: known as not handled yet
+        mm = self.mm
+        i = self.slot.get(key)
+        if mm is None or i is None:
+            return
+        try:
+            _FMT.pack_into(mm, 8, int(seq))
+            _FMT.pack_into(mm, 16, int(n_sent))
+            _FMT.pack_into(mm, 0, i)
+        except (ValueError, OSError):
+            return
+
+    def sent(self, n_sent: int) -> None:
+        mm = self.mm
+        if mm is not None:
+            try:
+                _FMT.pack_into(mm, 24, int(n_sent))
+            except (ValueError, OSError):
+                return
+
+    def in_progress(self, previous: dict[str, int]) -> tuple[str | None, int]:
+        """(key, seq) of the sample a previous run was handling when it died (None when there is none)."""
+        slot = previous.get("~slot", _EMPTY)
+        names = previous.get("~names") or []
+        if slot == _EMPTY or not 0 <= slot < len(names):
+            return None, 0
+        return names[slot], previous.get("~seq", 0)
 
     def remove(self) -> None:
         """A clean stop: nothing to account for at the next start."""

@@ -378,6 +378,7 @@ class Runner:
         self.resumed_in: set[str] = set()  # input keys whose first gap after a restart is lost_during_restart
         self.resumed_from: dict | None = None  # what the journal of the run before a crash said
         self.clean_stop = False
+        self.n_sent = 0  # outputs sent by this process (the journal's witness of a sample handled when killed)
         self.alarm_declared: dict[str, str] = {}  # alarm key -> last state the service logic declared
         self.reconcile_at: float | None = None
         self.reconcile_pending: dict[str, str] = {}  # restored raised alarm key -> vehicle, not yet decided
@@ -475,8 +476,10 @@ class Runner:
         self._publisher(key).put(payload)
         self.seq[key] = seq
         self.count_out[key].n += 1
+        self.n_sent += 1
         if self.journal is not None:
             self.journal.set("o" + key, seq)
+            self.journal.sent(self.n_sent)
         if self.reconcile_pending and msg_type not in ("alarm", "reject"):
             self.out_since_start[vehicle] = self.out_since_start.get(vehicle, 0) + 1
         return msg
@@ -585,6 +588,12 @@ class Runner:
         try:
             self.journal = Journal(state_dir() / "journal" / f"{self.svc.role}.{self.svc.instance}.seq")
             prev = self.journal.load() if self.mode == "active" else {}
+            # the sample being handled when the process died: handled if any output went out after it began
+            # (a kill between its outputs and its journal entry must not count it as missed)
+            ikey, pseq = self.journal.in_progress(prev)
+            if ikey is not None and prev.get("~sent", 0) > prev.get("~sent_at_begin", 0):
+                prev[ikey] = max(prev.get(ikey, pseq), pseq)
+            prev = {k: v for k, v in prev.items() if not k.startswith("~")}
             self.journal.open(prev)
         except OSError as e:
             self.journal = None
@@ -601,6 +610,8 @@ class Runner:
                 self.in_seq[k[1:]] = int(v)
                 self.resumed_in.add(k[1:])
                 n_in += 1
+            elif k[:1] == "l":  # samples missed in earlier restarts of this run of the mesh
+                self.drops[k[1:]]["lost_during_restart"] = int(v)
         self.resumed_from = {"inputs": n_in, "outputs": n_out}
         self.svc.log.info("resumed after a crash: %d input and %d output seqs from the journal", n_in, n_out)
 
@@ -774,11 +785,11 @@ class Runner:
 
         A batch path calls this once per sample (or :meth:`check_input` then :meth:`dispatch`).
         """
-        if self.batch_in and key.endswith(_CLEAN_BATCH):
-            self.handle_batch(key, payload)
-            return
         self._cur_key, self._cur_rejected = key, False
         try:
+            if self.batch_in and key.endswith(_CLEAN_BATCH):
+                self.handle_batch(key, payload)
+                return
             got = self.check_input(key, payload)
             if got is not None:
                 self.dispatch(*got)
@@ -956,6 +967,8 @@ class Runner:
         """Hand one checked input to the service; an accepted sample then moves its stream's seq tracking."""
         svc = self.svc
         state = self.state_for(info.vehicle)
+        if self.journal is not None and isinstance(msg, dict):
+            self.journal.begin("i" + info.key, msg["seq"], self.n_sent)  # see resume_journal
         try:
             svc.on_message(info, msg, state)
         except SchemaError as e:
@@ -979,7 +992,12 @@ class Runner:
                 self.log_limited("seq-rebase", "seq of %s jumped from %d to %d: re-based, not counted as loss",
                                  key, last, sq)
             elif gap > 0:  # lost before it reached us (or while this instance was down): visible, not silent
-                self.drops[key]["lost_during_restart" if key in self.resumed_in else "upstream_gap"] += gap
+                if key in self.resumed_in:
+                    self.drops[key]["lost_during_restart"] += gap
+                    if self.journal is not None:  # the count survives the next crash too
+                        self.journal.set("l" + key, self.drops[key]["lost_during_restart"])
+                else:
+                    self.drops[key]["upstream_gap"] += gap
             elif gap < 0:
                 self.count_rebase("seq_back")  # a publisher that restarted its counter (or a repeat)
         self.in_seq[key] = sq

@@ -1,7 +1,12 @@
-"""Faults: services killed with SIGKILL at random moments while the car drives through interference.
+"""Faults: services killed with SIGKILL while the car drives through interference.
 
-The supervisor restarts each one with backoff; a restarted detector reloads its alarm state, so the alarm log
-seen by an outside subscriber never repeats, skips or strands a transition.
+The supervisor restarts each one with backoff. Checked from outside, on what the mesh carried:
+
+- every sample a restart made a stage miss is counted, exactly, by key (``lost_during_restart`` in the restarted
+  instance's status): each raw sample that never came out of ingest as a clean one, and each DMC epoch (a pair
+  of clean magnetometer samples) that never came out of the detector;
+- the alarm log never repeats, skips or strands a transition, and a restart of the detector while ``alarm/dmc``
+  is raised publishes no "cleared" of its own: the next transition is the detector's when the field is clean.
 """
 
 from __future__ import annotations
@@ -20,10 +25,30 @@ from schemas import keys
 
 pytestmark = pytest.mark.mesh
 
-TARGETS = [("dmc_detector", "dmc-1"), ("ingest", "ingest-1"), ("calibration", "calibration-1")]
+TARGETS = {"dmc-1": "dmc_detector", "ingest-1": "ingest", "calibration-1": "calibration"}
+RAW = [keys.raw_mag("car-1", "1"), keys.raw_mag("car-1", "2"), keys.raw_imu("car-1"), keys.raw_gnss("car-1")]
 
 
-def run_faults(tmp_path, n_kills: int, speed: float, duration_s: float, seed: int = 3) -> dict:
+def kill(client, inst: str) -> float:
+    """SIGKILL the running process of ``inst``; returns the time until it serves again (inf if it does not)."""
+    role = TARGETS[inst]
+    st = None
+    for _ in range(10):  # a kill is never skipped: the instance must be there to be killed
+        st = query_status(client, keys.svc_status(role, inst))
+        if st is not None:
+            break
+        time.sleep(0.5)
+    assert st is not None, f"{inst} did not answer status: cannot kill it"
+    os.kill(st["pid"], signal.SIGKILL)
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 2 and any(
+            r.ok for r in client.liveliness().get(keys.svc_token(role, inst), timeout=0.5)):
+        time.sleep(0.01)
+    ok = wait_alive(client, keys.svc_token(role, inst), 15)
+    return time.monotonic() - t0 if ok else float("inf")
+
+
+def run_faults(tmp_path, schedule: list[str], speed: float, duration_s: float, seed: int = 3) -> dict:
     port = free_port()
     sup = subprocess.Popen(
         [sys.executable, "-m", "magmesh", "up", str(REPO / "deploy" / "mesh.toml"), "--endpoint", endpoint(port),
@@ -35,55 +60,114 @@ def run_faults(tmp_path, n_kills: int, speed: float, duration_s: float, seed: in
     client = open_client(port)
     rng = np.random.default_rng(seed)
     recoveries = []
+    killed_while_raised = 0
     try:
         alarms = Collector(client, keys.alarm("car-1", "dmc"))
         truth = Collector(client, keys.truth("car-1", "pose"))
-        for role, inst in TARGETS:
+        data = Collector(client, "magmesh/car-1/**")
+        for inst, role in TARGETS.items():
             assert wait_alive(client, keys.svc_token(role, inst), 60), f"{inst} never came up"
-        for _ in range(n_kills):
-            time.sleep(float(rng.uniform(2.0, 5.0)))
-            role, inst = TARGETS[int(rng.integers(len(TARGETS)))]
-            st = query_status(client, keys.svc_status(role, inst))
-            if st is None:
-                continue
-            os.kill(st["pid"], signal.SIGKILL)
-            t0 = time.monotonic()
-            while time.monotonic() - t0 < 2 and any(
-                    r.ok for r in client.liveliness().get(keys.svc_token(role, inst), timeout=0.5)):
-                time.sleep(0.01)
-            ok = wait_alive(client, keys.svc_token(role, inst), 15)
-            recoveries.append((inst, time.monotonic() - t0 if ok else float("inf")))
+        for inst in schedule:
+            if inst == "dmc-1!":  # the detector, while alarm/dmc is raised
+                inst = "dmc-1"
+                assert alarms.wait_for(lambda k, m: True, 120), "alarm/dmc was never raised: no kill while raised"
+                deadline = time.monotonic() + 120
+                while alarms.items[-1][1]["state"] != "raised" and time.monotonic() < deadline:
+                    time.sleep(0.1)
+                assert alarms.items[-1][1]["state"] == "raised", "alarm/dmc not raised again: no kill while raised"
+                killed_while_raised += 1
+            else:
+                time.sleep(float(rng.uniform(2.0, 5.0)))
+            recoveries.append((inst, kill(client, inst)))
         assert truth.wait_for(lambda k, m: m["t_s"] >= duration_s - 1.0, 400), "the drive did not finish"
-        time.sleep(8.0)  # past the restored-alarm reconcile time
+        time.sleep(3.0)  # the last samples pass through
         raised_now = [r.ok for r in client.get(keys.alarms_all("car-1"), timeout=2.0) if r.ok is not None]
+        status = {inst: query_status(client, keys.svc_status(role, inst)) for inst, role in TARGETS.items()}
         sup_status = query_status(client, keys.svc_status("supervisor", "main"))
     finally:
         stop(sup, 10)
         client.close()
-    return dict(alarms=[m for _, m in alarms.items], recoveries=recoveries, raised_now=raised_now,
-                sup=sup_status)
+    return dict(alarms=[m for _, m in alarms.items], recoveries=recoveries, raised_now=raised_now, sup=sup_status,
+                status=status, data=list(data.items), killed_while_raised=killed_while_raised)
 
 
-def check(res: dict) -> None:
+def lost(st: dict, key: str) -> int:
+    return int(((st or {}).get("drops", {}).get(key) or {}).get("lost_during_restart", 0))
+
+
+def check_loss_accounted(res: dict, exact: bool) -> list[str]:
+    """Missing clean samples and dmc epochs against the restarted instances' counts."""
+    by_key: dict[str, list[dict]] = {}
+    for k, m in res["data"]:
+        if isinstance(m, dict):
+            by_key.setdefault(k, []).append(m)
+    lines = []
+    ing, det = res["status"]["ingest-1"], res["status"]["dmc-1"]
+    assert ing is not None and det is not None, "ingest or the detector did not answer at the end"
+    for raw in RAW:
+        clean_key = raw.replace("/raw/", "/clean/")
+        raws, cleans = by_key.get(raw, []), by_key.get(clean_key, [])
+        assert raws and cleans, f"no {raw} or {clean_key} seen"
+        seqs = [m["seq"] for m in raws]
+        assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), f"the test's own subscriber lost {raw} samples"
+        t_clean = {m["t_s"] for m in cleans}
+        start = min(t_clean)  # from when ingest was surely subscribed
+        missing = sum(1 for m in raws if m["t_s"] >= start and m["t_s"] not in t_clean)
+        rejected = sum(v for r, v in ((ing.get("drops") or {}).get(raw) or {}).items() if r.startswith("rejected"))
+        counted = lost(ing, raw)
+        lines.append(f"ingest {raw.split('/', 2)[2]}: {missing} raw samples missing on clean, "
+                     f"{counted} counted lost_during_restart, {rejected} rejected")
+        assert missing == counted + rejected, lines[-1]
+    c1 = {m["t_s"] for m in by_key[keys.clean_mag("car-1", "1")]}
+    c2 = {m["t_s"] for m in by_key[keys.clean_mag("car-1", "2")]}
+    dmc = by_key.get(keys.dmc("car-1"), [])
+    assert dmc, "no dmc epochs seen"
+    t_dmc = {m["t_s"] for m in dmc}
+    missing = sum(1 for t in (c1 & c2) if t >= min(t_dmc) and t not in t_dmc)
+    l1, l2 = lost(det, keys.clean_mag("car-1", "1")), lost(det, keys.clean_mag("car-1", "2"))
+    # one outage misses a run of epochs: both sensors' samples of it, and one more epoch when the kill came
+    # between the two samples of a pair; with several outages each adds its own
+    lines.append(f"dmc: {missing} epochs missing, detector counted lost_during_restart mag/1 {l1}, mag/2 {l2}")
+    if exact:
+        assert missing == max(l1, l2), lines[-1]
+    else:
+        assert max(l1, l2) <= missing <= l1 + l2, lines[-1]
+    return lines
+
+
+def check(res: dict, n_dmc_kills: int, n_ingest_kills: int) -> None:
     states = [m["state"] for m in res["alarms"]]
     seqs = [m["seq"] for m in res["alarms"]]
+    assert len(states) >= 2, f"too few alarm transitions to check anything: {states}"
     assert all(a != b for a, b in zip(states, states[1:], strict=False)), f"a transition repeated or went missing: {states}"
-    if seqs:
-        assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), f"alarm seq not contiguous: {seqs}"
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), f"alarm seq not contiguous: {seqs}"
+    restart_clears = [m for m in res["alarms"] if "restart" in m.get("reason", "")]
+    assert not restart_clears, f"a restart published a transition the condition did not cause: {restart_clears}"
+    assert res["killed_while_raised"] >= 1
     # the drive ends away from every source: nothing may stay stranded in the raised state
-    assert not states or states[-1] == "cleared", f"alarm stranded raised at the end: {res['alarms'][-1]}"
+    assert states[-1] == "cleared", f"alarm stranded raised at the end: {res['alarms'][-1]}"
+    assert not res["raised_now"], "a service still answers alarm/dmc as raised after the drive"
     rec = [t for _, t in res["recoveries"]]
-    assert rec and max(rec) <= 2.0, f"recovery times {res['recoveries']}"
-    restarts = sum(p["restarts"] for p in res["sup"]["processes"].values())
-    assert restarts >= len(rec)
-    print(f"\nfaults injected: {len(rec)} SIGKILLs; recovery (kill → serving) median {np.median(rec):.2f} s, "
-          f"max {max(rec):.2f} s; alarm transitions {len(states)}, lost 0, repeated 0")
+    assert all(np.isfinite(rec)), f"a killed instance did not come back: {res['recoveries']}"  # timed: reported only
+    restarts = {n: p["restarts"] for n, p in res["sup"]["processes"].items()}
+    for inst in TARGETS:
+        assert restarts[inst] == sum(1 for i, _ in res["recoveries"] if i == inst), (inst, restarts)
+    lines = check_loss_accounted(res, exact=n_dmc_kills <= 1 and n_ingest_kills <= 1)
+    print(f"\nfaults injected: {len(rec)} SIGKILLs ({res['killed_while_raised']} of the detector while alarm/dmc was "
+          f"raised); recovery (kill → serving) median {np.median(rec):.2f} s, max {max(rec):.2f} s; alarm "
+          f"transitions {len(states)}, lost 0, repeated 0, none from a restart")
+    for ln in lines:
+        print("  " + ln)
 
 
-def test_sigkill_storm_loses_no_alarm_transition(tmp_path):
-    check(run_faults(tmp_path, n_kills=6, speed=3.0, duration_s=130.0))
+def test_sigkill_loses_nothing_silently_and_clears_nothing_falsely(tmp_path):
+    schedule = ["dmc-1!", "ingest-1", "calibration-1"]
+    check(run_faults(tmp_path, schedule, speed=3.0, duration_s=130.0), 1, 1)
 
 
 @pytest.mark.slow
 def test_sigkill_storm_long(tmp_path):
-    check(run_faults(tmp_path, n_kills=40, speed=2.0, duration_s=300.0, seed=11))
+    rng = np.random.default_rng(11)
+    schedule = ["dmc-1!"] + [list(TARGETS)[int(i)] for i in rng.integers(len(TARGETS), size=30)]
+    check(run_faults(tmp_path, schedule, speed=2.0, duration_s=300.0, seed=11),
+          schedule.count("dmc-1") + 1, schedule.count("ingest-1"))

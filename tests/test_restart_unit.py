@@ -59,11 +59,15 @@ def test_journal_survives_a_kill_and_goes_with_a_clean_stop(tmp_path):
     for i in range(1000):
         j.set("ia", i)
     j.set("ob", 7)
+    j.begin("ia", 1000, 5)  # killed while handling input seq 1000, after 5 outputs, before any of its own
     # no close, no flush: a kill -9 leaves the page cache as it is
-    assert Journal(tmp_path / "x.seq").load() == {"ia": 999, "ob": 7}
+    got = Journal(tmp_path / "x.seq").load()
+    assert {k: v for k, v in got.items() if not k.startswith("~")} == {"ia": 999, "ob": 7}
+    assert j.in_progress(got) == ("ia", 1000) and got["~sent_at_begin"] == 5 and got["~sent"] == 0
     j2 = Journal(tmp_path / "x.seq")
-    j2.open(j2.load())  # a second crash right after the restart still knows the first one's values
-    assert Journal(tmp_path / "x.seq").load() == {"ia": 999, "ob": 7}
+    j2.open({k: v for k, v in j2.load().items() if not k.startswith("~")})  # a second crash right after
+    assert {k: v for k, v in Journal(tmp_path / "x.seq").load().items() if not k.startswith("~")} == \
+        {"ia": 999, "ob": 7}
     j2.remove()
     assert Journal(tmp_path / "x.seq").load() == {}
 
@@ -82,6 +86,11 @@ def test_restart_counts_what_it_missed_and_continues_its_seqs(tmp_path, monkeypa
     assert [m["seq"] for _, m in s2.out] == list(range(50, 60)), "output seq did not continue"
     _feed(r2, range(82, 83))  # a later gap is an ordinary upstream gap
     assert r2.drops[key]["upstream_gap"] == 2 and r2.drops[key]["lost_during_restart"] == 20
+    # killed again: the count of the first restart is carried on, the second adds to it
+    r2b, _ = _runner(tmp_path, monkeypatch)
+    _feed(r2b, range(90, 91))
+    assert r2b.drops[key]["lost_during_restart"] == 27
+    r2 = r2b
     # a clean stop: the next start is a fresh one
     r2.clean_stop = True
     r2.close()
@@ -89,6 +98,23 @@ def test_restart_counts_what_it_missed_and_continues_its_seqs(tmp_path, monkeypa
     _feed(r3, range(200, 201))
     assert r3.resumed_from is None and not r3.drops[key]
     assert [m["seq"] for _, m in s3.out] == [0]
+
+
+def test_a_kill_after_a_samples_outputs_does_not_count_it_missed(tmp_path, monkeypatch):
+    r, s = _runner(tmp_path, monkeypatch)
+    _feed(r, range(0, 10))
+    # killed inside the handling of input 10, after its output went out (its journal entry not written yet)
+    r.journal.begin("i" + keys.clean_mag("car-1", "1"), 10, r.n_sent)
+    r.n_sent += 1
+    r.journal.sent(r.n_sent)
+    r2, _ = _runner(tmp_path, monkeypatch)
+    _feed(r2, range(15, 16))
+    assert r2.drops[keys.clean_mag("car-1", "1")]["lost_during_restart"] == 4  # 11..14; 10 was handled
+    # killed inside the handling of input 16 before any of its outputs: 16 counts as missed
+    r2.journal.begin("i" + keys.clean_mag("car-1", "1"), 16, r2.n_sent)
+    r3, _ = _runner(tmp_path, monkeypatch)
+    _feed(r3, range(20, 21))
+    assert r3.drops[keys.clean_mag("car-1", "1")]["lost_during_restart"] == 4 + 4  # 16..19
 
 
 def test_restored_alarm_is_not_cleared_by_the_restart(tmp_path, monkeypatch):
