@@ -12,6 +12,7 @@ Publishers are reliable with blocking congestion control: the replay slows down 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import signal
@@ -79,7 +80,8 @@ def replay_to_mesh(
     summ = summarize(path)
     recorded_keys = [k for k in summ["keys"] if not k.startswith("magmesh/svc/")]
     total = sum(n for k, n in summ["keys"].items() if k in recorded_keys)
-    with zenoh.open(conf) as session:
+    # ``conf`` is a Zenoh configuration, or an open session (kept open: the caller closes it)
+    with (contextlib.nullcontext(conf) if isinstance(conf, zenoh.Session) else zenoh.open(conf)) as session:
         pubs: dict[str, object] = {}
 
         def publisher(key: str):
@@ -140,8 +142,10 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda s, f: stop.set())
     signal.signal(signal.SIGTERM, lambda s, f: stop.set())
-    stats = replay_to_mesh(zconf.config_from_args(args), args.input, rate, args.keys, remaps,
-                           args.wait_subscribers, stop, progress=not args.no_progress and sys.stderr.isatty(),
-                           start_s=args.start, end_s=args.end)
+    session = zconf.open_client(args, 10.0, "magmesh replay")  # bounded: nothing answering is an error
+    with session:
+        stats = replay_to_mesh(session, args.input, rate, args.keys, remaps,
+                               args.wait_subscribers, stop, progress=not args.no_progress and sys.stderr.isatty(),
+                               start_s=args.start, end_s=args.end)
     print(json.dumps(stats.as_dict()) if args.json else format_stats(stats))
     return 0

@@ -127,7 +127,8 @@ def run(args: argparse.Namespace) -> int:
         path = out / "run.mcap"
         paths = [path]
         print(f"recording the live mesh for {args.duration:g} s to {path} …", file=sys.stderr)
-        counts = record(zconf.config_from_args(args), path, args.keys or (), args.duration, stop=threading.Event())
+        with zconf.open_client(args, 10.0, "magmesh report --live") as session:  # bounded connection
+            counts = record(session, path, args.keys or (), args.duration, stop=threading.Event())
         print(format_counts(counts, path), file=sys.stderr)
     else:
         if not args.inputs:
