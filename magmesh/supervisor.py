@@ -444,7 +444,12 @@ class Supervisor:
             conf = zconf.build_config(config_file=self.m.zenoh_config)
         else:
             conf = zconf.build_config(mode="router", listen=[self.endpoint], connect=self.m.connect or None)
-        self.session = zenoh.open(conf)
+        try:
+            self.session = zenoh.open(conf)
+        except Exception as e:  # noqa: BLE001 - e.g. the endpoint is taken: one paragraph, not a traceback
+            detail = str(e).split(" at /", 1)[0]
+            raise UserError(f"magmesh up: cannot host the Zenoh endpoint {self.endpoint} ({detail}). Is another "
+                            f"mesh running there? Choose another with --endpoint (or [mesh] endpoint).", 1) from None
         self.token = self.session.liveliness().declare_token(keys.svc_token("supervisor", self.name))
         self.q_status = self.session.declare_queryable(keys.svc_status("supervisor", self.name),
                                                        zenoh.handlers.FifoChannel(16))

@@ -428,3 +428,12 @@ def test_give_up_counts_own_exits_on_start_not_kills(tmp_path):
             ch.died_at = None  # the next start is immediate (the test starts it)
     assert failing.given_up and failing.start_failures == 2
     assert not killed.given_up and killed.start_failures == 0
+
+
+def test_up_on_a_taken_endpoint_is_one_paragraph(router, tmp_path, capsys):
+    port, _ = router
+    rc, _, err = magmesh_inproc(capsys, "up", str(DEMO), "--endpoint", endpoint(port), "--only", "ingest-1",
+                                "--duration", "5", "--quiet", "--log-dir", str(tmp_path / "logs"))
+    assert rc == 1, err
+    msg = one_paragraph(err)
+    assert f"cannot host the Zenoh endpoint {endpoint(port)}" in msg and "--endpoint" in msg, msg
