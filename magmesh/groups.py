@@ -1,0 +1,54 @@
+"""Group membership maths: which live instance of a role owns which vehicle (pure, no Zenoh).
+
+The instances of a role that run as one group (``--group NAME``; the manifest's ``instances = N``) share the
+fleet: each vehicle belongs to exactly one live member, chosen by rendezvous (highest-random-weight) hashing.
+Every member computes the same owner from the same membership, without talking to the others, and a change of
+membership moves only the vehicles that must move: a joining member takes about ``1/N`` of the vehicles (only
+from the others, never between them), a leaving one gives away only its own.
+
+The weight of (vehicle, member) is the first 8 bytes of BLAKE2b over both names: stable across processes,
+hosts and Python versions (unlike ``hash()``, which is salted per process).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Iterable
+
+
+def weight(vehicle: str, member: str) -> int:
+    """The rendezvous weight of ``member`` for ``vehicle`` (64 bits, the same everywhere)."""
+    h = hashlib.blake2b(f"{vehicle}\x00{member}".encode(), digest_size=8)
+    return int.from_bytes(h.digest(), "big")
+
+
+def owner(vehicle: str, members: Iterable[str]) -> str | None:
+    """The member that owns ``vehicle`` (None when there is no member). Ties (never seen in 64 bits) go to the
+    smaller name, so the rule stays a function of the membership set alone."""
+    best = None
+    best_w = -1
+    for m in members:
+        w = weight(vehicle, m)
+        if w > best_w or (w == best_w and best is not None and m < best):
+            best, best_w = m, w
+    return best
+
+
+def assignment(vehicles: Iterable[str], members: Iterable[str]) -> dict[str, str | None]:
+    """``{vehicle: owner}`` for every vehicle."""
+    ms = sorted(set(members))
+    return {v: owner(v, ms) for v in vehicles}
+
+
+def by_member(assign: dict[str, str | None], members: Iterable[str] = ()) -> dict[str, list[str]]:
+    """The vehicles of each member (members without a vehicle listed too), sorted."""
+    out: dict[str, list[str]] = {m: [] for m in members}
+    for v, m in assign.items():
+        if m is not None:
+            out.setdefault(m, []).append(v)
+    return {m: sorted(vs) for m, vs in sorted(out.items())}
+
+
+def moved(before: dict[str, str | None], after: dict[str, str | None]) -> dict[str, tuple[str | None, str | None]]:
+    """The vehicles whose owner differs between two assignments: ``{vehicle: (old owner, new owner)}``."""
+    return {v: (before.get(v), o) for v, o in after.items() if before.get(v) != o}
