@@ -122,6 +122,12 @@ def matches_any(exprs: Sequence[str] | None, key: str) -> bool:
 # ---- writing ----------------------------------------------------------------------------------
 
 
+#: message types several publishers share a key for (each with its own seq): no seq-gap counting
+MULTI_PUBLISHER_TYPES = frozenset({"reject"})
+#: a seq jump larger than this is not counted as missed samples
+SEQ_GAP_MAX = 100_000
+
+
 @dataclass
 class RecordCounts:
     """What a recording saw, per key: every received sample is counted in exactly one bucket."""
@@ -130,6 +136,8 @@ class RecordCounts:
     unvalidated: Counter = field(default_factory=Counter)  # kept, but did not decode as a magmesh message
     skipped: Counter = field(default_factory=Counter)  # not written (e.g. delete samples), with reason keys
     liveliness: int = 0  # service appear/disappear events
+    #: samples never received: gaps in a key's seq (lost on the way, e.g. while the link reconnected)
+    missed: Counter = field(default_factory=Counter)
 
     @property
     def total(self) -> int:
@@ -144,6 +152,8 @@ class RecordCounts:
             "keys": len(set(self.written) | set(self.unvalidated)),
             "per_key": {k: int(v) for k, v in sorted((self.written + self.unvalidated).items())},
             "skipped_per_reason": {k: int(v) for k, v in sorted(self.skipped.items())},
+            "missed": int(sum(self.missed.values())),
+            "missed_per_key": {k: int(v) for k, v in sorted(self.missed.items())},
         }
 
 
@@ -168,6 +178,7 @@ class RecordingWriter:
         self.first_receive_ns: int | None = None
         self.last_receive_ns: int | None = None
         self._closed = False
+        self._last_seq: dict[str, int] = {}
 
     def _schema_id(self, msg_type: str) -> int:
         sid = self._schemas.get(msg_type)
@@ -213,6 +224,14 @@ class RecordingWriter:
         seq = int(msg["seq"]) % (2**32) if msg is not None else 0
         self._writer.add_message(cid, log_time=receive_ns, data=payload, publish_time=sample_time_ns(t_s),
                                  sequence=seq)
+        if msg is not None and msg_type not in MULTI_PUBLISHER_TYPES:
+            # a gap in seq: samples published that never arrived (counted, never silent); a jump back (a
+            # restarted publisher) or beyond SEQ_GAP_MAX (a forged seq) starts the count again
+            last = self._last_seq.get(key)
+            sq = int(msg["seq"])
+            if last is not None and last + 1 < sq <= last + SEQ_GAP_MAX:
+                self.counts.missed[key] += sq - last - 1
+            self._last_seq[key] = sq
         (self.counts.written if msg is not None else self.counts.unvalidated)[key] += 1
         if self.first_receive_ns is None:
             self.first_receive_ns = receive_ns

@@ -437,3 +437,20 @@ def test_up_on_a_taken_endpoint_is_one_paragraph(router, tmp_path, capsys):
     assert rc == 1, err
     msg = one_paragraph(err)
     assert f"cannot host the Zenoh endpoint {endpoint(port)}" in msg and "--endpoint" in msg, msg
+
+
+def test_recording_counts_samples_missed_in_transit(tmp_path):
+    from magmesh.recording import RecordingWriter
+
+    def imu(seq):
+        return messages.make("imu", "car-1", seq * 0.01, seq, gyro_rad_s=[0.0, 0.0, 0.0], accel_m_s2=[0.0, 0.0, 9.8])
+
+    with RecordingWriter(tmp_path / "r.mcap") as w:
+        for seq in (0, 1, 2, 5, 6, 0, 1, 10**9):  # a gap of 2; a restarted publisher; a forged jump
+            w.write_message(keys.raw_imu("car-1"), imu(seq))
+    c = w.counts.as_dict()
+    assert c["written"] == 8
+    assert c["missed"] == 2 and c["missed_per_key"] == {keys.raw_imu("car-1"): 2}, c
+    from magmesh.commands.record import format_counts
+
+    assert "MISSED in transit (gaps in seq, never received): 2" in format_counts(c, "r.mcap")

@@ -180,6 +180,9 @@ def format_counts(counts: dict, path: str | Path) -> str:
         lines.append(f"  kept but not valid magmesh messages: {counts['unvalidated']}")
     for reason, n in counts.get("skipped_per_reason", {}).items():
         lines.append(f"  not written ({reason}): {n}")
+    if counts.get("missed"):
+        lines.append(f"  MISSED in transit (gaps in seq, never received): {counts['missed']} on "
+                     + ", ".join(f"{k} {n}" for k, n in counts["missed_per_key"].items()))
     width = max((len(k) for k in counts["per_key"]), default=0)
     for k, n in counts["per_key"].items():
         lines.append(f"  {k:<{width}}  {n}")
