@@ -17,8 +17,8 @@ from ..errors import UserError
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("swap", help="swap the implementation serving a role, live, without losing an output",
                        description="Ask the supervisor to start IMPL for ROLE in standby beside the instance it "
-                       "replaces, warm it on live input, and hand the role over at an agreed cut-over time (see "
-                       "docs/operations.md). With one candidate instance no option is needed; with several, name "
+                       "replaces, warm it on live input, and hand the role over at an agreed cut-over time (README, "
+                       "Live swap). With one candidate instance no option is needed; with several, name "
                        "one with --instance or --vehicles. An instance whose manifest settings IMPL does not know "
                        "(for example the quasi-static detector's level) is not a candidate unless named, and "
                        "then the swap is refused with the settings listed.")
