@@ -171,3 +171,42 @@ def test_sigkill_storm_long(tmp_path):
     schedule = ["dmc-1!"] + [list(TARGETS)[int(i)] for i in rng.integers(len(TARGETS), size=30)]
     check(run_faults(tmp_path, schedule, speed=2.0, duration_s=300.0, seed=11),
           schedule.count("dmc-1") + 1, schedule.count("ingest-1"))
+
+
+@pytest.mark.slow
+def test_restart_keeps_the_survey_match_alarm_while_the_divergence_persists(tmp_path):
+    """kill -9 of the geomagnetic matcher while survey-1's match alarm is raised: it stays raised (restored and
+    taken over by the restarted matcher's latch); a clear, if one comes, is the matcher's own with the
+    divergence under its clear level (0.8 × the alarm level)."""
+    port = free_port()
+    sup = subprocess.Popen(
+        [sys.executable, "-m", "magmesh", "up", str(REPO / "deploy" / "mesh.toml"), "--endpoint", endpoint(port),
+         "--only", "sim-survey-1,ingest-1,geomag-1", "--duration", "400", "--log-dir", str(tmp_path / "logs"),
+         "--quiet"], cwd=REPO, stdout=open(tmp_path / "up.log", "ab"), stderr=subprocess.STDOUT,
+        start_new_session=True, env={**os.environ, "MAGMESH_STATE_DIR": str(tmp_path / "state")})
+    client = open_client(port)
+    key = keys.alarm("survey-1", "match")
+    try:
+        alarms = Collector(client, key)
+        fixes = Collector(client, keys.fix_geomag("survey-1"))
+        assert alarms.wait_for(lambda k, m: m["state"] == "raised", 180), "survey-1's match alarm never raised"
+        n_before = len(alarms.items)
+        TARGETS["geomag-1"] = "geomag_matcher"
+        try:
+            rec = kill(client, "geomag-1")
+        finally:
+            del TARGETS["geomag-1"]
+        assert np.isfinite(rec), "the matcher did not come back"
+        raised = [r.ok for r in client.get(key, timeout=2.0) if r.ok is not None]
+        assert raised, "the restarted matcher does not hold the restored alarm"
+        n_fix = len(fixes.items)
+        assert fixes.wait_for(lambda k, m: fixes.items.index((k, m)) >= n_fix + 10, 120), "no fixes after restart"
+        after = [m for _, m in alarms.items[n_before:]]
+    finally:
+        stop(sup, 10)
+        client.close()
+    assert not [m for m in after if "restart" in m.get("reason", "")], f"a restart cleared the alarm: {after}"
+    for m in after:
+        assert m["state"] == "cleared" and m["value"] < 0.8 * m["threshold"], f"not the condition going: {m}"
+    print(f"\nmatch alarm across a matcher restart: {len(after)} transitions in 10 fixes after it "
+          f"({', '.join(m['state'] for m in after) or 'none: still raised'})")
