@@ -1,0 +1,212 @@
+"""Mutation testing of the pure cores: ``python -m bench.mutation [CORE ...]``.
+
+Each core is mutated by ``mutmut`` (plausible one-line bugs: a flipped comparison, ``min`` for ``max``, a
+changed constant, a dropped argument, ...) and every mutant is run against **that core's own test files
+only**, so the score says how firmly those tests hold the method, not whether some far-away end-to-end
+test happens to notice. A mutant is *killed* when a test fails (or it hangs past mutmut's timeout); it
+*survives* when they all pass; *no tests* means no selected test even runs the mutated function. The score
+is killed / (killed + survived + no tests): code no test reaches counts against the core.
+
+Not mutated (``do_not_mutate_patterns``): the text of error messages and log lines — a reworded message is
+not a wrong result. Everything else in the file is.
+
+The run works in a scratch copy of the repository (``--workdir``, default a new temporary directory) with
+its own ``pyproject.toml`` ``[tool.mutmut]`` section per core, so the tree itself is never touched. It is
+slow (minutes per core on 2 cores) and is not part of the test suite. ``--survivors`` prints the diff of
+every surviving mutant. Exit status 0 when every core reached ``--goal`` (default 90 %), 1 when not,
+2 on a usage error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+@dataclass(frozen=True)
+class Core:
+    source: str
+    tests: tuple[str, ...]
+
+
+#: each pure core and its own test files
+CORES: dict[str, Core] = {
+    "dmc_core": Core("services/dmc_detector/core.py", ("tests/test_dmc_core.py", "tests/test_dmc_stage1_pins.py")),
+    "dmc_fcm": Core("services/dmc_detector/fcm.py", ("tests/test_dmc_fcm.py",)),
+    "arls": Core("services/calibration/arls.py",
+                 ("tests/test_calibration_core.py", "tests/test_calibration_arls_pins.py")),
+    "two_step": Core("services/calibration/two_step.py",
+                     ("tests/test_calibration_core.py", "tests/test_calibration_arls_pins.py")),
+    "online_ekf": Core("services/calibration/online_ekf.py", ("tests/test_calibration_core.py",)),
+    "heading_core": Core("services/heading_fuser/core.py", ("tests/test_heading_core.py", "tests/test_heading_pins.py")),
+    "geomag_core": Core("services/geomag_matcher/core.py", ("tests/test_geomag_core.py",)),
+    "track_core": Core("services/track_monitor/core.py", ("tests/test_track_core.py",)),
+}
+
+#: lines whose mutation would only change a message's wording
+DO_NOT_MUTATE_PATTERNS = (
+    r"^\s*raise \w+(Error|Exception)\(",
+    r"\blog\.(debug|info|warning|error|exception)\(",
+    r"^\s*(f?\"|f?')[^\"']*(\"|')\s*$",  # continuation lines of a message
+)
+
+STATUS_KEYS = ("killed", "timeout", "survived", "no tests", "suspicious", "skipped", "not checked", "segfault",
+               "caught by type check")
+
+
+def _copy_tree(dst: Path) -> None:
+    """Tracked files of the repository (plus the working-tree versions), data linked rather than copied."""
+    try:
+        files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard"], cwd=REPO, check=True,
+                               capture_output=True, text=True).stdout.splitlines()
+    except (OSError, subprocess.CalledProcessError):
+        files = [str(p.relative_to(REPO)) for p in REPO.rglob("*") if p.is_file()
+                 and not any(part in (".git", ".venv", "mutants") for part in p.relative_to(REPO).parts)]
+    for rel in files:
+        if rel.startswith(("data/", ".venv/", "mutants/")):
+            continue
+        src = REPO / rel
+        if not src.is_file():
+            continue
+        out = dst / rel
+        out.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(src, out)
+    if (REPO / "data").exists():
+        (dst / "data").symlink_to(REPO / "data")
+
+
+def _toml_list(items) -> str:
+    return "[" + ", ".join(json.dumps(x) for x in items) + "]"
+
+
+def _write_config(work: Path, core: Core) -> None:
+    py = work / "pyproject.toml"
+    text = py.read_text()
+    text = re.sub(r"(?ms)^\[tool\.mutmut\].*?(?=^\[|\Z)", "", text)
+    top = core.source.split("/")[0]
+    text += (
+        "\n[tool.mutmut]\n"
+        f"source_paths = {_toml_list([top])}\n"
+        f"only_mutate = {_toml_list([core.source])}\n"
+        f"pytest_add_cli_args_test_selection = {_toml_list(core.tests)}\n"
+        'pytest_add_cli_args = ["-p", "no:randomly", "-q", "-x", "-m", "not slow"]\n'
+        f"do_not_mutate_patterns = {_toml_list(DO_NOT_MUTATE_PATTERNS)}\n"
+    )
+    py.write_text(text)
+
+
+def _mutmut(work: Path, *args: str, timeout_s: float | None = None) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONUNBUFFERED="1", OPENBLAS_NUM_THREADS="1", MAGMESH_STATE_DIR=str(work / "state"))
+    return subprocess.run([sys.executable, "-m", "mutmut", *args], cwd=work, env=env, capture_output=True,
+                          text=True, timeout=timeout_s)
+
+
+def run_core(name: str, work_root: Path, max_children: int, survivors: bool, log=print) -> dict:
+    core = CORES[name]
+    work = work_root / name
+    if work.exists():
+        shutil.rmtree(work)
+    work.mkdir(parents=True)
+    _copy_tree(work)
+    _write_config(work, core)
+    t0 = time.monotonic()
+    run = _mutmut(work, "run", "--max-children", str(max_children))
+    res = _mutmut(work, "results", "--all", "true")
+    counts = dict.fromkeys(STATUS_KEYS, 0)
+    names: dict[str, list[str]] = {}
+    for line in res.stdout.splitlines():
+        if ":" not in line:
+            continue
+        mutant, _, status = line.strip().rpartition(": ")
+        if status in counts:
+            counts[status] += 1
+            names.setdefault(status, []).append(mutant)
+    total = sum(counts.values())
+    if total == 0:
+        tail = (run.stdout + run.stderr)[-3000:]
+        raise RuntimeError(f"mutmut found no mutants for {core.source} (exit {run.returncode}):\n{tail}")
+    detected = counts["killed"] + counts["timeout"] + counts["caught by type check"] + counts["segfault"]
+    scored = detected + counts["survived"] + counts["no tests"]
+    out = {"core": name, "source": core.source, "tests": list(core.tests), "mutants": total,
+           "killed": detected, "survived": counts["survived"], "no_tests": counts["no tests"],
+           "other": total - scored, "score_pct": round(100.0 * detected / scored, 1) if scored else None,
+           "duration_s": round(time.monotonic() - t0, 1), "survivor_names": names.get("survived", []),
+           "no_test_names": names.get("no tests", [])}
+    if survivors:
+        for m in names.get("survived", []) + names.get("no tests", []):
+            log(_mutmut(work, "show", m).stdout)
+    return out
+
+
+def _table(rows: list[dict]) -> str:
+    lines = ["| core | file | mutants | killed | survived | no tests | score |", "| --- | --- | --- | --- | --- | --- | --- |"]
+    for r in rows:
+        lines.append(f"| {r['core']} | {r['source']} | {r['mutants']} | {r['killed']} | {r['survived']} | "
+                     f"{r['no_tests']} | {r['score_pct']} % |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m bench.mutation", description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 epilog="cores: " + ", ".join(f"{k} ({v.source})" for k, v in CORES.items()))
+    ap.add_argument("cores", nargs="*", metavar="CORE", help="cores to mutate (default: all)")
+    ap.add_argument("--max-children", type=int, default=os.cpu_count() or 2, help="parallel mutant runs")
+    ap.add_argument("--workdir", type=Path, help="scratch directory (default: a new temporary one, removed after)")
+    ap.add_argument("--goal", type=float, default=90.0, help="score each core must reach, %% (default 90)")
+    ap.add_argument("--survivors", action="store_true", help="print the diff of each surviving mutant")
+    ap.add_argument("--json", type=Path, help="also write the results as JSON here")
+    a = ap.parse_args(argv)
+    unknown = [c for c in a.cores if c not in CORES]
+    if unknown:
+        print(f"unknown core(s) {', '.join(unknown)}; choose from {', '.join(CORES)}.", file=sys.stderr)
+        return 2
+    try:
+        import mutmut  # noqa: F401
+    except ImportError:
+        print("mutmut is not installed: pip install -e '.[dev]' installs it.", file=sys.stderr)
+        return 2
+    names = a.cores or list(CORES)
+    tmp = None
+    if a.workdir is None:
+        tmp = tempfile.mkdtemp(prefix="magmesh-mutation-")
+        work_root = Path(tmp)
+    else:
+        work_root = a.workdir
+        work_root.mkdir(parents=True, exist_ok=True)
+    rows = []
+    try:
+        for n in names:
+            print(f"mutating {CORES[n].source} against {', '.join(CORES[n].tests)} ...", flush=True)
+            r = run_core(n, work_root, a.max_children, a.survivors)
+            rows.append(r)
+            print(f"  {n}: {r['killed']} of {r['killed'] + r['survived'] + r['no_tests']} killed "
+                  f"({r['score_pct']} %), {r['survived']} survived, {r['no_tests']} without a test, "
+                  f"{r['duration_s']:.0f} s", flush=True)
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+    print()
+    print(_table(rows))
+    if a.json:
+        a.json.write_text(json.dumps(rows, indent=1))
+    below = [r["core"] for r in rows if r["score_pct"] is None or r["score_pct"] < a.goal]
+    if below:
+        print(f"\nbelow the {a.goal:g} % goal: {', '.join(below)}")
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
