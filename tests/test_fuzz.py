@@ -5,7 +5,10 @@ stub Zenoh session whose publishers record what they are given. The inputs are g
 the message contract (``schemas.messages.MESSAGES``) and then spoiled: garbage bytes, truncated msgpack,
 trailing bytes, non-map payloads, deep nesting, wrong field types, NaN/Inf, missing fields, huge arrays and
 strings, wrong and odd versions, wrong message types, unknown fields, non-string field names, keys with odd
-vehicle ids, vehicle/sensor mismatches between key and payload, time going backwards, duplicates and jumps.
+vehicle ids, vehicle/sensor mismatches between key and payload, time going backwards, duplicates and jumps —
+and the key space: service keys (``magmesh/svc/raw/imu``), reserved names, unicode, over-long and empty chunks,
+wildcard characters, wrong kinds and sensor ids (``odd_key``), and oversized unknown fields. A live-mesh test
+puts the odd-key space and spoiled payloads, fast, on real processes; a churn test shows ingest's memory flat.
 
 What is checked for every input:
 
@@ -865,3 +868,110 @@ class capsys_disabled:  # noqa: N801 - printing the live figures without a capsy
 
     def __exit__(self, *exc):
         return False
+
+
+# ---- memory under a churn of made-up vehicles ---------------------------------------------------------------
+
+
+def _rss_kb(pid: int) -> int:
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+    raise AssertionError("no VmRSS")
+
+
+def _churn(n_vehicles: int, n_samples: int, tmp_path, capsys) -> None:
+    """Ingest (a real process) gets ``n_samples`` valid IMU samples for ``n_vehicles`` made-up vehicles, twice over
+    (a warm-up batch, then new names); once they are quiet and evicted, its RSS is within 10 % of the warm level."""
+    import subprocess
+    import sys
+
+    from meshutil import REPO, endpoint, free_port, open_client, query_status, spawn, stop, wait_alive
+
+    from schemas import make
+
+    port = free_port()
+    router = subprocess.Popen([sys.executable, "-m", "magmesh", "router", "--listen", endpoint(port), "--name",
+                               "churn"], cwd=REPO, stdout=open(tmp_path / "router.log", "ab"),
+                              stderr=subprocess.STDOUT, start_new_session=True)
+    proc = spawn("services.ingest", port, "--instance", "ingest-churn", "--set", "evict_idle_s=2",
+                 log_path=tmp_path / "ingest.log", env={"MAGMESH_STATE_DIR": str(tmp_path / "state")})
+    client = open_client(port)
+    status_key = keys.svc_status("ingest", "ingest-churn")
+    per = n_samples // n_vehicles
+
+    import zenoh
+
+    sent = [0]
+
+    def batch(prefix: str) -> None:
+        for v in range(n_vehicles):  # each vehicle's samples together, then it goes quiet
+            if v % 100 == 0:  # paced to what ingest has taken (until it has all, or takes nothing more for 1 s)
+                deadline = time.monotonic() + 20
+                last, since = -1, time.monotonic()
+                while time.monotonic() < deadline and time.monotonic() - since < 1.0:
+                    st = query_status(client, status_key, 5)
+                    if st and st["in_total"] >= sent[0]:
+                        break
+                    if st and st["in_total"] != last:
+                        last, since = st["in_total"], time.monotonic()
+                    time.sleep(0.05)
+            sent[0] += per
+            vid = f"{prefix}-{v}"
+            for i in range(per):
+                client.put(keys.raw_imu(vid), msgpack.packb(make("imu", vid, 1.0 + 0.01 * i, i, gyro_rad_s=[0.0, 0.0,
+                           0.01], accel_m_s2=[0.0, 0.0, 9.8]), use_bin_type=True),
+                           congestion_control=zenoh.CongestionControl.BLOCK)  # loss here is not what is measured
+
+    def quiet_and_evicted(n_sent: int) -> dict:
+        """Wait until ingest has taken what arrived (its input count stable) and freed every vehicle."""
+        deadline = time.monotonic() + 120
+        last, stable_since, st = -1, time.monotonic(), None
+        while time.monotonic() < deadline:
+            st = query_status(client, status_key, 5) or st
+            if st and st["in_total"] != last:
+                last, stable_since = st["in_total"], time.monotonic()
+            if st and time.monotonic() - stable_since > 3.0 and st["vehicles_total"] == 0 and st["out_keys"] == 0:
+                break
+            time.sleep(0.5)
+        else:
+            raise AssertionError(f"ingest did not free the batch: {st and {k: st[k] for k in ('in_total', 'evicted', 'vehicles_total', 'out_keys')}}")
+        # puts on thousands of brand-new keys from one client are not all delivered even paced (seen: 7 % of
+        # 20,000 missing); the memory figure is about what arrived, and most of it must arrive
+        assert st["in_total"] >= 0.8 * n_sent, f"only {st['in_total']} of {n_sent} samples reached ingest"
+        return st
+
+    try:
+        assert wait_alive(client, keys.svc_token("ingest", "ingest-churn"), 60), "ingest never came up"
+        rss0 = _rss_kb(proc.pid)
+        batch("warm")
+        quiet_and_evicted(n_samples)
+        rss_warm = _rss_kb(proc.pid)
+        batch("churn")
+        st = quiet_and_evicted(2 * n_samples)
+        rss_after = _rss_kb(proc.pid)
+        with capsys.disabled():
+            print(f"\n---- churn: {n_samples} samples for {n_vehicles} made-up vehicles, twice: ingest RSS "
+                  f"{rss0 / 1024:.1f} MB before, {rss_warm / 1024:.1f} MB after the warm-up batch was evicted, "
+                  f"{rss_after / 1024:.1f} MB after the second ({(rss_after / rss_warm - 1) * 100:+.1f} %); "
+                  f"evicted {st['evicted']}; samples that reached ingest {st['in_total']} of {2 * n_samples} put, "
+                  f"lost (seq gaps) {st['lost_total']}")
+        assert st["lost_total"] == 0 and st["rejected_total"] == 0
+        assert rss_after <= 1.10 * rss_warm, (rss0, rss_warm, rss_after)
+        assert proc.poll() is None
+    finally:
+        stop(proc, 10)
+        client.close()
+        stop(router, 10)
+
+
+@pytest.mark.mesh
+def test_memory_flat_under_vehicle_churn_quick(tmp_path, capsys):
+    _churn(200, 2000, tmp_path, capsys)
+
+
+@pytest.mark.slow
+@pytest.mark.mesh
+def test_memory_flat_under_vehicle_churn_20k(tmp_path, capsys):
+    _churn(2000, 20_000, tmp_path, capsys)
