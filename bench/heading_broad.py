@@ -143,29 +143,12 @@ def broad_settings(**overrides) -> Settings:
     magnetometer whose field direction wanders by several degrees with motion even when undisturbed
     (measured with the optical attitude: dip 61–76° for 5–95 % of the fast trial), so the field
     checks are wider and the magnetometer trusted less than on a car."""
-    base = dict(
-        gyro_noise_rad_s_rt_hz=0.002,
-        gyro_bias_walk_rad_s2_rt_hz=1e-4,
-        gyro_bias_init_std_rad_s=0.005,
-        init_duration_s=1.0,
-        accel_noise_m_s2=0.4,
-        accel_noise_per_rate_m_s2_per_rad_s=1.0,
-        accel_rejection_m_s2=3.0,
-        accel_update_period_s=0.02,
-        mag_noise_nt=3000.0,
-        mag_update_period_s=0.02,
-        quasi_static_var_nt2=4e6,
-        quasi_static_dip_var_rad2=0.003,
-        quasi_static_heading_rad=0.1,
-        field_strength_tol_frac=0.05,
-        field_dip_tol_rad=0.12,
-        recovery_slew_rad_s=0.035,
-        rejection_timeout_s=20.0,
-        recovery_exit_rad=0.1,
-        disturbed_noise_gain=30.0,
-        hard_iron_tracking=True,
-        hard_iron_noise_gain=2.0,
-    )
+    # the imu_only profile without the three things it adds (inertial-frame gravity low-pass, rest detection,
+    # online lag estimate): the settings this eval used before that profile existed
+    from services.heading_fuser import profiles
+
+    base = dict(profiles.values(profiles.IMU_ONLY), gravity_lpf_tau_s=0.0, rest_detection=False,
+                mag_delay_online=False)
     base.update(overrides)
     return Settings(**base)
 

@@ -1407,6 +1407,25 @@ def _program_name(cls: type[Service]) -> str:
     return f"python -m {cls.__module__.rsplit('.', 1)[0]}"
 
 
+def pop_impl_arg(argv: list[str], role: str, implementations: dict, default: str) -> tuple[str, list[str]]:
+    """Take ``--impl NAME`` / ``--impl=NAME`` out of a role's argv (the last one wins: a swap appends its own);
+    an unknown name exits with the known ones."""
+    impl, rest, i = default, [], 0
+    while i < len(argv):
+        a = argv[i]
+        if a == "--impl" and i + 1 < len(argv):
+            impl, i = argv[i + 1], i + 2
+            continue
+        if a.startswith("--impl="):
+            impl = a.split("=", 1)[1]
+        else:
+            rest.append(a)
+        i += 1
+    if impl not in implementations:
+        raise SystemExit(f"{role}: unknown --impl {impl!r}; known: {', '.join(implementations)}")
+    return impl, rest
+
+
 def make_parser(cls: type[Service], implementations: dict[str, type] | None = None) -> argparse.ArgumentParser:
     """The command line of a service. ``implementations`` (name -> class) adds ``--impl`` for a role with
     several (the chosen one's settings are listed)."""

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from magmesh import runtime
 from schemas import keys
 from services.physical import refuse_unphysical
 
@@ -198,18 +199,5 @@ __all__ = ["IMPLEMENTATIONS", "DEFAULT_IMPL", "Settings", "pop_impl_arg"]
 
 
 def pop_impl_arg(argv: list[str]) -> tuple[str, list[str]]:
-    """Take ``--impl NAME`` / ``--impl=NAME`` out of argv; unknown names exit with the known ones."""
-    impl, rest, i = DEFAULT_IMPL, [], 0
-    while i < len(argv):
-        a = argv[i]
-        if a == "--impl" and i + 1 < len(argv):
-            impl, i = argv[i + 1], i + 2
-            continue
-        if a.startswith("--impl="):
-            impl = a.split("=", 1)[1]
-        else:
-            rest.append(a)
-        i += 1
-    if impl not in IMPLEMENTATIONS:
-        raise SystemExit(f"dmc_detector: unknown --impl {impl!r}; known: {', '.join(IMPLEMENTATIONS)}")
-    return impl, rest
+    """Take ``--impl NAME`` / ``--impl=NAME`` out of argv; an unknown name exits with the known ones."""
+    return runtime.pop_impl_arg(argv, "dmc_detector", IMPLEMENTATIONS, DEFAULT_IMPL)

@@ -9,6 +9,8 @@ vqf`` changes one for the other in a running mesh.
 
 from __future__ import annotations
 
+from magmesh import runtime
+
 from .service import HeadingFuser
 from .vqf_impl import VqfHeadingFuser
 
@@ -18,17 +20,4 @@ DEFAULT_IMPL = "ekf"
 
 def pop_impl_arg(argv: list[str]) -> tuple[str, list[str]]:
     """Take ``--impl NAME`` / ``--impl=NAME`` out of argv; an unknown name exits with the known ones."""
-    impl, rest, i = DEFAULT_IMPL, [], 0
-    while i < len(argv):
-        a = argv[i]
-        if a == "--impl" and i + 1 < len(argv):
-            impl, i = argv[i + 1], i + 2
-            continue
-        if a.startswith("--impl="):
-            impl = a.split("=", 1)[1]
-        else:
-            rest.append(a)
-        i += 1
-    if impl not in IMPLEMENTATIONS:
-        raise SystemExit(f"heading_fuser: unknown --impl {impl!r}; known: {', '.join(IMPLEMENTATIONS)}")
-    return impl, rest
+    return runtime.pop_impl_arg(argv, "heading_fuser", IMPLEMENTATIONS, DEFAULT_IMPL)
