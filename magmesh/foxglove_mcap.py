@@ -27,12 +27,17 @@ import json
 import time
 from pathlib import Path
 
-from mcap.writer import CompressionType, Writer
-
 from schemas import keys, messages
 
 from .foxglove_types import FOXGLOVE_SCHEMAS, FoxgloveConverter, magmesh_json_schema, to_json_bytes
-from .recording import LIVELINESS, LIVELINESS_SCHEMA, METADATA_NAME, PROFILE, RecordCounts, sample_time_ns
+from .recording import (
+    LIVELINESS,
+    LIVELINESS_SCHEMA,
+    METADATA_NAME,
+    RecordCounts,
+    open_mcap,
+    sample_time_ns,
+)
 from .tap import decode_samples
 
 MESSAGE_ENCODING = "json"
@@ -45,12 +50,7 @@ class FoxgloveMcapWriter:
 
     def __init__(self, path: str | Path, info: dict | None = None, compression: str = "zstd",
                  converter: FoxgloveConverter | None = None):
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fh = open(self.path, "wb")
-        comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
-        self._writer = Writer(self._fh, compression=comp)
-        self._writer.start(profile=PROFILE, library="magmesh")
+        self.path, self._fh, self._writer = open_mcap(path, compression)
         self._schemas: dict[str, int] = {}
         self._channels: dict[tuple[str, str | None], int] = {}
         self.conv = converter or FoxgloveConverter()

@@ -25,6 +25,7 @@ from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import BinaryIO
 
 import msgpack
 from mcap.reader import make_reader
@@ -157,6 +158,17 @@ class RecordCounts:
         }
 
 
+def open_mcap(path: str | Path, compression: str = "zstd") -> tuple[Path, BinaryIO, Writer]:
+    """A new MCAP file (its folder made if needed), started with magmesh's profile: (path, file, writer)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fh = open(path, "wb")
+    comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
+    writer = Writer(fh, compression=comp)
+    writer.start(profile=PROFILE, library="magmesh")
+    return path, fh, writer
+
+
 class RecordingWriter:
     """Write magmesh samples to an MCAP file (see the module doc for the layout).
 
@@ -165,12 +177,7 @@ class RecordingWriter:
     """
 
     def __init__(self, path: str | Path, info: dict | None = None, compression: str = "zstd"):
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fh = open(self.path, "wb")
-        comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
-        self._writer = Writer(self._fh, compression=comp)
-        self._writer.start(profile=PROFILE, library="magmesh")
+        self.path, self._fh, self._writer = open_mcap(path, compression)
         self._schemas: dict[str, int] = {}
         self._channels: dict[tuple[str, str | None], int] = {}
         self.counts = RecordCounts()

@@ -339,6 +339,11 @@ class _Counter:
         self.rate = 0.0
 
 
+def reject_code(e: SchemaError) -> str:
+    """The reject code of a payload the contract refused: version, decode (not a message at all) or schema."""
+    return "version" if e.field == "version" else ("decode" if e.field == "<payload>" else "schema")
+
+
 class Runner:
     """Runs one :class:`Service` on an open Zenoh session."""
 
@@ -811,6 +816,20 @@ class Runner:
                 self._wants[key] = w
         return w
 
+    def decode_batch(self, key: str, info: KeyInfo, payload: bytes, check: bool) -> Any:
+        """A batch message of ``info.vehicle``, or None once it is rejected (bad payload, or another vehicle's);
+        ``check=False`` for batches a service already validated (clean/batch from ingest)."""
+        try:
+            b = batches.decode(payload, where=key, check=check)
+        except SchemaError as e:
+            self.reject(key, reject_code(e), str(e), e.field, len(payload), info.vehicle, None, "batch")
+            return None
+        if b.vehicle != info.vehicle:
+            self.reject(key, "key", f"field 'vehicle' of {key} is {b.vehicle[:64]!r}, but the key names vehicle "
+                        f"{info.vehicle!r}", "vehicle", len(payload), info.vehicle, b.t_s, "batch")
+            return None
+        return b
+
     def handle_batch(self, key: str, payload: bytes) -> None:
         """A ``clean/batch`` from ingest: trusted (validated there), so only its structure is read. Its samples
         go to ``on_batch`` whole, or one by one to ``on_message`` in sample-time order; each stream's seq and
@@ -826,15 +845,8 @@ class Runner:
         now = time.monotonic()
         self.key_seen[key] = now
         self.vehicle_seen[info.vehicle] = now
-        try:
-            b = batches.decode(payload, where=key, check=False)
-        except SchemaError as e:
-            code = "version" if e.field == "version" else ("decode" if e.field == "<payload>" else "schema")
-            self.reject(key, code, str(e), e.field, len(payload), info.vehicle, None, "batch")
-            return
-        if b.vehicle != info.vehicle:
-            self.reject(key, "key", f"field 'vehicle' of {key} is {b.vehicle[:64]!r}, but the key names vehicle "
-                        f"{info.vehicle!r}", "vehicle", len(payload), info.vehicle, b.t_s, "batch")
+        b = self.decode_batch(key, info, payload, check=False)
+        if b is None:
             return
         wanted: list[tuple[KeyInfo, Any]] = []
         for name, c in b.streams.items():
@@ -945,8 +957,8 @@ class Runner:
         try:
             msg = messages.decode(payload, where=key, expected_type=mtype)
         except SchemaError as e:
-            code = "version" if e.field == "version" else ("decode" if e.field == "<payload>" else "schema")
-            self.reject(key, code, str(e), e.field, len(payload), info.vehicle, None, messages.peek_type(payload))
+            self.reject(key, reject_code(e), str(e), e.field, len(payload), info.vehicle, None,
+                        messages.peek_type(payload))
             return None
         if msg["vehicle"] != info.vehicle:
             self.reject(key, "key", f"field 'vehicle' of {key} is {msg['vehicle'][:64]!r}, "

@@ -20,10 +20,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from collections import deque
 from dataclasses import dataclass, field
-
-import time
 
 from magmesh.magcal import MagParams
 from magmesh.runtime import Service

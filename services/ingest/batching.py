@@ -23,7 +23,6 @@ import numpy as np
 
 from schemas import batch as batches
 from schemas import keys, streams
-from schemas.messages import SchemaError
 
 from .core import IngestSettings, Rejection, StreamState, accept, check_order, check_ranges
 
@@ -79,15 +78,8 @@ class BatchingIngest:
     def on_batch_input(self, info: Any, payload: bytes, state: Any) -> None:
         key = info.key
         self._rt.batches_in += 1
-        try:
-            b = batches.decode(payload, where=key)
-        except SchemaError as e:
-            code = "version" if e.field == "version" else ("decode" if e.field == "<payload>" else "schema")
-            self.reject(key, code, str(e), e.field, len(payload), info.vehicle, None, "batch")
-            return
-        if b.vehicle != info.vehicle:
-            self.reject(key, "key", f"field 'vehicle' of {key} is {b.vehicle[:64]!r}, but the key names vehicle "
-                        f"{info.vehicle!r}", "vehicle", len(payload), info.vehicle, b.t_s, "batch")
+        b = self._rt.decode_batch(key, info, payload, check=True)
+        if b is None:
             return
         now = time.monotonic()
         for name, c in b.streams.items():

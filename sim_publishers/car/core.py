@@ -52,8 +52,6 @@ from magmesh import maths
 from schemas import keys
 
 SENSORS = ("1", "2")
-EARTH_RADIUS_M = 6378137.0
-_WGS84_E2 = 6.69437999014e-3
 
 
 # ---- settings ---------------------------------------------------------------------------------
@@ -393,17 +391,7 @@ class CarDrive:
 # ---- geodesy ----------------------------------------------------------------------------------
 
 
-def enu_to_geodetic(pos_enu_m, lat0_deg: float, lon0_deg: float, alt0_m: float = 0.0):
-    """Local tangent-plane ENU (m) → (lat_deg, lon_deg, alt_m), WGS-84 radii of curvature at the
-    origin (accurate to centimetres over a few km)."""
-    p = np.asarray(pos_enu_m, float)
-    lat0 = math.radians(lat0_deg)
-    s2 = math.sin(lat0) ** 2
-    r_n = EARTH_RADIUS_M / math.sqrt(1 - _WGS84_E2 * s2)  # prime vertical
-    r_m = r_n * (1 - _WGS84_E2) / (1 - _WGS84_E2 * s2)  # meridian
-    lat = lat0_deg + np.degrees(p[..., 1] / r_m)
-    lon = lon0_deg + np.degrees(p[..., 0] / (r_n * math.cos(lat0)))
-    return lat, lon, alt0_m + p[..., 2]
+enu_to_geodetic = maths.enu_to_geodetic  # ENU (m) about the drive's origin → lat/lon/alt (WGS-84)
 
 
 # ---- route ------------------------------------------------------------------------------------
