@@ -98,6 +98,20 @@ def test_a_faster_stream_clock_is_learned():
     check_order(mag(st.last_t_s + 18.0), st, S, K, now=0.01 * 299)  # within its clock at ~20x (a 1x clock: 10.5 s)
 
 
+def test_a_slow_stream_of_a_fast_source_is_accepted_from_its_second_sample():
+    """One sample a second of receive time, 20 s of sample time apart (a survey aircraft simulated at 20x, as in
+    the demo's survey-2): its rate is unknown until a second of receive time has passed, so its second sample
+    is not refused as ahead of a 1x clock, and once learned (~20x) the clock keeps accepting it."""
+    st = StreamState()
+    for i in range(30):
+        check_order(mag(20.0 * i), st, S, K, now=1.0 * i)
+        accept(mag(20.0 * i, seq=i), st, 1.0 * i, S)
+    assert st.rate_learned and 15 < st.rate < 25
+    with pytest.raises(Rejection) as e:  # and the learned clock still refuses a sample far ahead of it
+        check_order(mag(st.last_t_s + 500.0), st, S, K, now=30.0)
+    assert "ahead of the stream's clock" in e.value.reason
+
+
 def test_rebase_only_after_consistent_refusals():
     from services.ingest.core import note_refusal, rebase
 

@@ -64,6 +64,7 @@ class StreamState:
     # the stream's clock: receive time (monotonic s) of the last accepted sample and its learned rate
     last_wall: float | None = None
     rate: float = 1.0
+    rate_learned: bool = False  # a window of at least 1 s of receive time has set ``rate``
     win_t_s: float | None = None
     win_wall: float | None = None
     # consecutive refusals on time that agree with each other (a clock that really jumped)
@@ -114,7 +115,17 @@ def ahead_limit_s(msg_type: str, st: StreamState, s: IngestSettings, now: float)
     ``max_ahead_s`` plus twice the elapsed wall time and half a second of jitter at that rate.
     """
     dt = max(0.0, now - st.last_wall) if st.last_wall is not None else 0.0
-    rate = min(max(st.rate, 1.0), s.max_clock_rate)
+    if st.rate_learned:
+        rate = min(max(st.rate, 1.0), s.max_clock_rate)
+    else:
+        # before a second of receive time has taught the rate: the rate of what was accepted so far, and with one
+        # sample only, unknown (at most max_clock_rate) -- a slow stream of a fast source (one sample a second,
+        # 20 s of sample time apart) must not be refused for ever by a 1x clock it never gets to correct
+        span = st.last_wall - st.win_wall if st.last_wall is not None and st.win_wall is not None else 0.0
+        if span > 0 and st.last_t_s is not None and st.win_t_s is not None:
+            rate = min(max((st.last_t_s - st.win_t_s) / span, 1.0), s.max_clock_rate)
+        else:
+            rate = s.max_clock_rate
     return s.max_ahead_s.get(msg_type, 10.0) + rate * (2.0 * dt + 0.5)
 
 
@@ -155,6 +166,7 @@ def rebase(st: StreamState) -> None:
     st.last_t_s = None
     st.last_wall = None
     st.rate = 1.0
+    st.rate_learned = False
     st.win_t_s = st.win_wall = None
     st.contra_n = 0
     st.contra_last_t_s = None
@@ -187,4 +199,5 @@ def accept(msg: dict, st: StreamState, now: float | None = None, s: IngestSettin
             hi = s.max_clock_rate if s is not None else 10000.0
             # a faster clock is believed at once, a slower one by halves (bursts of delivery are not a slow-down)
             st.rate = min(max(r, 0.5 * st.rate, 1.0), hi)
+            st.rate_learned = True
             st.win_t_s, st.win_wall = t, now
