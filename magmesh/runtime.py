@@ -70,7 +70,7 @@ LOG_EVERY_S = 10.0
 #: drop reasons that are loss: what could not be delivered or recovered. ``rejected:*`` are refusals; every
 #: other reason is a skip by design (e.g. a stream not used, an alarm state unchanged)
 LOST_REASONS = frozenset(("upstream_gap", "handler_error", "queue_overflow", "invalid_output",
-                          "lost_during_restart"))
+                          "lost_during_restart", "lost_in_takeover"))
 
 
 _ENCODINGS: dict[str, Any] = {}
@@ -127,6 +127,7 @@ class Service:
         self.vehicles_config = vehicles_config or {}
         self.log = logging.getLogger(f"magmesh.{self.role}.{self.instance}")
         self._rt: Runner | None = None
+        self.group: str | None = None  # a role group's name (--group): vehicles shared with its live members
 
     # ---- hooks --------------------------------------------------------------------------------
     def subscriptions(self) -> list[str]:
@@ -381,6 +382,8 @@ class Runner:
         self.params_sent: dict[str, list] = {}  # cal/params key -> [param_id, seq, t_s] last published
         self.journal = None  # magmesh.journal.Journal: last input/output seq per key, survives kill -9
         self.resumed_in: set[str] = set()  # input keys whose first gap after a restart is lost_during_restart
+        self.takeover_in: set[str] = set()  # input keys taken from a dead group member: first gap is lost_in_takeover
+        self.group = None  # magmesh.group_member.GroupMember when the service runs in a group (--group)
         self.resumed_from: dict | None = None  # what the journal of the run before a crash said
         self.clean_stop = False
         self.n_sent = 0  # outputs sent by this process (the journal's witness of a sample handled when killed)
@@ -436,6 +439,8 @@ class Runner:
     def publish(self, key: str, msg_type: str, vehicle: str, t_s: float, fields: dict) -> dict | None:
         if msg_type == "alarm":
             self.alarm_declared[key] = fields.get("state")
+        if self.group is not None and msg_type != "reject" and not self.group.gate(key, msg_type, vehicle, t_s, fields):
+            return None  # a vehicle this member does not publish for (now): see magmesh/group_member.py
         if self.mode == "active" and self.cut and msg_type != "reject":
             # just took the role over: epochs before the cut were published by the previous holder
             cut = self.cut.get(vehicle)
@@ -498,7 +503,7 @@ class Runner:
         gated path, so the cut stays exact.
         """
         kind = keys.parse(key).kind
-        if self.mode != "active" or self.cut:
+        if self.mode != "active" or self.cut or self.group is not None:
             n = 0
             for name, c in cols.items():
                 skey = batches.stream_key(kind, vehicle, name)
@@ -528,7 +533,7 @@ class Runner:
     def republish(self, key: str, msg: dict) -> dict | None:
         """Publish the fields of an already validated input message on another key (no re-validation)."""
         fields = {k: v for k, v in msg.items() if k not in _HEADER_NAMES}
-        if self.mode != "active" or self.cut:  # hand-over in progress: the gated path
+        if self.mode != "active" or self.cut or self.group is not None:  # hand-over possible: the gated path
             return self.publish(key, msg["type"], msg["vehicle"], msg["t_s"], fields)
         return self._send(key, msg["type"], msg["vehicle"], msg["t_s"], fields, trusted=True)
 
@@ -790,6 +795,8 @@ class Runner:
 
         A batch path calls this once per sample (or :meth:`check_input` then :meth:`dispatch`).
         """
+        if self.group is not None and not self.group.admits(key, payload):
+            return  # a vehicle another member of the group serves (skipped by design, counted in the group's status)
         self._cur_key, self._cur_rejected = key, False
         try:
             if self.batch_in and key.endswith(_CLEAN_BATCH):
@@ -896,9 +903,13 @@ class Runner:
             if gap > self.seq_jump_max:
                 self.count_rebase("seq_jump")
             elif gap > 0:
-                self.drops[skey]["upstream_gap"] += gap
+                self.drops[skey]["lost_in_takeover" if skey in self.takeover_in else "upstream_gap"] += gap
             elif gap < 0:
                 self.count_rebase("seq_back")
+        if self.group is not None:  # a group member's vehicles may be taken from its journal after a kill -9
+            self.takeover_in.discard(skey)
+            if self.journal is not None:
+                self.journal.set("i" + skey, s1)
         inner = s1 - s0 + 1 - c.n  # ingest numbers the samples of a stream consecutively
         if inner > 0:
             self.drops[skey]["upstream_gap"] += inner
@@ -1004,7 +1015,9 @@ class Runner:
                 self.log_limited("seq-rebase", "seq of %s jumped from %d to %d: re-based, not counted as loss",
                                  key, last, sq)
             elif gap > 0:  # lost before it reached us (or while this instance was down): visible, not silent
-                if key in self.resumed_in:
+                if key in self.takeover_in:  # not handled by a group member that died holding the vehicle
+                    self.drops[key]["lost_in_takeover"] += gap
+                elif key in self.resumed_in:
                     self.drops[key]["lost_during_restart"] += gap
                     if self.journal is not None:  # the count survives the next crash too
                         self.journal.set("l" + key, self.drops[key]["lost_during_restart"])
@@ -1015,6 +1028,8 @@ class Runner:
         self.in_seq[key] = sq
         if self.resumed_in:
             self.resumed_in.discard(key)
+        if self.takeover_in:
+            self.takeover_in.discard(key)
         if self.journal is not None:
             self.journal.set("i" + key, sq)
         t, v = msg["t_s"], info.vehicle
@@ -1150,6 +1165,8 @@ class Runner:
                 "cal_params_sent": dict(list(self.params_sent.items())[:4096]),
                 "resumed_from_journal": self.resumed_from,
             }
+            if self.group is not None:
+                st["group"] = self.group.status()
         try:
             st.update(_plain(self.svc.status_extra()))
         except Exception as e:  # status must always answer
@@ -1186,6 +1203,10 @@ class Runner:
     def control(self, req: dict) -> dict:
         """Hand-over control, run in the main loop so it is ordered with message handling."""
         op = req.get("op")
+        if isinstance(op, str) and op.startswith("g_"):
+            if self.group is None:
+                return {"ok": False, "error": f"{self.svc.instance} is not in a group"}
+            return self.group.control(req)
         if op == "state":
             pass
         elif op == "arm":  # new instance: hold outputs at or after the cut
@@ -1296,6 +1317,11 @@ class Runner:
         self.resume_journal()
         svc.on_start()
         self.token = self.session.liveliness().declare_token(keys.svc_token(svc.role, svc.instance))
+        if svc.group:
+            from .group_member import GroupMember
+
+            self.group = GroupMember(self, svc.group)
+            self.group.start()
         svc.log.info("started %s/%s (impl %s) on %s", svc.role, svc.instance, svc.impl,
                      ", ".join(svc.subscriptions()) or "no subscriptions")
 
@@ -1321,6 +1347,12 @@ class Runner:
                     self.handle_sample(ev[1], ev[2])
                 elif ev[0] == "q":
                     self.handle_query(ev[1], ev[2])
+                elif ev[0] == "g":  # a group membership step (magmesh/group_member.py), ordered with the input
+                    try:
+                        ev[1]()
+                    except Exception as e:  # noqa: BLE001
+                        self.last_error = f"group step failed: {type(e).__name__}: {e}"[:500]
+                        self.svc.log.error("group step failed: %s\n%s", e, traceback.format_exc(limit=4))
                 elif ev[0] == "stop":
                     break
             if tick and time.monotonic() >= next_tick:
@@ -1380,8 +1412,10 @@ class Runner:
             svc.on_stop()
         except Exception as e:
             svc.log.error("on_stop failed: %s", e)
-        if self.clean_stop:
-            self.remove_journal()
+        if self.group is not None:
+            self.group.stop()
+        if self.clean_stop and not (self.group is not None and (self.group.owned or self.group.release)):
+            self.remove_journal()  # (a group member stopped holding vehicles leaves it to the member taking them)
         try:
             if self.token is not None:
                 self.token.undeclare()
@@ -1462,6 +1496,9 @@ def make_parser(cls: type[Service], implementations: dict[str, type] | None = No
     else:
         g.add_argument("--vehicles", default="*", metavar="PATTERN",
                        help="serve only vehicles matching this key-chunk pattern (sharding), default *")
+        g.add_argument("--group", default=None, metavar="NAME",
+                       help="share the vehicles with the other live instances NAME-* of this role: each vehicle is "
+                            "served by one of them, moved on a join, leave or failure (off by default)")
     g.add_argument("--standby", action="store_true",
                    help="start warm but silent, waiting to take the role over (used by magmesh swap)")
     g.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="a setting (repeatable)")
@@ -1496,6 +1533,15 @@ def service_from_args(cls: type[Service], args: argparse.Namespace) -> Service:
             svc.instance = f"{cls.impl}-{svc.vehicle}"
     else:
         svc = cls(settings, args.instance, args.vehicles, vehicles_config)
+        if getattr(args, "group", None):
+            try:
+                keys.check_id(args.group, "group name")
+            except keys.KeyError_ as e:
+                raise SystemExit(f"--group: {e}") from None
+            if args.instance is None or not args.instance.startswith(args.group + "-"):
+                raise SystemExit(f"--group {args.group}: the instance name must be {args.group}-<n> (give --instance "
+                                 f"{args.group}-1, ...): the members of the group are found by that name")
+            svc.group = args.group
     return svc
 
 

@@ -1,0 +1,538 @@
+"""Elastic roles: one instance's side of a role group (``--group NAME``; the manifest's ``instances = N``).
+
+The members of group ``NAME`` of role ``R`` are the live instances ``magmesh/svc/R/NAME-*`` (liveliness). Each
+vehicle belongs to one member, by rendezvous hashing over the members that are not leaving
+(:mod:`magmesh.groups`); every member computes the same owner. An instance handles the inputs of the vehicles it
+holds only (the others are skipped by design, counted in ``group.not_owned``), and moves vehicles as the
+membership changes, per vehicle, with the live-swap protocol (cut at an agreed sample time) run by the new owner:
+
+- **hand-over** (a member joined, or the holder is leaving the group): the new owner warms on the vehicle
+  (handles its input, publishes nothing) for ``warmup_s`` of sample time, then asks the holder to release it
+  (``g_release``): the holder chooses a cut ``lead_s`` ahead of the input it has handled and publishes only
+  before it; the new owner holds its own outputs at or after the cut (those it made while warming too); once the holder has passed the cut (or its input stalled for ``stall_s``) it takes the holder's seq per key
+  and alarm states for the vehicle and publishes what it held. Subscribers see every epoch once, seq continuing.
+- **failure** (the holder's liveliness is gone, e.g. kill -9): the new owner takes the vehicle at once from what
+  the dead members left in the state directory: their seq journals (last output seq per key, last input seq
+  handled) and alarm files (a raised alarm stays raised until the new owner's logic decides). Every input the
+  dead holder had not handled before the new owner's first one is counted as ``lost_in_takeover`` on its key;
+  a vehicle for which nothing was persisted is counted in ``group.unrecovered``.
+- **duplicates** (two members took one new vehicle before they saw each other): the one the rule does not pick
+  among the holders drops it at once (``group.duplicates_dropped``).
+
+A member decides to take a vehicle nobody holds only in a round in which every live member answered (a member
+slow to answer under load is never taken for one holding nothing). All state changes run in the runtime's main
+loop (posted as events, ordered with the input); the coordination thread only queries.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+import msgpack
+
+from schemas import keys
+
+from . import groups
+
+log = logging.getLogger("magmesh.group")
+
+#: cal/params samples kept per key for vehicles not held here, replayed when one is taken (a new owner must not
+#: wait for the next parameter set to be published)
+PARAMS_CACHE_MAX = 100_000
+WARM_BUFFER = 4096  # outputs kept per warming vehicle
+
+
+def vehicle_of(key: str) -> str | None:
+    """The vehicle a data key names (None for a key that names none)."""
+    parts = key.split("/", 3)
+    return parts[1] if len(parts) >= 3 and parts[0] == keys.ROOT and parts[1] != keys.SVC else None
+
+
+def _is_params(key: str) -> bool:
+    parts = key.split("/")
+    return len(parts) > 3 and parts[2] == "cal" and parts[3] == "params"
+
+
+class GroupMember:
+    def __init__(self, rt: Any, name: str, warmup_s: float = 3.0, lead_s: float = 0.5, stall_s: float = 2.0,
+                 period_s: float = 0.2):
+        self.rt = rt
+        self.name = keys.check_id(name, "group name")
+        self.role = rt.svc.role
+        self.me = rt.svc.instance
+        self.warmup_s, self.lead_s, self.stall_s, self.period_s = warmup_s, lead_s, stall_s, period_s
+        self.members: list[str] = [self.me]
+        self.live: set[str] = {self.me}
+        self.leaving = False
+        self.ready = False  # one complete coordination round done: the others' holdings are known
+        self.complete = False  # the last round heard every live member
+        self.holdings: dict[str, str] = {}  # vehicle -> the other member holding it (last round)
+        self.owned: set[str] = set()
+        self.seen: set[str] = set()
+        self.warming: dict[str, str] = {}  # vehicle -> the live holder it will be handed over from
+        self.arm: dict[str, tuple[str, float, float]] = {}  # vehicle -> (holder, cut, since) awaiting the takeover
+        self.held: list[tuple] = []
+        self.post_cut: dict[str, float] = {}  # after a hand-over: outputs before the cut were the holder's
+        self.release: dict[str, float] = {}  # vehicle -> cut: this instance hands it over
+        self.passed: set[str] = set()
+        self.progress: dict[str, tuple[Any, float]] = {}
+        self.params_cache: dict[str, bytes] = {}
+        #: outputs of a warming vehicle (not published), kept for a while: those at or after the cut the holder
+        #: chooses are published by this instance once it holds the vehicle, however far ahead of the holder it was
+        self.warm_buf: dict[str, deque] = {}
+        self.stats = {"not_owned": 0, "handovers_in": 0, "handovers_out": 0, "failovers": 0, "unrecovered": 0,
+                      "duplicates_dropped": 0, "suppressed": 0, "takeover_s_max": 0.0, "last_takeover_s": None,
+                      "rounds": 0, "rounds_incomplete": 0}
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._dead_since: dict[str, float] = {}  # member -> when its liveliness was seen gone
+        self._leaving_seen: set[str] = set()
+        self.last_holder: dict[str, str] = {}  # vehicle -> the other member last seen holding it
+
+    # ---- main loop side ---------------------------------------------------------------------------
+    def admits(self, key: str, payload: bytes | None = None) -> bool:
+        """Whether the input on ``key`` is handled here (its vehicle is held, warming or being handed over)."""
+        v = vehicle_of(key)
+        if v is None:
+            return True  # not a vehicle key: the input path refuses it with its reason
+        if v in self.owned or v in self.warming or v in self.arm or (v in self.release and v not in self.passed):
+            return True
+        if v not in self.seen:
+            if len(self.seen) < 1_000_000:
+                self.seen.add(v)
+            if self.ready and self.complete and not self.leaving and v not in self.holdings \
+                    and groups.owner(v, self.members) == self.me:
+                self._failover(v, self._dead_state(v), None)  # nobody holds it: its owner takes it at once
+                return True
+        if payload is not None and _is_params(key) and (key in self.params_cache or
+                                                        len(self.params_cache) < PARAMS_CACHE_MAX):
+            self.params_cache[key] = payload
+        self.stats["not_owned"] += 1
+        return False
+
+    def gate(self, key: str, msg_type: str, vehicle: str, t_s: float, fields: dict) -> bool:
+        """Whether an output of ``vehicle`` at sample time ``t_s`` is this instance's to publish now."""
+        cut = self.release.get(vehicle)
+        if cut is not None:
+            if t_s < cut:
+                return True
+            self.passed.add(vehicle)  # the new owner publishes from the cut on
+            self.stats["suppressed"] += 1
+            return False
+        a = self.arm.get(vehicle)
+        if a is not None:
+            if t_s >= a[1]:
+                self.held.append((key, msg_type, vehicle, t_s, fields))
+            else:
+                self.stats["suppressed"] += 1
+            return False
+        if vehicle in self.owned:
+            pc = self.post_cut.get(vehicle)
+            if pc is not None:
+                if t_s < pc:
+                    self.stats["suppressed"] += 1
+                    return False
+                del self.post_cut[vehicle]
+            return True
+        if vehicle in self.warming:
+            buf = self.warm_buf.get(vehicle)
+            if buf is None:
+                buf = self.warm_buf[vehicle] = deque(maxlen=WARM_BUFFER)
+            buf.append((key, msg_type, vehicle, t_s, fields))
+            return False
+        self.stats["suppressed"] += 1  # not held
+        return False
+
+    def control(self, req: dict) -> dict:
+        op = req.get("op")
+        if op == "g_state":
+            pass
+        elif op == "g_release":  # a new owner takes these vehicles over: this holder chooses the cut
+            lead = float(req.get("lead_s", self.lead_s))
+            for v in list(req.get("vehicles", [])):
+                if v in self.release:
+                    continue  # already agreed: the first cut stands
+                if v not in self.owned:
+                    return {"ok": False, "error": f"{self.me} does not hold {v}"}
+                # ahead of every input handled here: each output before it is this holder's, the rest the new one's
+                t = self.rt.last_in_t.get(v)
+                self.owned.discard(v)
+                self.release[v] = (t if t is not None else 0.0) + lead
+                self.passed.discard(v)
+                self.stats["handovers_out"] += 1
+        elif op == "g_done":  # the new owner has the vehicles: forget them
+            for v in req.get("vehicles", []):
+                if v in self.release:
+                    del self.release[v]
+                    self.passed.discard(v)
+                    self._forget(v)
+        elif op == "g_leave":  # leave the group: the others take every vehicle over (hand-over)
+            self.leaving = True
+            self.members = [m for m in self.members if m != self.me]
+        else:
+            return {"ok": False, "error": f"unknown group op {op!r} (known: g_state, g_release, g_done, g_leave)"}
+        return {"ok": True, **self.state()}
+
+    def state(self) -> dict:
+        rt = self.rt
+        hand = {}
+        for v in self.release:
+            pre = f"{keys.ROOT}/{v}/"
+            with rt.lock:
+                raised = {k: m for k, m in rt.raised.items() if k.startswith(pre)}
+            hand[v] = {"seqs": {k: s for k, s in rt.seq.items() if k.startswith(pre)},
+                       "alarms": {k: s for k, s in rt.alarm_published.items() if k.startswith(pre)},
+                       "raised": raised, "passed": v in self.passed, "last_in_t": rt.last_in_t.get(v),
+                       "cut": self.release[v]}
+        return {"group": self.name, "instance": self.me, "leaving": self.leaving, "owned": sorted(self.owned),
+                "releasing": hand}
+
+    def status(self) -> dict:
+        return {"name": self.name, "members": list(self.members), "leaving": self.leaving,
+                "vehicles": sorted(self.owned)[:1000], "vehicles_total": len(self.owned),
+                "warming": sorted(self.warming), "taking": sorted(self.arm), "releasing": sorted(self.release),
+                **self.stats}
+
+    def _clear_vehicle(self, v: str) -> None:
+        """Forget what this instance knew of ``v``'s streams (seq tracking, times): a later take starts clean."""
+        rt = self.rt
+        pre = f"{keys.ROOT}/{v}/"
+        for k in [k for k in rt.in_seq if k.startswith(pre)]:
+            del rt.in_seq[k]
+        rt.first_in_t.pop(v, None)
+        rt.last_in_t.pop(v, None)
+
+    def _forget(self, v: str) -> None:
+        """A vehicle handed over (or held by another): its state, raised alarms and alarm states are not ours."""
+        rt = self.rt
+        self.owned.discard(v)
+        self.post_cut.pop(v, None)
+        rt.vehicle_state.pop(v, None)
+        self._clear_vehicle(v)
+        pre = f"{keys.ROOT}/{v}/"
+        for k in [k for k in rt.alarm_published if k.startswith(pre)]:
+            del rt.alarm_published[k]
+        with rt.lock:
+            for k in [k for k in rt.raised if k.startswith(pre)]:
+                del rt.raised[k]
+        rt.reconcile_pending = {k: x for k, x in rt.reconcile_pending.items() if not k.startswith(pre)}
+        rt._persist_alarms()
+
+    def _drop_duplicate(self, v: str) -> None:
+        if v in self.owned:
+            self._forget(v)
+            self.stats["duplicates_dropped"] += 1
+            log.warning("%s: %s is held by another member the rule prefers: dropped here", self.me, v)
+
+    def _replay_params(self, v: str) -> None:
+        pre = f"{keys.ROOT}/{v}/"
+        for k in [k for k in self.params_cache if k.startswith(pre)]:
+            payload = self.params_cache.pop(k)
+            self.rt.in_seq.pop(k, None)
+            self.rt.handle_sample(k, payload)
+
+    def _begin_warm(self, v: str, holder: str) -> None:
+        if v in self.owned or v in self.warming or v in self.arm:
+            return
+        self.rt.vehicle_state.pop(v, None)
+        self._clear_vehicle(v)  # the warm-up span counts from the next input
+        self.warming[v] = holder
+        self._replay_params(v)
+
+    def _arm(self, v: str, holder: str, cut: float) -> None:
+        """The holder publishes ``v`` before ``cut``: hold this instance's outputs at or after it (those made
+        while warming included)."""
+        if self.warming.pop(v, None) is None:
+            return
+        buf = self.warm_buf.pop(v, ())
+        self.held.extend(x for x in buf if x[3] >= cut)
+        self.arm[v] = (holder, float(cut), time.monotonic())
+
+    def _cancel(self, v: str) -> None:
+        self.warming.pop(v, None)
+        self.warm_buf.pop(v, None)
+        self.arm.pop(v, None)
+        self.held = [h for h in self.held if h[2] != v]
+
+    def _adopt(self, v: str, seqs: dict, alarms: dict, raised: dict) -> None:
+        rt = self.rt
+        for k, s in seqs.items():
+            rt.seq[k] = max(int(s), rt.seq.get(k, -1))
+            if rt.journal is not None:
+                rt.journal.set("o" + k, rt.seq[k])
+        pre = f"{keys.ROOT}/{v}/"
+        for k in [k for k in rt.alarm_published if k.startswith(pre)]:
+            del rt.alarm_published[k]
+        rt.alarm_published.update({k: s for k, s in alarms.items() if k.startswith(pre)})
+        with rt.lock:
+            for k in [k for k in rt.raised if k.startswith(pre)]:
+                del rt.raised[k]
+            rt.raised.update({k: m for k, m in raised.items() if k.startswith(pre)})
+        rt._persist_alarms()
+
+    def _takeover(self, v: str, hand: dict) -> None:
+        """Hand-over, last step: continue the holder's seqs and alarm states, publish what was held."""
+        a = self.arm.pop(v, None)
+        if a is None:
+            return
+        self._adopt(v, hand.get("seqs", {}), hand.get("alarms", {}), hand.get("raised", {}))
+        self.owned.add(v)
+        self.post_cut[v] = a[1]
+        mine = [h for h in self.held if h[2] == v]
+        self.held = [h for h in self.held if h[2] != v]
+        for item in mine:
+            self.rt.publish(*item)
+        self.stats["handovers_in"] += 1
+
+    def _failover(self, v: str, dead: dict, since: float | None) -> None:
+        """Take ``v`` from what the members that are not live persisted (journal and alarm file)."""
+        if v in self.owned:
+            return
+        self._cancel(v)
+        rt = self.rt
+        rt.vehicle_state.pop(v, None)
+        self._clear_vehicle(v)
+        if dead["found"]:
+            self._adopt(v, dead["seqs"], dead["alarms"], dead["raised"])
+            for k, s in dead["inputs"].items():
+                rt.in_seq[k] = int(s)
+                rt.takeover_in.add(k)  # the first gap on it is lost_in_takeover (runtime._accepted)
+            if dead["raised"] and not rt.svc.ADOPTS_RESTORED_ALARMS:
+                rt.reconcile_pending.update({k: v for k in dead["raised"]})
+                rt.reconcile_at = time.monotonic() + 0.5
+        elif since is not None:  # a holder died and left nothing for this vehicle
+            self.stats["unrecovered"] += 1
+        self.owned.add(v)
+        self._replay_params(v)
+        if since is not None:
+            self.stats["failovers"] += 1
+            took = time.monotonic() - since
+            self.stats["last_takeover_s"] = round(took, 3)
+            self.stats["takeover_s_max"] = round(max(self.stats["takeover_s_max"], took), 3)
+            log.info("%s: took %s over from a member that is gone (%.2f s after it was seen gone)", self.me, v, took)
+
+    # ---- coordination thread --------------------------------------------------------------------
+    def start(self) -> None:
+        try:
+            self._round()  # membership and holdings known before the first input is judged
+        except Exception as e:  # noqa: BLE001 - the thread's rounds carry on
+            self.rt.last_error = f"group round failed: {type(e).__name__}: {e}"[:500]
+        self._thread = threading.Thread(target=self._run, daemon=True, name="magmesh-group")
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def _post(self, fn: Callable[[], None]) -> None:
+        try:
+            self.rt.q.put(("g", fn), timeout=1.0)
+        except Exception:  # noqa: BLE001 - a full queue: the next round posts it again
+            pass
+
+    def _call(self, fn: Callable[[], Any], timeout: float = 5.0) -> Any:
+        """Run ``fn`` in the main loop and wait for its result (None when it did not run in time)."""
+        box: list = []
+        done = threading.Event()
+
+        def run() -> None:
+            try:
+                box.append(fn())
+            finally:
+                done.set()
+
+        self._post(run)
+        return box[0] if done.wait(timeout) and box else None
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period_s):
+            try:
+                self._round()
+            except Exception as e:  # noqa: BLE001 - coordination must never stop the service
+                self.rt.last_error = f"group round failed: {type(e).__name__}: {e}"[:500]
+
+    def _live_members(self) -> set[str]:
+        found = {self.me}
+        pre = f"{self.name}-"
+        for rep in self.rt.session.liveliness().get(keys.svc_token(self.role, "*"), timeout=1.0):
+            if rep.ok is None:
+                continue
+            inst = str(rep.ok.key_expr).split("/")[-1]
+            if inst.startswith(pre):
+                found.add(inst)
+        return found
+
+    def _query(self, inst: str, req: dict, timeout: float = 1.0) -> dict | None:
+        payload = msgpack.packb(req, use_bin_type=True)
+        for rep in self.rt.session.get(keys.svc_control(self.role, inst), payload=payload, timeout=timeout):
+            if rep.ok is not None:
+                try:
+                    res = msgpack.unpackb(rep.ok.payload.to_bytes(), strict_map_key=False)
+                except Exception:  # noqa: BLE001
+                    return None
+                return res if isinstance(res, dict) and res.get("ok") else None
+        return None
+
+    def _round(self) -> None:
+        live = self._live_members()
+        now = time.monotonic()
+        for m in self.live - live:
+            self._dead_since.setdefault(m, now)
+        for m in live:
+            self._dead_since.pop(m, None)
+        self.live = live
+        states: dict[str, dict] = {}
+        for inst in sorted(live - {self.me}):
+            st = self._query(inst, {"op": "g_state"})
+            if st is not None:
+                states[inst] = st
+                if st.get("leaving"):
+                    self._leaving_seen.add(inst)
+        self._leaving_seen &= live
+        complete = len(states) == len(live) - 1
+        self.stats["rounds"] += 1
+        self.stats["rounds_incomplete"] += not complete
+        members = sorted(m for m in live if m not in self._leaving_seen and not (m == self.me and self.leaving))
+        holders: dict[str, set[str]] = {}
+        holdings: dict[str, str] = {}
+        for inst, st in states.items():
+            for v in st.get("owned", []):
+                holders.setdefault(v, set()).add(inst)
+            for v in st.get("releasing", {}):
+                holdings[v] = inst  # mid hand-over: that holder stays the one to take it from
+        for v, hs in holders.items():
+            if v not in holdings:
+                holdings[v] = groups.owner(v, hs)
+        self.members = members
+        if complete or not self.ready:
+            self.holdings = holdings
+        self.complete = complete
+        first = not self.ready
+        self.ready = self.ready or complete
+        if first:
+            return
+        for v, h in holdings.items():
+            self.last_holder[v] = h
+        lead_done = []
+        for v in list(self.seen):
+            mine = not self.leaving and groups.owner(v, members) == self.me
+            if v in self.arm:
+                holder, cut, since = self.arm[v]
+                st = states.get(holder)
+                if holder not in live:
+                    s = self._dead_since.get(holder)
+                    self._post(lambda v=v, s=s: self._failover(v, self._dead_state(v), s))
+                    continue
+                hand = (st or {}).get("releasing", {}).get(v)
+                if hand is None:
+                    if st is not None and v not in st.get("owned", []):  # the holder lost it (restarted): take it
+                        self._post(lambda v=v: self._failover(v, self._dead_state(v), None))
+                    continue
+                t = hand.get("last_in_t")
+                if v not in self.progress or self.progress[v][0] != t:
+                    self.progress[v] = (t, now)
+                if hand.get("passed") or now - self.progress[v][1] >= self.stall_s:
+                    self.progress.pop(v, None)
+                    self._post(lambda v=v, hand=hand: self._takeover(v, hand))
+                    lead_done.append((holder, v))
+                continue
+            if v in self.owned:
+                others = holders.get(v, set())
+                if complete and others and groups.owner(v, others | {self.me}) != self.me:
+                    self._post(lambda v=v: self._drop_duplicate(v))
+                continue
+            if complete and v in holdings and v not in self.warming and v not in self.release:
+                # alarm state restored from an earlier life of this instance, for a vehicle another member holds
+                if any(k.startswith(f"{keys.ROOT}/{v}/") for k in list(self.rt.alarm_published)):
+                    self._post(lambda v=v: v not in self.owned and v not in self.warming and self._forget(v))
+            if not mine:
+                if v in self.warming:  # the rule moved it elsewhere meanwhile
+                    self._post(lambda v=v: self._cancel(v))
+                continue
+            holder = holdings.get(v)
+            if v in self.warming:
+                h = self.warming[v]
+                if h not in live:
+                    s = self._dead_since.get(h)
+                    self._post(lambda v=v, s=s: self._failover(v, self._dead_state(v), s))
+                    continue
+                if complete and h != holder:  # it no longer holds it (restarted): look again next round
+                    self._post(lambda v=v: self._cancel(v))
+                    continue
+                hand = (states.get(h) or {}).get("releasing", {}).get(v)
+                if hand is not None:  # agreed before (its reply was lost): take the cut the holder chose
+                    self._call(lambda v=v, h=h, c=hand["cut"]: self._arm(v, h, c))
+                    continue
+                t0, t1 = self.rt.first_in_t.get(v), self.rt.last_in_t.get(v)
+                if t0 is not None and t1 is not None and t1 - t0 >= self.warmup_s:
+                    r = self._query(h, {"op": "g_release", "lead_s": self.lead_s, "vehicles": [v]})
+                    hand = (r or {}).get("releasing", {}).get(v)
+                    if hand is not None:
+                        self._call(lambda v=v, h=h, c=hand["cut"]: self._arm(v, h, c))
+                continue
+            if v in self.release:
+                continue
+            if holder is not None:
+                self._post(lambda v=v, h=holder: self._begin_warm(v, h))
+            elif complete:
+                s = self._dead_since.get(self.last_holder.get(v, ""))
+                self._post(lambda v=v, s=s: self._failover(v, self._dead_state(v), s))
+        done: dict[str, list[str]] = {}
+        for h, v in lead_done:
+            done.setdefault(h, []).append(v)
+        for h, vs in done.items():
+            self._query(h, {"op": "g_done", "vehicles": vs})
+
+    def _dead_state(self, v: str) -> dict:
+        """What the members of the group that are not live persisted about vehicle ``v``: seq journals (the
+        sample a member was handling when killed counts as handled when an output went out after it began) and
+        alarm files (the latest transition any of them published)."""
+        from .journal import Journal
+        from .paths import state_dir
+
+        pre = f"{keys.ROOT}/{v}/"
+        out: dict = {"seqs": {}, "inputs": {}, "alarms": {}, "raised": {}, "found": False}
+        alarm_seq: dict[str, int] = {}
+        d = state_dir()
+        for f in sorted((d / "journal").glob(f"{self.role}.{self.name}-*.seq")):
+            inst = f.name[len(self.role) + 1:-len(".seq")]
+            if inst in self.live:
+                continue
+            j = Journal(f)
+            prev = j.load()
+            ikey, pseq = j.in_progress(prev)
+            if ikey is not None and prev.get("~sent", 0) > prev.get("~sent_at_begin", 0):
+                prev[ikey] = max(prev.get(ikey, pseq), pseq)
+            for k, s in prev.items():
+                if k[:1] in "oi" and k[1:].startswith(pre):
+                    tgt = out["seqs"] if k[0] == "o" else out["inputs"]
+                    tgt[k[1:]] = max(int(s), tgt.get(k[1:], -1))
+                    out["found"] = True
+        for f in sorted((d / "alarms").glob(f"{self.role}.{self.name}-*.json")):
+            inst = f.name[len(self.role) + 1:-len(".json")]
+            if inst in self.live:
+                continue
+            try:
+                data = json.loads(f.read_text())
+            except (OSError, ValueError):
+                continue
+            seqs = data.get("seqs", {})
+            for k, state in data.get("published", {}).items():
+                if not k.startswith(pre):
+                    continue
+                s = int(seqs.get(k, -1))
+                if s >= alarm_seq.get(k, -2):  # the latest transition any of them published
+                    alarm_seq[k] = s
+                    out["alarms"][k] = state
+                    out["seqs"][k] = max(s, out["seqs"].get(k, -1))
+                    if state == "raised" and k in data.get("raised", {}):
+                        out["raised"][k] = data["raised"][k]
+                    else:
+                        out["raised"].pop(k, None)
+                    out["found"] = True
+        return out
