@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import math
 import os
 import pkgutil
+import re
 import sys
 
 from schemas.keys import KeyError_
@@ -32,11 +34,48 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     return p
 
 
+_ENDPOINT = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*/\S+$")
+
+
+def command_names() -> list[str]:
+    return sorted(m.name.replace("_", "-") for m in pkgutil.iter_modules(commands.__path__)
+                  if not m.name.startswith("_"))
+
+
+def check_common_args(args: argparse.Namespace) -> str | None:
+    """A mistake in the options every command shares (seconds, endpoints), as one sentence; None when fine."""
+    for name in ("duration", "timeout"):
+        v = getattr(args, name, None)
+        if v is None or isinstance(v, bool) or not isinstance(v, (int, float)):
+            continue
+        if not math.isfinite(v) or v < 0 or (name == "timeout" and v == 0):
+            return (f"--{name} {v:g} is not a number of seconds it can use: give a finite number "
+                    f"{'> 0' if name == 'timeout' else '≥ 0'}, e.g. --{name} 30.")
+    for name in ("connect", "listen", "endpoint"):
+        v = getattr(args, name, None)
+        for ep in ([v] if isinstance(v, str) else v or []):
+            if isinstance(ep, str) and not _ENDPOINT.match(ep):
+                return (f"endpoint {ep!r} (--{name}) is not valid: an endpoint is PROTOCOL/ADDRESS, for example "
+                        f"tcp/127.0.0.1:7447.")
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser(sys.argv[1:] if argv is None else argv)
+    argv_ = sys.argv[1:] if argv is None else argv
+    first = next((a for a in argv_ if not a.startswith("-")), None)
+    if argv_ and not argv_[0].startswith("-") and first not in command_names():
+        # without importing every command's module (plots, bridges: slow to import on a loaded machine)
+        print(f"magmesh: unknown command {first!r}; the commands are {', '.join(command_names())} "
+              f"(magmesh --help says what each does).", file=sys.stderr, flush=True)
+        return 2
+    parser = build_parser(argv_)
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
+        return 2
+    problem = check_common_args(args)
+    if problem is not None:
+        print(f"magmesh {args.command}: {problem}", file=sys.stderr, flush=True)
         return 2
     try:
         rc = args.func(args)
@@ -47,6 +86,13 @@ def main(argv: list[str] | None = None) -> int:
     except KeyError_ as e:  # a bad name (role, instance, vehicle) given on the command line
         print(f"magmesh {args.command}: {e}", file=sys.stderr, flush=True)
         return 2
+    except Exception as e:
+        if not type(e).__module__.startswith("mcap."):
+            raise
+        # a file that is not an MCAP recording (or a damaged one) given to replay, report, rerun, mcap
+        print(f"magmesh {args.command}: a file given is not a readable MCAP recording ({type(e).__name__}: {e}). "
+              f"Give a file written by magmesh record (run.mcap).", file=sys.stderr, flush=True)
+        return 1
     except KeyboardInterrupt:
         # Ctrl-C during a blocking Zenoh call: leave at once (a helper thread may still be inside Zenoh)
         print(f"magmesh {args.command}: interrupted", file=sys.stderr, flush=True)

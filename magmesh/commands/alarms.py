@@ -91,7 +91,10 @@ def run(args: argparse.Namespace) -> int:
     try:
         keys.alarms_all(args.vehicle)
     except keys.KeyError_ as e:
-        raise UserError(f"--vehicle: {e}; give a vehicle id such as car-1 or a pattern such as 'car-*'") from None
+        raise UserError(f"--vehicle: {e}; give a vehicle id such as car-1 or a pattern such as 'car-$*'") from None
+    from .swap import check_wildcards
+
+    check_wildcards(args.vehicle, "--vehicle")
     out = sys.stdout
     printer = AlarmPrinter(out, sys.stderr, args.json)
     q: queue.Queue = queue.Queue()

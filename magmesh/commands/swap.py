@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 
 import msgpack
@@ -12,6 +13,14 @@ from schemas import keys
 
 from .. import zconf
 from ..errors import UserError
+
+
+def check_wildcards(pattern: str, flag: str) -> None:
+    """A vehicle pattern as Zenoh reads it: ``*`` alone, or ``$*`` inside a name (``car-$*``, not ``car-*``)."""
+    if pattern not in ("*", "**") and re.search(r"(?<!\$)\*", pattern):
+        fixed = re.sub(r"(?<!\$)\*", "$*", pattern)
+        raise UserError(f"{flag} pattern {pattern!r} is not valid: inside a name a wildcard is written $* "
+                        f"(e.g. {fixed!r}); * alone means every vehicle", 2)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -27,7 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     g = p.add_mutually_exclusive_group()
     g.add_argument("--instance", default=None, metavar="NAME", help="the instance to replace, e.g. dmc-1")
     g.add_argument("--vehicles", default=None, metavar="PATTERN",
-                   help="the instance serving these vehicles, e.g. car-1 or 'car-*'")
+                   help="the instance serving these vehicles, e.g. car-1 or 'car-$*'")
     p.add_argument("--supervisor", default="main", help="supervisor instance (default main)")
     p.add_argument("--timeout", type=float, default=30.0, metavar="S",
                    help="seconds to wait for the new instance to be ready (the connection: at most 10 s)")
@@ -77,6 +86,7 @@ def run(args: argparse.Namespace) -> int:
             keys.check_pattern(args.vehicles, "--vehicles pattern")
         except keys.KeyError_ as e:
             raise UserError(str(e)) from None
+        check_wildcards(args.vehicles, "--vehicles")
     session = zconf.open_client(args, min(args.timeout, 10.0), "magmesh swap")
     with session:
         res = request_swap(session, args.role, args.impl, args.supervisor, args.timeout, args.instance,
