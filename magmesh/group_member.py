@@ -187,6 +187,7 @@ class GroupMember:
             with rt.lock:
                 raised = {k: m for k, m in rt.raised.items() if k.startswith(pre)}
             hand[v] = {"seqs": {k: s for k, s in rt.seq.items() if k.startswith(pre)},
+                       "drops": {k: dict(d) for k, d in list(rt.drops.items()) if k.startswith(pre)},
                        "alarms": {k: s for k, s in rt.alarm_published.items() if k.startswith(pre)},
                        "raised": raised, "passed": v in self.passed, "last_in_t": rt.last_in_t.get(v),
                        "cut": self.release[v]}
@@ -196,6 +197,7 @@ class GroupMember:
     def status(self) -> dict:
         return {"name": self.name, "members": list(self.members), "leaving": self.leaving,
                 "vehicles": sorted(self.owned)[:1000], "vehicles_total": len(self.owned),
+                "seen": sorted(self.seen)[:1000], "seen_total": len(self.seen),
                 "warming": sorted(self.warming), "taking": sorted(self.arm), "releasing": sorted(self.release),
                 **self.stats}
 
@@ -216,6 +218,8 @@ class GroupMember:
         rt.vehicle_state.pop(v, None)
         self._clear_vehicle(v)
         pre = f"{keys.ROOT}/{v}/"
+        for k in [k for k in rt.drops if k.startswith(pre)]:
+            del rt.drops[k]  # the vehicle's counts went with it to the new owner (group totals stay exact)
         for k in [k for k in rt.alarm_published if k.startswith(pre)]:
             del rt.alarm_published[k]
         with rt.lock:
@@ -260,13 +264,21 @@ class GroupMember:
         self.arm.pop(v, None)
         self.held = [h for h in self.held if h[2] != v]
 
-    def _adopt(self, v: str, seqs: dict, alarms: dict, raised: dict) -> None:
+    def _adopt(self, v: str, seqs: dict, alarms: dict, raised: dict, drops: dict | None = None) -> None:
         rt = self.rt
+        pre = f"{keys.ROOT}/{v}/"
+        for k, d in (drops or {}).items():
+            if not k.startswith(pre):
+                continue
+            for reason, n in d.items():  # the vehicle's counts come with it
+                rt.drops[k][reason] = max(int(n), rt.drops[k].get(reason, 0)) if reason == "lost_in_takeover" \
+                    else rt.drops[k].get(reason, 0) + int(n)
+            if rt.journal is not None and "lost_in_takeover" in d:
+                rt.journal.set("t" + k, rt.drops[k]["lost_in_takeover"])
         for k, s in seqs.items():
             rt.seq[k] = max(int(s), rt.seq.get(k, -1))
             if rt.journal is not None:
                 rt.journal.set("o" + k, rt.seq[k])
-        pre = f"{keys.ROOT}/{v}/"
         for k in [k for k in rt.alarm_published if k.startswith(pre)]:
             del rt.alarm_published[k]
         rt.alarm_published.update({k: s for k, s in alarms.items() if k.startswith(pre)})
@@ -281,7 +293,7 @@ class GroupMember:
         a = self.arm.pop(v, None)
         if a is None:
             return
-        self._adopt(v, hand.get("seqs", {}), hand.get("alarms", {}), hand.get("raised", {}))
+        self._adopt(v, hand.get("seqs", {}), hand.get("alarms", {}), hand.get("raised", {}), hand.get("drops"))
         self.owned.add(v)
         self.post_cut[v] = a[1]
         mine = [h for h in self.held if h[2] == v]
@@ -299,7 +311,8 @@ class GroupMember:
         rt.vehicle_state.pop(v, None)
         self._clear_vehicle(v)
         if dead["found"]:
-            self._adopt(v, dead["seqs"], dead["alarms"], dead["raised"])
+            self._adopt(v, dead["seqs"], dead["alarms"], dead["raised"],
+                        {k: {"lost_in_takeover": n} for k, n in dead["lost"].items()})
             for k, s in dead["inputs"].items():
                 rt.in_seq[k] = int(s)
                 rt.takeover_in.add(k)  # the first gap on it is lost_in_takeover (runtime._accepted)
@@ -496,7 +509,7 @@ class GroupMember:
         from .paths import state_dir
 
         pre = f"{keys.ROOT}/{v}/"
-        out: dict = {"seqs": {}, "inputs": {}, "alarms": {}, "raised": {}, "found": False}
+        out: dict = {"seqs": {}, "inputs": {}, "lost": {}, "alarms": {}, "raised": {}, "found": False}
         alarm_seq: dict[str, int] = {}
         d = state_dir()
         for f in sorted((d / "journal").glob(f"{self.role}.{self.name}-*.seq")):
@@ -509,8 +522,8 @@ class GroupMember:
             if ikey is not None and prev.get("~sent", 0) > prev.get("~sent_at_begin", 0):
                 prev[ikey] = max(prev.get(ikey, pseq), pseq)
             for k, s in prev.items():
-                if k[:1] in "oi" and k[1:].startswith(pre):
-                    tgt = out["seqs"] if k[0] == "o" else out["inputs"]
+                if k[:1] in "oit" and k[1:].startswith(pre):
+                    tgt = out["seqs"] if k[0] == "o" else out["inputs"] if k[0] == "i" else out["lost"]
                     tgt[k[1:]] = max(int(s), tgt.get(k[1:], -1))
                     out["found"] = True
         for f in sorted((d / "alarms").glob(f"{self.role}.{self.name}-*.json")):

@@ -52,3 +52,24 @@ def by_member(assign: dict[str, str | None], members: Iterable[str] = ()) -> dic
 def moved(before: dict[str, str | None], after: dict[str, str | None]) -> dict[str, tuple[str | None, str | None]]:
     """The vehicles whose owner differs between two assignments: ``{vehicle: (old owner, new owner)}``."""
     return {v: (before.get(v), o) for v, o in after.items() if before.get(v) != o}
+
+
+def summarize(members: dict[str, dict | None]) -> dict:
+    """The assignment as the members report it: ``members`` maps an instance to the ``group`` part of its
+    status (None when it did not answer). Gives each member's vehicles (None for one that did not answer),
+    every vehicle a member has seen that no member holds (``unowned``: between owners, or served by nobody)
+    and every vehicle two members hold at once (``duplicates``)."""
+    vehicles: dict[str, list[str] | None] = {}
+    count: dict[str, int] = {}
+    seen: set[str] = set()
+    for inst, g in sorted(members.items()):
+        if not isinstance(g, dict):
+            vehicles[inst] = None
+            continue
+        own = [str(v) for v in g.get("vehicles", []) or []]
+        vehicles[inst] = sorted(own)
+        for v in set(own) | {str(x) for x in g.get("releasing", []) or []}:
+            count[v] = count.get(v, 0) + 1
+        seen.update(str(v) for v in g.get("seen", []) or [])
+    return {"vehicles": vehicles, "unowned": sorted(seen - set(count)),
+            "duplicates": sorted(v for v, n in count.items() if n > 1)}

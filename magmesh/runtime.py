@@ -382,6 +382,11 @@ class Runner:
         self.params_sent: dict[str, list] = {}  # cal/params key -> [param_id, seq, t_s] last published
         self.journal = None  # magmesh.journal.Journal: last input/output seq per key, survives kill -9
         self.resumed_in: set[str] = set()  # input keys whose first gap after a restart is lost_during_restart
+        self.restart_gaps: dict[str, list[list[int]]] = {}  # input key -> [first, last] seq missed by a restart
+        # input key -> seq of the first sample received (journalled as "f"): a key received but not yet handled
+        # when the process dies is counted from there at the restart, not silently skipped
+        self._first_rx: dict[str, int] = {}
+        self._rx_lock = threading.Lock()
         self.takeover_in: set[str] = set()  # input keys taken from a dead group member: first gap is lost_in_takeover
         self.group = None  # magmesh.group_member.GroupMember when the service runs in a group (--group)
         self.resumed_from: dict | None = None  # what the journal of the run before a crash said
@@ -605,6 +610,10 @@ class Runner:
                 prev[ikey] = max(prev.get(ikey, pseq), pseq)
             prev = {k: v for k, v in prev.items() if not k.startswith("~")}
             self.journal.open(prev)
+            with self._rx_lock:  # keys this run received before its journal was open
+                for k, sq in self._first_rx.items():
+                    if sq is not None and ("i" + k) not in prev and ("f" + k) not in prev:
+                        self.journal.set("f" + k, sq)
         except OSError as e:
             self.journal = None
             self.last_error = f"seq journal unavailable: {e}"
@@ -618,6 +627,10 @@ class Runner:
                 n_out += 1
             elif k[:1] == "i":
                 self.in_seq[k[1:]] = int(v)
+                self.resumed_in.add(k[1:])
+                n_in += 1
+            elif k[:1] == "f" and ("i" + k[1:]) not in prev:  # received, never handled: missed from there on
+                self.in_seq[k[1:]] = int(v) - 1
                 self.resumed_in.add(k[1:])
                 n_in += 1
             elif k[:1] == "l":  # samples missed in earlier restarts of this run of the mesh
@@ -770,6 +783,8 @@ class Runner:
                 return
             if kind == "s":
                 ev = ("s", str(item.key_expr), item.payload.to_bytes())
+                if ev[1] not in self._first_rx:
+                    self._note_first_rx(ev[1], ev[2])
             else:
                 if kind == "status":
                     self._answer_status(item)
@@ -784,6 +799,23 @@ class Runner:
                     break
                 except queue.Full:
                     continue
+
+    def _note_first_rx(self, key: str, payload: bytes) -> None:
+        """The first sample received on ``key`` (reader thread, once per key): its seq goes to the journal as
+        "f" unless the journal already knows the key (handled, or carried over from the run before a crash)."""
+        try:
+            m = msgpack.unpackb(payload)
+            seq = m.get("seq") if isinstance(m, dict) and m.get("type") != "batch" else None
+        except Exception:  # noqa: BLE001 - garbage is the input path's to refuse
+            seq = None
+        with self._rx_lock:
+            if key in self._first_rx:
+                return
+            self._first_rx[key] = seq if isinstance(seq, int) and not isinstance(seq, bool) else None
+            j = self.journal
+            if j is not None and self._first_rx[key] is not None and ("i" + key) not in j.slot \
+                    and ("f" + key) not in j.slot:
+                j.set("f" + key, self._first_rx[key])
 
     def _spawn(self, target: Callable, *args: Any) -> None:
         t = threading.Thread(target=target, args=args, daemon=True)
@@ -903,7 +935,10 @@ class Runner:
             if gap > self.seq_jump_max:
                 self.count_rebase("seq_jump")
             elif gap > 0:
-                self.drops[skey]["lost_in_takeover" if skey in self.takeover_in else "upstream_gap"] += gap
+                if skey in self.takeover_in:
+                    self._lost_in_takeover(skey, gap)
+                else:
+                    self.drops[skey]["upstream_gap"] += gap
             elif gap < 0:
                 self.count_rebase("seq_back")
         if self.group is not None:  # a group member's vehicles may be taken from its journal after a kill -9
@@ -921,6 +956,13 @@ class Runner:
             self.first_in_t[vehicle] = t0
         if t1 > self.last_in_t.get(vehicle, float("-inf")):
             self.last_in_t[vehicle] = t1
+
+    def _lost_in_takeover(self, key: str, gap: int) -> None:
+        """Inputs a dead group member had not handled when this one took its vehicle: counted, and journalled
+        (the count moves on with the vehicle, through a hand-over or the next failover)."""
+        self.drops[key]["lost_in_takeover"] += gap
+        if self.journal is not None:
+            self.journal.set("t" + key, self.drops[key]["lost_in_takeover"])
 
     def _handler_failed(self, key: str, e: Exception) -> None:
         self.last_error = f"{type(e).__name__}: {e}"[:500]
@@ -1016,9 +1058,11 @@ class Runner:
                                  key, last, sq)
             elif gap > 0:  # lost before it reached us (or while this instance was down): visible, not silent
                 if key in self.takeover_in:  # not handled by a group member that died holding the vehicle
-                    self.drops[key]["lost_in_takeover"] += gap
+                    self._lost_in_takeover(key, gap)
                 elif key in self.resumed_in:
                     self.drops[key]["lost_during_restart"] += gap
+                    if len(self.restart_gaps) < STATUS_TOP_KEYS or key in self.restart_gaps:
+                        self.restart_gaps.setdefault(key, []).append([last + 1, sq - 1])  # which ones, for status
                     if self.journal is not None:  # the count survives the next crash too
                         self.journal.set("l" + key, self.drops[key]["lost_during_restart"])
                 else:
@@ -1164,6 +1208,7 @@ class Runner:
                 "suppressed": self.suppressed,
                 "cal_params_sent": dict(list(self.params_sent.items())[:4096]),
                 "resumed_from_journal": self.resumed_from,
+                "restart_gaps": {k: v[-10:] for k, v in self.restart_gaps.items()},  # seq ranges lost_during_restart
             }
             if self.group is not None:
                 st["group"] = self.group.status()

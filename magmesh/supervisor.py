@@ -28,7 +28,7 @@ import msgpack
 
 from schemas import keys
 
-from . import __version__, zconf
+from . import __version__, groups, zconf
 from .errors import UserError
 
 log = logging.getLogger("magmesh.supervisor")
@@ -46,6 +46,8 @@ class ProcessSpec:
     settings: dict = field(default_factory=dict)
     enabled: bool = True
     args: list = field(default_factory=list)
+    #: run as a role group of this many instances ``<name>-1..N`` sharing the vehicles (``magmesh scale``)
+    instances: int | None = None
 
     @property
     def is_publisher(self) -> bool:
@@ -76,6 +78,8 @@ PROCESS_KEYS = tuple(f.name for f in dataclasses.fields(ProcessSpec))
 PROCESS_REQUIRED = ("name", "module")
 #: a process that fails this many times in a row on start is given up (``[mesh] give_up_after``)
 GIVE_UP_AFTER = 5
+#: the most instances a group process may run (``instances = N``, ``magmesh scale``)
+MAX_INSTANCES = 64
 
 
 def _did_you_mean(word: str, known) -> str:
@@ -94,7 +98,7 @@ def _type_problem(where: str, key: str, value: Any, want: str) -> str | None:
 
 
 _PROCESS_TYPES = {"name": "str", "module": "str", "vehicle": "str", "vehicles": "str", "settings": "table",
-                  "enabled": "bool", "args": "list of str"}
+                  "enabled": "bool", "args": "list of str", "instances": "int"}
 _MESH_TYPES = {"endpoint": "str", "restart_backoff_s": "list of numbers", "status_period_s": "number",
                "give_up_after": "int", "connect": "list of str", "zenoh_config": "str"}
 
@@ -171,6 +175,11 @@ def load_manifest(path: str | os.PathLike) -> Manifest:
         if bad:
             continue
         spec = ProcessSpec(**entry)
+        if spec.instances is not None and (not 1 <= spec.instances <= MAX_INSTANCES or spec.is_publisher
+                                           or spec.vehicle):
+            problems.append(f"{label}: instances must be a whole number from 1 to {MAX_INSTANCES}, on a service "
+                            f"(not on a publisher, nor on a process with one vehicle); got {spec.instances}")
+            continue
         try:
             keys.check_id(spec.name, "process name")
             if spec.vehicle:
@@ -185,6 +194,13 @@ def load_manifest(path: str | os.PathLike) -> Manifest:
             continue
         names.add(spec.name)
         procs.append(spec)
+    for spec in procs:  # a group's instances are named <name>-1..N: none may be another process's name
+        if spec.instances is not None:
+            clash = [p.name for p in procs if p is not spec and p.name.startswith(spec.name + "-")
+                     and p.name[len(spec.name) + 1:].isdigit()]
+            if clash:
+                problems.append(f"process {spec.name!r} has instances = {spec.instances}, named {spec.name}-1.."
+                                f"{spec.name}-{spec.instances}, but {', '.join(clash)} is another process's name")
     if problems:
         raise ManifestError(_paragraph(p, problems))
     zcfg = mesh.get("zenoh_config")
@@ -312,6 +328,8 @@ def command_for(spec: ProcessSpec, endpoint: str, manifest_path: Path, impl_over
         cmd += ["--vehicles", spec.vehicles]
     for k, v in spec.settings.items():
         cmd += ["--set", _setting_arg(k, v)]
+    if spec.instances is not None:
+        cmd += ["--group", spec.name]
     cmd += [str(a) for a in spec.args]
     if impl_override:
         cmd += ["--impl", impl_override]
@@ -554,13 +572,103 @@ class Supervisor:
             return self.swapper.swap(str(params.get("role", "")), str(params.get("impl", "")),
                                      float(params.get("timeout_s", 20)), instance=params.get("instance") or None,
                                      vehicles=params.get("vehicles") or None)
+        if op == "scale":
+            return self.scale(str(params.get("name", "")), params.get("n"))
         if op == "restart":
             ch = self.children.get(params.get("name", ""))
             if ch is None:
                 return {"ok": False, "error": f"no process named {params.get('name')!r}"}
             ch.stop(signal.SIGKILL)
             return {"ok": True}
-        return {"ok": False, "error": f"unknown op {op!r} (known: swap, restart)"}
+        return {"ok": False, "error": f"unknown op {op!r} (known: swap, scale, restart)"}
+
+    # ---- role groups (instances = N): see magmesh/group_member.py ----------------------------------
+    def group_children(self, name: str) -> list[str]:
+        """The instances ``<name>-<k>`` of a group process, in order of k."""
+        pre = f"{name}-"
+        out = [(int(n[len(pre):]), n) for n in list(self.children)
+               if n.startswith(pre) and n[len(pre):].isdigit() and self.children[n].spec.name == name]
+        return [n for _, n in sorted(out)]
+
+    def start_group(self, spec: ProcessSpec, n: int) -> list[str]:
+        have = self.group_children(spec.name)
+        k = max((int(x.rsplit("-", 1)[1]) for x in have), default=0)
+        started = []
+        for _ in range(n - len(have)):
+            k += 1
+            started.append(self.add_child(spec, instance=f"{spec.name}-{k}").name)
+        return started
+
+    def scale(self, name: str, n: Any, leave_timeout_s: float = 60.0) -> dict:
+        """Run ``n`` instances of the group process ``name``: start new ones (each takes its vehicles over from
+        the others after warming on them), or let the last ones leave the group (their vehicles handed over the
+        same way) and stop them."""
+        spec = next((s for s in self.m.processes if s.name == name), None)
+        group_names = [s.name for s in self.m.processes if s.instances is not None]
+        if spec is None or spec.instances is None:
+            what = "is not a process of" if spec is None else "has no instances = N in"
+            return {"ok": False, "error": f"{name!r} {what} this mesh's manifest ({self.m.path}); the processes that "
+                    f"can be scaled: {', '.join(group_names) or 'none'} (give a [[process]] instances = N to make "
+                    f"one a group)"}
+        if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_INSTANCES:
+            return {"ok": False, "error": f"the number of instances must be a whole number from 1 to "
+                                          f"{MAX_INSTANCES}, not {n!r}"}
+        have = self.group_children(name)
+        t0 = time.monotonic()
+        started = self.start_group(spec, n) if n > len(have) else []
+        leaving = have[n:]
+        handed = {}
+        if leaving:
+            role = self._role_of_spec(spec)
+            for inst in leaving:
+                self._control_instance(role, inst, {"op": "g_leave"})
+            deadline = time.monotonic() + leave_timeout_s
+            pending = set(leaving)
+            while pending and time.monotonic() < deadline:
+                for inst in sorted(pending):
+                    st = self._control_instance(role, inst, {"op": "g_state"})
+                    if st is None and self.children.get(inst) is not None and self.children[inst].alive:
+                        continue  # busy: ask again
+                    if st is None or (not st.get("owned") and not st.get("releasing")):
+                        pending.discard(inst)
+                        handed[inst] = st is not None
+                time.sleep(0.2)
+            for inst in leaving:
+                handed.setdefault(inst, False)  # still holding vehicles: the others take them from its journal
+                self.remove_child(inst)
+        self.event(f"scale {name}: {len(have)} -> {n} instances" + (f" (started {', '.join(started)})" if started
+                   else "") + (f" ({', '.join(leaving)} left the group and stopped)" if leaving else ""))
+        return {"ok": True, "name": name, "instances": self.group_children(name), "started": started,
+                "stopped": leaving, "handed_over": handed, "took_s": round(time.monotonic() - t0, 2)}
+
+    @staticmethod
+    def _role_of_spec(spec: ProcessSpec) -> str:
+        impls, default = implementations(spec.module)
+        return impls[spec_impl(spec) or default].role
+
+    def _control_instance(self, role: str, inst: str, req: dict, timeout: float = 2.0) -> dict | None:
+        payload = msgpack.packb(req, use_bin_type=True)
+        for rep in self.session.get(keys.svc_control(role, inst), payload=payload, timeout=timeout):
+            if rep.ok is not None:
+                try:
+                    res = msgpack.unpackb(rep.ok.payload.to_bytes(), strict_map_key=False)
+                except Exception:  # noqa: BLE001
+                    return None
+                return res if isinstance(res, dict) and res.get("ok") else None
+        return None
+
+    def groups_status(self) -> dict:
+        """Per group process: its instances, the vehicles each holds (from their status) and every vehicle a
+        member has seen that no member holds (``unowned``: between owners, or nobody serves it)."""
+        out = {}
+        st = self.last_status
+        for spec in self.m.processes:
+            if spec.instances is None:
+                continue
+            insts = self.group_children(spec.name)
+            summary = groups.summarize({inst: (st.get(inst) or {}).get("group") for inst in insts})
+            out[spec.name] = {"instances": insts, "configured": spec.instances, **summary}
+        return out
 
     def status(self) -> dict:
         now = time.monotonic()
@@ -575,7 +683,9 @@ class Supervisor:
         return {"type": "status", "version": 1, "role": "supervisor", "impl": "supervisor", "instance": self.name,
                 "pid": os.getpid(), "magmesh_version": __version__, "uptime_s": round(now - self.started, 2),
                 "endpoint": self.endpoint, "manifest": str(self.m.path), "processes": procs,
-                "alarms_raised": raised, "alarms_ignored": self.alarms_ignored, "log_dir": str(self.log_dir)}
+                "alarms_raised": raised, "alarms_ignored": self.alarms_ignored, "log_dir": str(self.log_dir),
+                **({"groups": self.groups_status()} if any(s.instances is not None for s in self.m.processes)
+                   else {})}
 
     # ---- process side ---------------------------------------------------------------------
     def add_child(self, spec: ProcessSpec, impl_override: str | None = None, instance: str | None = None,
@@ -630,7 +740,9 @@ class Supervisor:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self.open()
         for spec in self.m.processes:
-            if spec.enabled:
+            if spec.enabled and spec.instances is not None:
+                self.start_group(spec, spec.instances)
+            elif spec.enabled:
                 self.add_child(spec)
         self.event(f"mesh up on {self.endpoint}: {len(self.children)} processes; logs in {self.log_dir}")
         tty = sys.stdout.isatty() and not self.quiet

@@ -64,7 +64,20 @@ def collect(session, timeout: float = 2.0) -> dict:
             continue
         st = statuses.get(f"{role}/{inst}", {})
         services.append({"role": role, "instance": inst, "status": st, "answered": bool(st)})
-    return {"services": services, "bad_replies": bad}
+    return {"services": services, "bad_replies": bad, "groups": group_assignment(services)}
+
+
+def group_assignment(services: list[dict]) -> dict:
+    """Role groups (instances = N): per ``role/group``, each member's vehicles and every vehicle seen by a member
+    that no member holds (``unowned``) or that two hold (``duplicates``)."""
+    from ..groups import summarize
+
+    by: dict[str, dict] = {}
+    for s in services:
+        g = s["status"].get("group") if isinstance(s.get("status"), dict) else None
+        if isinstance(g, dict) and isinstance(g.get("name"), str):
+            by.setdefault(f"{s['role']}/{g['name']}", {})[s["instance"]] = g
+    return {name: summarize(members) for name, members in sorted(by.items())}
 
 
 def _num(v, default=0.0) -> float:
@@ -87,7 +100,16 @@ def render(result: dict) -> str:
             rows.append((s["role"], s["instance"], "?", "?", "?", "?", "?", "?", "?", "?",
                          f"malformed status reply ({type(e).__name__})"))
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    return "\n".join("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=False)).rstrip() for r in rows)
+    out = "\n".join("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=False)).rstrip() for r in rows)
+    for name, g in (result.get("groups") or {}).items():
+        vs = g.get("vehicles", {})
+        n = sum(len(x) for x in vs.values() if x)
+        out += (f"\ngroup {name}: {len(vs)} members, {n} vehicles held; "
+                + "; ".join(f"{m}: {', '.join(x) if x else ('-' if x is not None else 'no answer')}"
+                            for m, x in vs.items())
+                + f"\n  without an owner: {', '.join(g.get('unowned', [])) or 'none'}"
+                + (f"; held twice: {', '.join(g['duplicates'])}" if g.get("duplicates") else ""))
+    return out
 
 
 def _row(s: dict, st: dict) -> tuple:
@@ -106,6 +128,8 @@ def _row(s: dict, st: dict) -> tuple:
     if st.get("calibration"):
         note = (note + " " + str(st["calibration"]))[:80]
     vehicles = st.get("vehicles", [])
+    if isinstance(st.get("group"), dict):  # a group member: the vehicles it holds (not those it warms on)
+        vehicles = st["group"].get("vehicles", [])
     return (s["role"], s["instance"], str(st.get("impl", "?")), "yes" if st.get("holds_role", True) else "no",
             f"{_num(st.get('uptime_s')):.0f}", _fmt_rate(st.get("in", {})), _fmt_rate(st.get("out", {})),
             str(st.get("lost_total", "?")), f"{st.get('rejects', '?')}/{st.get('skipped_total', '?')}",
