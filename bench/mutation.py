@@ -46,12 +46,14 @@ class Core:
 #: each pure core and its own test files
 CORES: dict[str, Core] = {
     "dmc_core": Core("services/dmc_detector/core.py", ("tests/test_dmc_core.py", "tests/test_dmc_stage1_pins.py")),
-    "dmc_fcm": Core("services/dmc_detector/fcm.py", ("tests/test_dmc_fcm.py",)),
+    "dmc_fcm": Core("services/dmc_detector/fcm.py", ("tests/test_dmc_fcm.py", "tests/test_dmc_fcm_pins.py")),
     "arls": Core("services/calibration/arls.py",
                  ("tests/test_calibration_core.py", "tests/test_calibration_arls_pins.py")),
     "two_step": Core("services/calibration/two_step.py",
-                     ("tests/test_calibration_core.py", "tests/test_calibration_arls_pins.py")),
-    "online_ekf": Core("services/calibration/online_ekf.py", ("tests/test_calibration_core.py",)),
+                     ("tests/test_calibration_core.py", "tests/test_calibration_arls_pins.py",
+                      "tests/test_calibration_two_step_pins.py")),
+    "online_ekf": Core("services/calibration/online_ekf.py",
+                       ("tests/test_calibration_core.py", "tests/test_calibration_online_ekf_pins.py")),
     "heading_core": Core("services/heading_fuser/core.py", ("tests/test_heading_core.py", "tests/test_heading_pins.py")),
     # the slow end-to-end cases (the unordered-set pipeline against the exhaustive search, the simulated survey,
     # 20 s and more each) are left out; test_geomag_pins.py pins the same steps on small maps. The spline-cache

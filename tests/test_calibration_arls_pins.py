@@ -161,3 +161,130 @@ def test_iterations_stop_when_x_stops_changing():
     assert full.converged and 2 <= full.iterations < ALGEBRAIC.max_iterations
     # one re-weighting is not yet the answer: the converged fit is closer to the truth
     assert _offset_err_pct(full.params, c) < _offset_err_pct(one.params, c)
+
+
+# ---- the robust scale, the settings, the geometric refinement, the result ------------------------
+
+
+def test_robust_sigma_is_1_4826_mad_floored_relative_to_the_median_residual():
+    rng = np.random.default_rng(11)
+    v = 7.0 + rng.normal(0.0, 2.0, 2001)  # a non-zero median: the MAD is about it, not about 0
+    want = 1.4826 * np.median(np.abs(v - np.median(v)))
+    assert arls.robust_sigma(v) == pytest.approx(want, rel=1e-12)
+    assert arls.robust_sigma(v) == pytest.approx(2.0, rel=0.05)  # a consistent estimate of σ
+    # more than half the residuals equal: MAD 0, the floor min_sigma_rel · median |v| applies
+    tied = np.r_[np.full(5, 1e-3), 1.0, -2.0]
+    assert arls.robust_sigma(tied) == pytest.approx(1e-6 * 1e-3, rel=1e-9)
+    assert arls.robust_sigma(tied, min_sigma_rel=1e-2) == pytest.approx(1e-5, rel=1e-9)
+    assert arls.robust_sigma(np.zeros(9)) > 0.0  # perfect data still divides
+
+
+def test_settings_need_0_lt_k0_lt_k1_and_an_iteration():
+    for k0, k1 in ((0.0, 3.0), (2.0, 2.0), (3.0, 2.0), (-1.0, 3.0)):
+        with pytest.raises(ValueError, match="k0"):
+            arls.ArlsSettings(k0=k0, k1=k1)
+    with pytest.raises(ValueError, match="max_iterations"):
+        arls.ArlsSettings(max_iterations=0)
+    arls.ArlsSettings(k0=0.01, k1=0.02, max_iterations=1)
+    d = arls.ArlsSettings()
+    assert (d.k0, d.k1, d.refine) == (1.5, 3.0, True)  # the paper's k0 = 1.0–1.5, k1 ≈ 3; refinement on
+
+
+def _weighted_geometric_fit(m, w, n, start):
+    """min Σ w_i (|S (m_i − b)| − 1)² over b and symmetric S, by scipy (independent of the Gauss–Newton)."""
+    from scipy.optimize import least_squares
+
+    iu = np.triu_indices(n)
+
+    def unpack(p):
+        S = np.zeros((n, n))
+        S[iu] = p[n:]
+        return p[:n], S + np.triu(S, 1).T
+
+    def res(p):
+        b, S = unpack(p)
+        return np.sqrt(w) * (np.linalg.norm((m - b) @ S, axis=1) - 1.0)
+
+    b0, S0 = start
+    return unpack(least_squares(res, np.r_[b0, S0[iu]], x_scale="jac", xtol=1e-15, ftol=1e-15, gtol=1e-15).x)
+
+
+@pytest.mark.parametrize("model,noise", [("3d", 1500.0), ("2d", 1000.0)])
+def test_refinement_reaches_the_weighted_geometric_fit(model, noise):
+    """With refine on, the answer is the minimum of the IGG-weighted geometric residual (its own final
+    weights), which the algebraic ARLS alone is not: under strong noise the two differ measurably."""
+    c = synthetic.make_cloud(synthetic.CloudSettings(model=model, n_samples=800, noise_nt=noise, gross_frac=0.1,
+                                                     seed=21))
+    n = 3 if model == "3d" else 2
+    ref = arls.fit_arls(c.m_nt, model)
+    alg = arls.fit_arls(c.m_nt, model, settings=ALGEBRAIC)
+    assert ref.ok and alg.ok
+    ls = two_step.fit_ls(c.m_nt, model).params
+    b, S = _weighted_geometric_fit(c.m_nt[:, :n], ref.weights, n,
+                                   (ls.offset[:n], ls.M[:n, :n] / ls.field_radius_nt))
+    S_ref = ref.params.M[:n, :n] / ref.params.field_radius_nt
+    S_alg = alg.params.M[:n, :n] / alg.params.field_radius_nt
+    assert np.linalg.norm(ref.params.offset[:n] - b) < 2e-5 * c.radius_nt
+    assert np.abs(S_ref - S).max() < 1e-4 * np.abs(S).max()
+    assert np.linalg.norm(alg.params.offset[:n] - b) > 5e-5 * c.radius_nt  # the refinement did something
+    assert np.abs(S_alg - S).max() > 5e-4 * np.abs(S).max()
+    # the weights are IGG-III of the final geometric residuals over their robust scale
+    r = np.linalg.norm((c.m_nt[:, :n] - ref.params.offset[:n]) @ S_ref, axis=1) - 1.0
+    np.testing.assert_allclose(ref.weights, arls.igg3_weights(r / arls.robust_sigma(r), 1.5, 3.0), atol=1e-3)
+    assert ref.n_gross_rejected == int(np.count_nonzero(ref.weights == 0))
+    # fewer Gauss–Newton steps do not reach it
+    one = arls.fit_arls(c.m_nt, model, settings=arls.ArlsSettings(refine_iterations=1))
+    assert np.abs(one.params.M[:n, :n] / one.params.field_radius_nt - S).max() > np.abs(S_ref - S).max()
+
+
+@pytest.mark.parametrize("model", ["3d", "2d"])
+def test_refined_parameters_radius_and_embedding(model):
+    c = synthetic.make_cloud(synthetic.CloudSettings(model=model, n_samples=600, noise_nt=20.0, seed=22))
+    n = 3 if model == "3d" else 2
+    free = arls.fit_arls(c.m_nt, model).params
+    fixed = arls.fit_arls(c.m_nt, model, radius_nt=c.radius_nt).params
+    assert np.linalg.det(free.M[:n, :n]) == pytest.approx(1.0, rel=1e-9)  # geometric-mean radius
+    assert fixed.field_radius_nt == c.radius_nt
+    np.testing.assert_allclose(fixed.M[:n, :n] / fixed.field_radius_nt, free.M[:n, :n] / free.field_radius_nt,
+                               rtol=1e-9)
+    h = fixed.apply(c.m_nt)
+    strength = np.linalg.norm(h[:, :n], axis=1)
+    assert abs(np.median(strength) - c.radius_nt) < 1e-3 * c.radius_nt
+    assert magcal.offset_error_pct(free.offset, c.offset_nt, c.radius_nt) < 0.05
+    assert free.model == model
+    if model == "2d":
+        assert free.observable == (True, True, False) and free.offset[2] == 0.0 and free.M[2, 2] == 1.0
+        assert np.all(free.M[:2, 2] == 0) and np.all(free.M[2, :2] == 0)
+    else:
+        assert free.observable == (True, True, True)
+
+
+def test_result_fields_and_refusals():
+    import time
+
+    c, m, gross = _paper_2d_cloud(6, n=1000)
+    t0 = time.perf_counter()
+    r = arls.fit_arls(m, "2d", settings=ALGEBRAIC)
+    elapsed_ms = 1e3 * (time.perf_counter() - t0)
+    assert r.ok and r.method == "arls" and r.model == "2d" and r.n_samples == 1000 and r.reason == ""
+    assert 0.0 < r.duration_ms <= elapsed_ms
+    h = r.params.apply(m)
+    resid = np.hypot(h[:, 0], h[:, 1]) - r.params.field_radius_nt
+    keep = r.weights > 0
+    assert r.rmse_nt == pytest.approx(np.sqrt(np.mean(resid[keep] ** 2)), rel=1e-9)  # over the kept samples
+    assert r.rmse_nt < np.sqrt(np.mean(resid**2))
+    # a hyperbola is no ellipse: refused with a reason, no parameters
+    t = np.linspace(-2, 2, 300)
+    hyp = np.column_stack([np.cosh(t), np.sinh(t), np.zeros_like(t)]) * 1000.0
+    t0 = time.perf_counter()
+    bad = arls.fit_arls(hyp, "2d")
+    elapsed_ms = 1e3 * (time.perf_counter() - t0)
+    assert not bad.ok and bad.params is None and "no ellipsoid" in bad.reason and not bad.converged
+    assert bad.method == "arls" and bad.model == "2d" and bad.n_samples == 300 and bad.iterations >= 1
+    assert 0.0 < bad.duration_ms <= elapsed_ms
+    # too few samples keep a weight: 10 samples for 5 unknowns cannot leave 2 × 5 non-zero weights
+    few = c.m_nt[::100][:10].copy()
+    few[0, :2] += 5000.0
+    r_few = arls.fit_arls(few, "2d")
+    assert not r_few.ok and "too few samples" in r_few.reason
+    assert arls.fit_arls(c.m_nt[::50], "2d").ok  # 20 clean samples do
