@@ -16,6 +16,7 @@ import json
 import mmap
 import os
 import struct
+import threading
 from pathlib import Path
 
 SLOTS = 8192  # keys per journal (in + out); a key beyond that is not journalled (counted in ``full``)
@@ -32,6 +33,7 @@ class Journal:
         self.slot: dict[str, int] = {}
         self.full = 0
         self.mm: mmap.mmap | None = None
+        self._lock = threading.Lock()  # a new key's slot (the receive thread journals first-received seqs too)
 
     def load(self) -> dict[str, int]:
         """What a previous run left (empty when it stopped cleanly or never ran)."""
@@ -84,13 +86,17 @@ class Journal:
         try:
             i = self.slot.get(key)
             if i is None:
-                if len(self.slot) >= SLOTS:
-                    self.full += 1
-                    return
-                i = self.slot[key] = len(self.slot)
-                _FMT.pack_into(mm, i * 8, int(value))
-                self._write_index(list(self.slot))  # a new key: rare (bounded by SLOTS)
-                return
+                with self._lock:
+                    i = self.slot.get(key)
+                    if i is None:
+                        if len(self.slot) >= SLOTS:
+                            self.full += 1
+                            return
+                        i = len(self.slot)
+                        _FMT.pack_into(mm, i * 8, int(value))
+                        self.slot[key] = i
+                        self._write_index(list(self.slot))  # a new key: rare (bounded by SLOTS)
+                        return
             _FMT.pack_into(mm, i * 8, int(value))
         except (ValueError, OSError):  # closed by a stop in progress: nothing left to account for
             return

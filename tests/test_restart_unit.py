@@ -143,3 +143,22 @@ def test_restored_alarm_of_a_non_latching_logic_waits_for_input(tmp_path, monkey
     _feed(r2, range(100, 400))  # 8 s: the logic had its chance to raise it again and did not
     r2.reconcile_alarms()
     assert [m["state"] for m in alarms()] == ["cleared"] and "after a restart" in alarms()[0]["reason"]
+
+
+def test_a_key_received_but_never_handled_before_a_kill_is_counted_from_its_first_sample(tmp_path, monkeypatch):
+    """Samples queued behind a slow start (a JIT compile, a model load) and never handled when the process is
+    killed: the first one received is journalled, so the restart counts the key's loss from there, across a
+    second crash too, and ranges name which seqs."""
+    key = keys.clean_mag("car-1", "1")
+    r, _ = _runner(tmp_path, monkeypatch)
+    for sq in (30, 31, 32):  # received (reader thread), still queued when killed
+        r._note_first_rx(key, messages.encode(messages.make("mag", "car-1", 10.0 + sq, sq, sensor="1",
+                                                            b_nt=[20000.0, 1000.0, -40000.0])))
+    r2, _ = _runner(tmp_path, monkeypatch)  # killed; the restart receives nothing of the key either
+    r2._note_first_rx(key, messages.encode(messages.make("mag", "car-1", 50.0, 50, sensor="1",
+                                                         b_nt=[20000.0, 1000.0, -40000.0])))
+    r3, s3 = _runner(tmp_path, monkeypatch)  # killed again
+    _feed(r3, range(60, 62))
+    assert r3.drops[key]["lost_during_restart"] == 30  # seqs 30..59: never handled by any run
+    assert r3.restart_gaps[key] == [[30, 59]]
+    assert [m["seq"] for _, m in s3.out] == [0, 1]
