@@ -1,0 +1,150 @@
+"""Elastic roles without a mesh: the manifest's ``instances``, ``magmesh scale`` mistakes, the runtime's
+``--group`` flag, the assignment summary, and what a member reads of a dead member's persisted state."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from magmesh import groups
+from magmesh.journal import Journal
+from magmesh.supervisor import ManifestError, Supervisor, command_for, load_manifest
+
+REPO = Path(__file__).resolve().parent.parent
+
+_GROUP = '[[process]]\nname = "dmc"\nmodule = "services.dmc_detector"\ninstances = {n}\n'
+
+
+def _manifest(tmp_path, body: str) -> Path:
+    p = tmp_path / "mesh.toml"
+    p.write_text(body)
+    return p
+
+
+def test_instances_runs_a_group_named_after_the_process(tmp_path):
+    m = load_manifest(_manifest(tmp_path, _GROUP.format(n=3)))
+    spec = m.processes[0]
+    assert spec.instances == 3
+    cmd = command_for(spec, "tcp/127.0.0.1:1", m.path, instance="dmc-2")
+    assert cmd[cmd.index("--instance") + 1] == "dmc-2" and cmd[cmd.index("--group") + 1] == "dmc"
+    plain = load_manifest(_manifest(tmp_path, _GROUP.replace("instances = {n}\n", ""))).processes[0]
+    assert plain.instances is None and "--group" not in command_for(plain, "tcp/127.0.0.1:1", m.path)
+
+
+@pytest.mark.parametrize("body, needle", [
+    (_GROUP.format(n=0), "instances must be a whole number from 1 to 64"),
+    (_GROUP.format(n=65), "instances must be a whole number from 1 to 64"),
+    (_GROUP.format(n='"3"'), "instances must be a int"),
+    ('[[process]]\nname = "sim"\nmodule = "sim_publishers.car"\nvehicle = "car-1"\ninstances = 2\n', "not on a publisher"),
+    (_GROUP.format(n=2) + '[[process]]\nname = "dmc-2"\nmodule = "services.dmc_detector"\n', "dmc-2 is another process"),
+])
+def test_instances_mistakes_are_one_paragraph(tmp_path, body, needle):
+    with pytest.raises(ManifestError) as e:
+        load_manifest(_manifest(tmp_path, body))
+    assert needle in str(e.value) and "\n" not in str(e.value), str(e.value)
+
+
+def test_supervisor_refuses_to_scale_what_is_not_a_group(tmp_path):
+    m = load_manifest(_manifest(tmp_path, _GROUP.format(n=2) + '[[process]]\nname = "ingest-1"\n'
+                                'module = "services.ingest"\n'))
+    sup = Supervisor(m, endpoint="tcp/127.0.0.1:1", log_dir=tmp_path / "logs", quiet=True)
+    r = sup.scale("ingest-1", 2)
+    assert not r["ok"] and "has no instances = N" in r["error"] and "can be scaled: dmc" in r["error"], r
+    r = sup.scale("nope", 2)
+    assert not r["ok"] and "is not a process of" in r["error"] and "dmc" in r["error"], r
+    for bad in (0, 65, "2", True, 1.5):
+        r = sup.scale("dmc", bad)
+        assert not r["ok"] and "from 1 to 64" in r["error"], (bad, r)
+    assert sup.children == {}  # nothing started by a refused request
+
+
+@pytest.mark.parametrize("args, needle", [(["dmc", "0"], "from 1 to 64"), (["dmc", "three"], "from 1 to 64"),
+                                          (["bad name", "2"], "process name")])
+def test_scale_command_mistakes_are_one_paragraph(args, needle):
+    r = subprocess.run([sys.executable, "-m", "magmesh", "scale", *args, "--connect", "tcp/127.0.0.1:1"],
+                       cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and needle in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def test_group_flag_needs_a_member_name():
+    from magmesh.runtime import make_parser, service_from_args
+    from services.dmc_detector.service import ThresholdDmcDetector
+
+    p = make_parser(ThresholdDmcDetector)
+    with pytest.raises(SystemExit) as e:
+        service_from_args(ThresholdDmcDetector, p.parse_args(["--group", "dmc"]))
+    assert "--instance dmc-1" in str(e.value)
+    with pytest.raises(SystemExit) as e:
+        service_from_args(ThresholdDmcDetector, p.parse_args(["--group", "dmc", "--instance", "other-1"]))
+    assert "must be dmc-<n>" in str(e.value)
+    svc = service_from_args(ThresholdDmcDetector, p.parse_args(["--group", "dmc", "--instance", "dmc-2"]))
+    assert svc.group == "dmc"
+    assert service_from_args(ThresholdDmcDetector, p.parse_args(["--instance", "dmc-2"])).group is None
+
+
+def test_summary_names_unowned_and_doubly_held_vehicles():
+    s = groups.summarize({
+        "dmc-1": {"vehicles": ["car-2", "car-1"], "releasing": [], "seen": ["car-1", "car-2", "car-3", "car-4"]},
+        "dmc-2": {"vehicles": ["car-2"], "releasing": ["car-5"], "seen": ["car-5"]},
+        "dmc-3": None,
+    })
+    assert s["vehicles"] == {"dmc-1": ["car-1", "car-2"], "dmc-2": ["car-2"], "dmc-3": None}
+    assert s["unowned"] == ["car-3", "car-4"]  # car-5 is being handed over: it has its holder
+    assert s["duplicates"] == ["car-2"]
+
+
+class _Svc:
+    role, ADOPTS_RESTORED_ALARMS = "dmc_detector", True
+    instance = "dmc-1"
+
+
+class _Rt:
+    svc, session = _Svc(), None
+
+
+def _journal(path: Path, values: dict, in_progress: tuple | None = None, sent_after: bool = False) -> None:
+    j = Journal(path)
+    j.open({})
+    for k, v in values.items():
+        j.set(k, v)
+    if in_progress is not None:
+        j.begin(*in_progress, n_sent=5)
+        j.sent(6 if sent_after else 5)
+    j.mm.flush()
+
+
+def test_dead_state_takes_the_latest_of_every_dead_member(tmp_path, monkeypatch):
+    from magmesh.group_member import GroupMember
+
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
+    jd, ad = tmp_path / "journal", tmp_path / "alarms"
+    ad.mkdir(parents=True)
+    m1, m2 = "magmesh/car-1/clean/mag/1", "magmesh/car-1/clean/mag/2"
+    d, a = "magmesh/car-1/dmc", "magmesh/car-1/alarm/dmc"
+    # dmc-2 held car-1 first (older seqs), dmc-3 after it; dmc-3 died while handling a mag/2 sample whose
+    # output went out: that sample counts as handled
+    _journal(jd / "dmc_detector.dmc-2.seq", {"i" + m1: 10, "o" + d: 9, "t" + m1: 4, "o" + "magmesh/car-9/dmc": 99})
+    _journal(jd / "dmc_detector.dmc-3.seq", {"i" + m1: 50, "i" + m2: 49, "o" + d: 48, "t" + m1: 7},
+             in_progress=("i" + m2, 50), sent_after=True)
+    _journal(jd / "dmc_detector.dmc-1.seq", {"o" + d: 1000})  # the member itself (live): never read
+    raised = {"state": "raised", "t_s": 5.0, "vehicle": "car-1"}
+    (ad / "dmc_detector.dmc-2.json").write_text(json.dumps({"published": {a: "cleared"}, "raised": {},
+                                                           "seqs": {a: 1}}))
+    (ad / "dmc_detector.dmc-3.json").write_text(json.dumps({"published": {a: "raised"}, "raised": {a: raised},
+                                                           "seqs": {a: 2}}))
+    g = GroupMember(_Rt(), "dmc")
+    g.live = {"dmc-1"}
+    st = g._dead_state("car-1")
+    assert st["found"]
+    assert st["inputs"] == {m1: 50, m2: 50}
+    assert st["seqs"] == {d: 48, a: 2} and st["lost"] == {m1: 7}
+    assert st["alarms"] == {a: "raised"} and st["raised"] == {a: raised}
+    assert not g._dead_state("car-2")["found"]
+    g.live = {"dmc-1", "dmc-3"}  # dmc-3 alive again: only dmc-2's older state is someone else's to take
+    st = g._dead_state("car-1")
+    assert st["inputs"] == {m1: 10} and st["seqs"] == {d: 9, a: 1} and st["alarms"] == {a: "cleared"}
+    assert st["raised"] == {}
