@@ -803,69 +803,141 @@ class HeadingFilter:
 class MagLagEstimator:
     """Causal estimate of the magnetometer's lag behind the gyro, from the sensors alone.
 
-    The same equation as :func:`estimate_mag_delay_s`, ṁ(t) = −ω(t − d) × m(t), accumulated sample by
-    sample: for each candidate lag on a grid of ``step_s`` the squared residual is summed over the
-    samples seen so far (only while the body turns faster than ``min_rate_rad_s`` and the field is near
-    its reference, so a disturbance adds nothing), and the lag is the minimum, refined by a parabola.
-    It reports 0 until ``min_samples`` turning samples have been seen.
+    A constant field seen from a rotating body turns with the body's inverse rotation; a magnetometer
+    that lags by ``d`` shows at time t the field of time t − d. Over a baseline of ``baseline_s``
+    between two field samples (times t₀ < t₁) and for each candidate lag on a grid of ``step_s``, the
+    gyro-integrated rotation between t₀ − d and t₁ − d must carry the older sample into the newer::
+
+        m(t₁) − h = M_d (m(t₀) − h),    M_d = R_g(t₁ − d)ᵀ R_g(t₀ − d)
+
+    with ``h`` a body-fixed offset (an uncalibrated hard iron) that is solved for jointly, per
+    candidate, by linear least squares (normal equations accumulated sample by sample, so memory and
+    time per sample are constant). The lag is the candidate with the smallest residual, refined by a
+    parabola through its neighbours. Comparing rotations over a baseline instead of the field's
+    derivative keeps the magnetometer's noise from being amplified by the sample rate. Only pairs that
+    turned by at least ``min_turn_rad`` and whose strengths are near the reference count (a disturbed
+    field adds nothing); one pair per ``period_s``. It reports 0 until ``min_samples`` pairs were seen.
     """
 
-    def __init__(self, max_delay_s: float = 0.05, step_s: float = 0.002, min_rate_rad_s: float = 0.5,
-                 min_samples: int = 300, period_s: float = 0.01):
+    def __init__(self, max_delay_s: float = 0.05, step_s: float = 0.001, min_rate_rad_s: float = 0.5,
+                 min_samples: int = 200, period_s: float = 0.05, baseline_s: float = 0.2,
+                 n_buf: int = 512):
         self.grid = np.arange(0.0, max_delay_s + 1e-12, step_s)
         self.step_s = step_s
-        self.cost = np.zeros(len(self.grid))
+        g = len(self.grid)
+        self.A = np.zeros((g, 3, 3))  # Σ Mᵀ M, M = I − M_d
+        self.b = np.zeros((g, 3))  # Σ Mᵀ r₀, r₀ = m₁ − M_d m₀
+        self.c = np.zeros(g)  # Σ |r₀|²
+        self.cost = np.zeros(g)
         self.n = 0
         self.min_rate = min_rate_rad_s
+        self.min_turn_rad = min_rate_rad_s * baseline_s * 0.5
         self.min_samples = min_samples
+        self.baseline_s = baseline_s
         self.delay_s = 0.0
-        self.period_s = period_s  # at most one residual per this period (the cost of the estimate)
-        self._n_buf = 64
-        self._gt = np.full(self._n_buf, -np.inf)  # ring buffer of gyro times and rates
-        self._gw = np.zeros((self._n_buf, 3))
+        self.offset_nt = np.zeros(3)  # the body-fixed offset h at that lag
+        self.period_s = period_s  # at most one pair per this period (the cost of the estimate)
+        self._n_buf = n_buf
+        self._gt = np.full(n_buf, -np.inf)  # ring buffer of gyro times and gyro-integrated attitudes
+        self._gq = np.zeros((n_buf, 4))
         self._i = 0
-        self._prev: tuple | None = None
+        self._q = (1.0, 0.0, 0.0, 0.0)
+        self._t_prev: float | None = None
+        self._w_prev: tuple | None = None
+        self._mags: deque = deque()
         self._last_t = -math.inf
 
     def add_gyro(self, t: float, gyro) -> None:
+        """One gyro sample (rad/s), the rate at time t; the interval since the previous sample is
+        integrated with the mean of the two rates (trapezoid: no half-sample lag of its own)."""
+        dt = 0.0 if self._t_prev is None else t - self._t_prev
+        self._t_prev = t
+        g0 = self._w_prev if self._w_prev is not None else gyro
+        self._w_prev = (gyro[0], gyro[1], gyro[2])
+        if dt > 0.0:
+            h = 0.5 * dt
+            q = _qmul(self._q, _quat_exp((g0[0] + gyro[0]) * h, (g0[1] + gyro[1]) * h, (g0[2] + gyro[2]) * h))
+            n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+            self._q = (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
         j = self._i % self._n_buf
         self._gt[j] = t
-        self._gw[j] = gyro
+        self._gq[j] = self._q
         self._i += 1
 
+    def _attitudes_at(self, times: np.ndarray, gt: np.ndarray, gq: np.ndarray) -> np.ndarray:
+        """Gyro-integrated attitude at each time (normalised linear interpolation), rows (w, x, y, z)."""
+        idx = np.clip(np.searchsorted(gt, times), 1, len(gt) - 1)
+        t0, t1 = gt[idx - 1], gt[idx]
+        f = np.clip((times - t0) / np.maximum(t1 - t0, 1e-9), 0.0, 1.0)[:, None]
+        q = gq[idx - 1] * (1.0 - f) + gq[idx] * f
+        return q / np.linalg.norm(q, axis=1, keepdims=True)
+
     def add_mag(self, t: float, m: np.ndarray, ref_nt: float) -> None:
-        prev, self._prev = self._prev, (t, m)
-        if prev is None or self._i < self._n_buf or t - prev[0] <= 0.0 or t - prev[0] > 0.1 or t - self._last_t < self.period_s:
-            return
-        self._last_t = t
+        """One field sample (nT) at time t; ``ref_nt`` the reference strength (0: not checked)."""
+        m = np.asarray(m, float)
         if ref_nt and abs(math.sqrt(float(m @ m)) / ref_nt - 1.0) > 0.1:
             return
-        tm = 0.5 * (t + prev[0])
-        order = (np.arange(self._n_buf) + self._i) % self._n_buf  # oldest first
+        mags = self._mags
+        mags.append((t, m))
+        while len(mags) > 1 and mags[1][0] <= t - self.baseline_s:
+            mags.popleft()
+        if t - self._last_t < self.period_s or self._i < 2:
+            return
+        t0, m0 = mags[0]
+        if t - t0 < 0.8 * self.baseline_s or t - t0 > 2.0 * self.baseline_s:
+            return
+        k = min(self._i, self._n_buf)
+        order = (np.arange(self._i - k, self._i)) % self._n_buf  # the filled part, oldest first
         gt = self._gt[order]
-        if tm - self.grid[-1] < gt[0]:
+        if t0 - self.grid[-1] < gt[0] or t > gt[-1] + 1e-6:
             return
-        dm = (m - prev[1]) / (t - prev[0])
-        mm = 0.5 * (m + prev[1])
-        idx = np.clip(np.searchsorted(gt, tm - self.grid), 1, len(gt) - 1)
-        w_all = self._gw[order]
-        # linear interpolation of the gyro at each candidate time
-        t0, t1 = gt[idx - 1], gt[idx]
-        f = np.clip((tm - self.grid - t0) / np.maximum(t1 - t0, 1e-9), 0.0, 1.0)[:, None]
-        w = w_all[idx - 1] * (1.0 - f) + w_all[idx] * f
-        if float(np.linalg.norm(w[0])) < self.min_rate:
+        self._last_t = t
+        gq = self._gq[order]
+        q1 = self._attitudes_at(t - self.grid, gt, gq)
+        q0 = self._attitudes_at(t0 - self.grid, gt, gq)
+        # M_d = R(q1)ᵀ R(q0) = R(q1* ⊗ q0)
+        w1, x1, y1, z1 = q1.T
+        w0, x0, y0, z0 = q0.T
+        w = w1 * w0 + x1 * x0 + y1 * y0 + z1 * z0
+        x = w1 * x0 - x1 * w0 - y1 * z0 + z1 * y0
+        y = w1 * y0 + x1 * z0 - y1 * w0 - z1 * x0
+        z = w1 * z0 - x1 * y0 + y1 * x0 - z1 * w0
+        if 2.0 * math.acos(min(1.0, abs(float(w[0])))) < self.min_turn_rad:
             return
-        r = dm + np.cross(w, mm)
-        self.cost += np.einsum("ij,ij->i", r, r)
+        Md = np.empty((len(w), 3, 3))
+        Md[:, 0, 0] = 1 - 2 * (y * y + z * z)
+        Md[:, 0, 1] = 2 * (x * y - w * z)
+        Md[:, 0, 2] = 2 * (x * z + w * y)
+        Md[:, 1, 0] = 2 * (x * y + w * z)
+        Md[:, 1, 1] = 1 - 2 * (x * x + z * z)
+        Md[:, 1, 2] = 2 * (y * z - w * x)
+        Md[:, 2, 0] = 2 * (x * z - w * y)
+        Md[:, 2, 1] = 2 * (y * z + w * x)
+        Md[:, 2, 2] = 1 - 2 * (x * x + y * y)
+        r0 = m - Md @ m0
+        M = np.eye(3) - Md
+        Mt = np.transpose(M, (0, 2, 1))
+        self.A += Mt @ M
+        self.b += np.einsum("gij,gj->gi", Mt, r0)
+        self.c += np.einsum("gi,gi->g", r0, r0)
         self.n += 1
-        if self.n >= self.min_samples and self.n % 20 == 0:
-            c = self.cost
-            j = int(np.argmin(c))
-            frac = 0.0
-            if 0 < j < len(c) - 1:
-                den = c[j - 1] - 2 * c[j] + c[j + 1]
-                frac = 0.5 * (c[j - 1] - c[j + 1]) / den if den > 0 else 0.0
-            self.delay_s = float(max(0.0, self.grid[j] + frac * self.step_s))
+        if self.n >= self.min_samples and self.n % 10 == 0:
+            self._solve()
+
+    def _solve(self) -> None:
+        # least-squares residual with the best offset h per candidate: c − bᵀ A⁻¹ b (A regularised:
+        # the offset along an axis the body never turned about is not observable)
+        eps = 1e-9 * np.trace(self.A, axis1=1, axis2=2)[:, None, None] + 1e-12
+        h = np.linalg.solve(self.A + eps * np.eye(3), self.b[:, :, None])[:, :, 0]
+        c = self.c - np.einsum("gi,gi->g", self.b, h)
+        self.cost = c
+        j = int(np.argmin(c))
+        self.offset_nt = h[j]
+        frac = 0.0
+        if 0 < j < len(c) - 1:
+            den = c[j - 1] - 2 * c[j] + c[j + 1]
+            frac = 0.5 * (c[j - 1] - c[j + 1]) / den if den > 0 else 0.0
+        self.delay_s = float(max(0.0, self.grid[j] + frac * self.step_s))
 
 
 def estimate_mag_delay_s(gyro_rad_s, mag_nt, rate_hz: float, max_delay_s: float = 0.05) -> float:
