@@ -295,10 +295,12 @@ class Collector:
 
 
 def run_scenario(work: Path, n_vehicles: int, instances: int, steps: list[tuple], duration_s: float,
-                 port: int | None = None, seed: int = 1, settle_timeout_s: float = 90.0) -> dict:
+                 port: int | None = None, seed: int = 1, settle_timeout_s: float = 90.0,
+                 end_after_steps_s: float | None = None) -> dict:
     """Run the fleet and the group under ``magmesh up`` and play ``steps``: ``("kill",)`` (SIGKILL a member that
     holds vehicles, chosen with ``seed``; the supervisor restarts it and it rejoins), ``("scale", n)``
-    (``magmesh scale dmc n``), ``("wait", s)``. Returns everything seen and measured."""
+    (``magmesh scale dmc n``), ``("wait", s)``. The fleet publishes for ``duration_s``, or stops
+    ``end_after_steps_s`` after the last step. Returns everything seen and measured."""
     import zenoh
 
     from magmesh import zconf
@@ -347,6 +349,9 @@ def run_scenario(work: Path, n_vehicles: int, instances: int, steps: list[tuple]
             elif step[0] == "kill":
                 view, _ = group_view(client)
                 holding = sorted(m for m, vs in view.items() if vs)
+                if not holding:
+                    problems.append(f"no member answered holding a vehicle: no kill ({view})")
+                    continue
                 inst = rng.choice(holding)
                 t_kill, held, m_kill = kill_member(client, inst)
                 taken = wait_taken(client, held, inst)
@@ -380,6 +385,9 @@ def run_scenario(work: Path, n_vehicles: int, instances: int, steps: list[tuple]
                                "assignment": view})
                 if not res.get("ok") or not ok or res.get("instances") != members:
                     problems.append(f"scale to {n}: reply {res}, settled {ok}: {view}")
+        if end_after_steps_s is not None:
+            time.sleep(end_after_steps_s)
+            os.killpg(fleet.pid, signal.SIGKILL)
         fleet.wait(duration_s + 120)
         time.sleep(3.0)  # the last samples pass through
         final = statuses(client)
@@ -408,4 +416,12 @@ def run_scenario(work: Path, n_vehicles: int, instances: int, steps: list[tuple]
     except ValueError:
         status_json = {"error": status_cli.stdout + status_cli.stderr}
     return {"events": events, "problems": problems + figures.pop("problems"), "figures": figures, "final": final,
-            "status_cli": status_json, "supervisor": sup_status, "manifest": str(manifest)}
+            "status_cli": status_json, "supervisor": sup_status, "manifest": str(manifest),
+            "fleet": _fleet_report(work / "fleet.json")}
+
+
+def _fleet_report(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None  # stopped before it reported

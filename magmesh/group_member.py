@@ -46,6 +46,7 @@ log = logging.getLogger("magmesh.group")
 #: wait for the next parameter set to be published)
 PARAMS_CACHE_MAX = 100_000
 WARM_BUFFER = 4096  # outputs kept per warming vehicle
+SETTLE_S = 1.0  # after its start a member takes no vehicle for this long (the membership is learnt first)
 
 
 def vehicle_of(key: str) -> str | None:
@@ -94,6 +95,9 @@ class GroupMember:
         self._dead_since: dict[str, float] = {}  # member -> when its liveliness was seen gone
         self._leaving_seen: set[str] = set()
         self.last_holder: dict[str, str] = {}  # vehicle -> the other member last seen holding it
+        self._tokens: set[str] = set()  # live instances of the role (liveliness tokens)
+        self._token_sub: Any = None
+        self._started = time.monotonic()
 
     # ---- main loop side ---------------------------------------------------------------------------
     def admits(self, key: str, payload: bytes | None = None) -> bool:
@@ -332,6 +336,19 @@ class GroupMember:
 
     # ---- coordination thread --------------------------------------------------------------------
     def start(self) -> None:
+        import zenoh
+
+        # membership follows the tokens as they come and go (a poll under load can miss a live member and take
+        # it for dead); one query seeds it, the subscriber's history covers what the query missed
+        self._token_sub = self.rt.session.liveliness().declare_subscriber(
+            keys.svc_token(self.role, "*"), zenoh.handlers.FifoChannel(4096), history=True)
+        try:
+            for rep in self.rt.session.liveliness().get(keys.svc_token(self.role, "*"), timeout=2.0):
+                if rep.ok is not None:
+                    self._tokens.add(str(rep.ok.key_expr).split("/")[-1])
+        except Exception as e:  # noqa: BLE001 - the subscriber fills the membership in
+            self.rt.last_error = f"group membership query failed: {type(e).__name__}: {e}"[:500]
+        self._started = time.monotonic()
         try:
             self._round()  # membership and holdings known before the first input is judged
         except Exception as e:  # noqa: BLE001 - the thread's rounds carry on
@@ -341,6 +358,11 @@ class GroupMember:
 
     def stop(self) -> None:
         self._stop.set()
+        try:
+            if self._token_sub is not None:
+                self._token_sub.undeclare()
+        except Exception:  # noqa: BLE001 - a closing session
+            pass
 
     def _post(self, fn: Callable[[], None]) -> None:
         try:
@@ -370,15 +392,19 @@ class GroupMember:
                 self.rt.last_error = f"group round failed: {type(e).__name__}: {e}"[:500]
 
     def _live_members(self) -> set[str]:
-        found = {self.me}
+        import zenoh
+
+        while self._token_sub is not None:
+            smp = self._token_sub.try_recv()
+            if smp is None:
+                break
+            inst = str(smp.key_expr).split("/")[-1]
+            if smp.kind == zenoh.SampleKind.DELETE:
+                self._tokens.discard(inst)
+            else:
+                self._tokens.add(inst)
         pre = f"{self.name}-"
-        for rep in self.rt.session.liveliness().get(keys.svc_token(self.role, "*"), timeout=1.0):
-            if rep.ok is None:
-                continue
-            inst = str(rep.ok.key_expr).split("/")[-1]
-            if inst.startswith(pre):
-                found.add(inst)
-        return found
+        return {self.me} | {i for i in self._tokens if i.startswith(pre)}
 
     def _query(self, inst: str, req: dict, timeout: float = 1.0) -> dict | None:
         payload = msgpack.packb(req, use_bin_type=True)
@@ -426,7 +452,8 @@ class GroupMember:
             self.holdings = holdings
         self.complete = complete
         first = not self.ready
-        self.ready = self.ready or complete
+        # (the first rounds after the start: the tokens of the others may still be on their way)
+        self.ready = self.ready or (complete and now - self._started >= SETTLE_S)
         if first:
             return
         for v, h in holdings.items():

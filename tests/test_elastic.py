@@ -43,8 +43,9 @@ def _check(res: dict, n_vehicles: int, n_kills: int, final_members: list[str]) -
 
 
 def test_group_of_three_survives_a_kill_and_scales_to_four_and_two(tmp_path):
-    res = run_scenario(tmp_path, 6, 3, [("wait", 2), ("kill",), ("scale", 4), ("scale", 2)], duration_s=45.0,
-                       port=free_port(), seed=5)
+    # the fleet drives until the steps are done (then 2 s more): the run takes what the machine needs for them
+    res = run_scenario(tmp_path, 6, 3, [("wait", 2), ("kill",), ("scale", 4), ("scale", 2)], duration_s=600.0,
+                       port=free_port(), seed=5, end_after_steps_s=2.0)
     _check(res, 6, 1, ["dmc-1", "dmc-2"])
 
 
@@ -52,5 +53,5 @@ def test_group_of_three_survives_a_kill_and_scales_to_four_and_two(tmp_path):
 def test_group_kills_and_scaling_long(tmp_path):
     steps = [("wait", 2), ("kill",), ("scale", 1), ("wait", 3), ("scale", 4), ("kill",), ("kill",), ("scale", 2),
              ("kill",)]
-    res = run_scenario(tmp_path, 12, 3, steps, duration_s=150.0, port=free_port(), seed=13)
+    res = run_scenario(tmp_path, 12, 3, steps, duration_s=1200.0, port=free_port(), seed=13, end_after_steps_s=3.0)
     _check(res, 12, 4, ["dmc-1", "dmc-2"])
