@@ -386,6 +386,7 @@ class Runner:
         # input key -> seq of the first sample received (journalled as "f"): a key received but not yet handled
         # when the process dies is counted from there at the restart, not silently skipped
         self._first_rx: dict[str, int] = {}
+        self._refused_seqs: dict[str, set[int]] = {}  # input key -> seqs refused since its last accepted sample
         self._rx_lock = threading.Lock()
         self.takeover_in: set[str] = set()  # input keys taken from a dead group member: first gap is lost_in_takeover
         self.group = None  # magmesh.group_member.GroupMember when the service runs in a group (--group)
@@ -635,6 +636,8 @@ class Runner:
                 n_in += 1
             elif k[:1] == "l":  # samples missed in earlier restarts of this run of the mesh
                 self.drops[k[1:]]["lost_during_restart"] = int(v)
+            elif k[:1] == "u":  # and samples that never reached it, counted before the crash
+                self.drops[k[1:]]["upstream_gap"] = int(v)
         self.resumed_from = {"inputs": n_in, "outputs": n_out}
         self.svc.log.info("resumed after a crash: %d input and %d output seqs from the journal", n_in, n_out)
 
@@ -1044,13 +1047,21 @@ class Runner:
             self._handler_failed(info.key, e)
         if not self._cur_rejected and isinstance(msg, dict):
             self._accepted(info, msg)
+        elif isinstance(msg, dict) and type(msg.get("seq")) is int:
+            # refused, but delivered: its seq is no gap of the stream (it is counted as rejected already)
+            r = self._refused_seqs.setdefault(info.key, set())
+            if len(r) < 1024:
+                r.add(msg["seq"])
 
     def _accepted(self, info: KeyInfo, msg: dict) -> None:
         """Seq and time bookkeeping of an accepted input (a refused one never moves them)."""
         key, sq = info.key, msg["seq"]
         last = self.in_seq.get(key)
+        refused = self._refused_seqs.pop(key, None) if self._refused_seqs else None
         if last is not None:
             gap = sq - last - 1
+            if refused and gap > 0:
+                gap -= sum(1 for r in refused if last < r < sq)
             if gap > self.seq_jump_max:
                 # one forged or reset counter is one event, not a billion lost samples
                 self.count_rebase("seq_jump")
@@ -1067,6 +1078,8 @@ class Runner:
                         self.journal.set("l" + key, self.drops[key]["lost_during_restart"])
                 else:
                     self.drops[key]["upstream_gap"] += gap
+                    if self.journal is not None:  # a count of loss survives this process's own restart too
+                        self.journal.set("u" + key, self.drops[key]["upstream_gap"])
             elif gap < 0:
                 self.count_rebase("seq_back")  # a publisher that restarted its counter (or a repeat)
         self.in_seq[key] = sq

@@ -78,7 +78,7 @@ def test_sample_ahead_of_the_streams_clock_is_refused_without_moving_it():
     for i in range(100):  # 100 Hz, received in real time
         check_order(mag(0.01 * i), st, S, K, now=0.01 * i)
         accept(mag(0.01 * i, seq=i), st, 0.01 * i, S)
-    assert ahead_limit_s("mag", st, S, 1.0) == pytest.approx(10.0 + 1.0 * (2 * 0.01 + 0.5))
+    assert ahead_limit_s("mag", st, S, 1.0) == pytest.approx(10.0 + 1.0 * (2 * 0.01 + 0.5) + 2 * 0.01)
     with pytest.raises(Rejection) as e:
         check_order(mag(0.99 + 3500.0), st, S, K, now=1.0)
     assert e.value.code == "time_order" and "ahead of the stream's clock" in e.value.reason
@@ -110,6 +110,20 @@ def test_a_slow_stream_of_a_fast_source_is_accepted_from_its_second_sample():
     with pytest.raises(Rejection) as e:  # and the learned clock still refuses a sample far ahead of it
         check_order(mag(st.last_t_s + 500.0), st, S, K, now=30.0)
     assert "ahead of the stream's clock" in e.value.reason
+    # two samples bunched by a loaded network (40 ms apart in receive time, 20 s apart in sample time), with the
+    # rate learned low from a delayed delivery (a step of 20 s over 1.9 s)
+    st.rate = 10.5
+    check_order(mag(st.last_t_s + 20.0), st, S, K, now=29.04)
+    accept(mag(st.last_t_s + 20.0, seq=30), st, 29.04, S)
+    check_order(mag(st.last_t_s + 20.0), st, S, K, now=29.08)
+
+
+def test_refused_samples_are_not_counted_as_gaps_of_their_stream():
+    st = StreamState()
+    accept(mag(0.0, seq=0), st)
+    st.refused_seqs.update({1, 2})  # delivered, refused (counted as rejected)
+    accept(mag(0.3, seq=4), st)  # seq 3 never arrived
+    assert st.upstream_gaps == 1 and not st.refused_seqs
 
 
 def test_rebase_only_after_consistent_refusals():

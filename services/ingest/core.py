@@ -71,6 +71,9 @@ class StreamState:
     contra_n: int = 0
     contra_last_t_s: float | None = None
     clock_rebases: int = 0
+    # seqs refused since the last accepted sample: delivered (and counted as rejected), so no gap of the stream
+    refused_seqs: set = field(default_factory=set)
+    step_s: float = 0.0  # the last step in sample time between accepted samples (a slow stream's own cadence)
 
 
 @dataclass
@@ -126,7 +129,10 @@ def ahead_limit_s(msg_type: str, st: StreamState, s: IngestSettings, now: float)
             rate = min(max((st.last_t_s - st.win_t_s) / span, 1.0), s.max_clock_rate)
         else:
             rate = s.max_clock_rate
-    return s.max_ahead_s.get(msg_type, 10.0) + rate * (2.0 * dt + 0.5)
+    # plus two of the stream's own steps: a slow stream's samples (20 s apart at one a second) may arrive
+    # bunched by a loaded network or host without being ahead of anything
+    ahead = s.max_ahead_s.get(msg_type, 10.0)
+    return ahead + rate * (2.0 * dt + 0.5) + 2.0 * min(st.step_s, 3.0 * ahead)
 
 
 def check_order(msg: dict, st: StreamState, s: IngestSettings, where: str, now: float | None = None) -> None:
@@ -167,6 +173,7 @@ def rebase(st: StreamState) -> None:
     st.last_wall = None
     st.rate = 1.0
     st.rate_learned = False
+    st.step_s = 0.0
     st.win_t_s = st.win_wall = None
     st.contra_n = 0
     st.contra_last_t_s = None
@@ -183,9 +190,12 @@ def accept(msg: dict, st: StreamState, now: float | None = None, s: IngestSettin
         if gap > jump_max or gap < -1:
             st.seq_rebases += 1
         elif gap > 0:
-            st.upstream_gaps += gap
+            st.upstream_gaps += gap - sum(1 for r in st.refused_seqs if st.last_seq < r < seq)
+    st.refused_seqs.clear()
     st.last_seq = seq
     t = msg["t_s"]
+    if st.last_t_s is not None and t > st.last_t_s:
+        st.step_s = t - st.last_t_s
     st.last_t_s = t
     st.accepted += 1
     st.contra_n = 0

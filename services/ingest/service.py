@@ -55,6 +55,8 @@ class Ingest(BatchingIngest, Service):
             check_order(msg, st, self.settings, key, now)
         except Rejection as r:
             if not self.time_refusal(info, msg, st, r):
+                if len(st.refused_seqs) < 1024:
+                    st.refused_seqs.add(msg["seq"])
                 return
         accept(msg, st, now, self.settings)
         self.emit(info, msg)
