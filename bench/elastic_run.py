@@ -205,6 +205,8 @@ def check_run(data: list[tuple[str, Any]], final: dict[str, dict], kills: list[d
         per_key = [max((int(((st.get("drops") or {}).get(keys.clean_mag(v, s)) or {}).get("lost_in_takeover", 0))
                         for st in final.values()), default=0) for s in ("1", "2")]
         lost[v] = max(per_key)
+    upstream = sum(int(d.get("upstream_gap", 0)) for st in final.values() for k, d in (st.get("drops") or {}).items()
+                   if "/clean/mag/" in k)
     seq_missing = {}
     duplicates = 0
     epochs_missing = {}
@@ -253,6 +255,7 @@ def check_run(data: list[tuple[str, Any]], final: dict[str, dict], kills: list[d
         problems.append("alarm transitions differ from one detector fed every epoch: " + "; ".join(changed)[:2000])
     return {"problems": problems, "seq_missing": sum(seq_missing.values()), "duplicates": duplicates,
             "epochs_missing": sum(epochs_missing.values()), "lost_in_takeover": sum(lost.values()),
+            "upstream_gap": upstream,
             "lost_alarm_transitions": lost_tr, "repeated_alarm_transitions": repeated_tr,
             "alarm_transitions": sum(len(a) for a in alarms.values()),
             "reference_transitions_compared": compared, "transitions_changed_by_moves": len(changed),

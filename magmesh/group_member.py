@@ -98,6 +98,20 @@ class GroupMember:
         self._tokens: set[str] = set()  # live instances of the role (liveliness tokens)
         self._token_sub: Any = None
         self._started = time.monotonic()
+        self.skipped_early = 0  # counted by the reader threads (see skips)
+
+    # ---- reader threads ---------------------------------------------------------------------------
+    def skips(self, key: str) -> bool:
+        """Whether an input is another member's (a vehicle seen before and neither held, warming nor being
+        handed over here): dropped before it is queued, so this member's loop carries only its own vehicles
+        (a take-over is not delayed behind the others' samples). Parameter sets always go on (kept for a take);
+        a sample skipped just before this member takes its vehicle over is counted by the take-over's seq gap."""
+        v = vehicle_of(key)
+        if v is None or v not in self.seen or v in self.owned or v in self.warming or v in self.arm \
+                or v in self.release or _is_params(key):
+            return False
+        self.skipped_early += 1
+        return True
 
     # ---- main loop side ---------------------------------------------------------------------------
     def admits(self, key: str, payload: bytes | None = None) -> bool:
@@ -166,9 +180,10 @@ class GroupMember:
                     return {"ok": False, "error": f"{self.me} does not hold {v}"}
                 # ahead of every input handled here: each output before it is this holder's, the rest the new one's
                 t = self.rt.last_in_t.get(v)
-                self.owned.discard(v)
-                self.release[v] = (t if t is not None else 0.0) + lead
                 self.passed.discard(v)
+                # (released before it stops being held: the reader threads never see it as another's, see skips)
+                self.release[v] = (t if t is not None else 0.0) + lead
+                self.owned.discard(v)
                 self.stats["handovers_out"] += 1
         elif op == "g_done":  # the new owner has the vehicles: forget them
             for v in req.get("vehicles", []):
@@ -203,7 +218,7 @@ class GroupMember:
                 "vehicles": sorted(self.owned)[:1000], "vehicles_total": len(self.owned),
                 "seen": sorted(self.seen)[:1000], "seen_total": len(self.seen),
                 "warming": sorted(self.warming), "taking": sorted(self.arm), "releasing": sorted(self.release),
-                **self.stats}
+                **self.stats, "not_owned": self.stats["not_owned"] + self.skipped_early}
 
     def _clear_vehicle(self, v: str) -> None:
         """Forget what this instance knew of ``v``'s streams (seq tracking, times): a later take starts clean."""
@@ -256,11 +271,12 @@ class GroupMember:
     def _arm(self, v: str, holder: str, cut: float) -> None:
         """The holder publishes ``v`` before ``cut``: hold this instance's outputs at or after it (those made
         while warming included)."""
-        if self.warming.pop(v, None) is None:
+        if v not in self.warming:
             return
         buf = self.warm_buf.pop(v, ())
         self.held.extend(x for x in buf if x[3] >= cut)
-        self.arm[v] = (holder, float(cut), time.monotonic())
+        self.arm[v] = (holder, float(cut), time.monotonic())  # (set before warming ends: see skips)
+        del self.warming[v]
 
     def _cancel(self, v: str) -> None:
         self.warming.pop(v, None)
@@ -294,11 +310,12 @@ class GroupMember:
 
     def _takeover(self, v: str, hand: dict) -> None:
         """Hand-over, last step: continue the holder's seqs and alarm states, publish what was held."""
-        a = self.arm.pop(v, None)
+        a = self.arm.get(v)
         if a is None:
             return
         self._adopt(v, hand.get("seqs", {}), hand.get("alarms", {}), hand.get("raised", {}), hand.get("drops"))
-        self.owned.add(v)
+        self.owned.add(v)  # (held before it stops being armed: see skips)
+        del self.arm[v]
         self.post_cut[v] = a[1]
         mine = [h for h in self.held if h[2] == v]
         self.held = [h for h in self.held if h[2] != v]
@@ -310,6 +327,7 @@ class GroupMember:
         """Take ``v`` from what the members that are not live persisted (journal and alarm file)."""
         if v in self.owned:
             return
+        self.owned.add(v)  # (first: the reader threads queue its samples from now on, see skips)
         self._cancel(v)
         rt = self.rt
         rt.vehicle_state.pop(v, None)

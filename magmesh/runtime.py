@@ -785,7 +785,10 @@ class Runner:
             except Exception:  # channel closed: session is closing
                 return
             if kind == "s":
-                ev = ("s", str(item.key_expr), item.payload.to_bytes())
+                k = str(item.key_expr)
+                if self.group is not None and self.group.skips(k):
+                    continue  # another group member's vehicle: never queued (magmesh/group_member.py)
+                ev = ("s", k, item.payload.to_bytes())
                 if ev[1] not in self._first_rx:
                     self._note_first_rx(ev[1], ev[2])
             else:
