@@ -148,3 +148,23 @@ def test_dead_state_takes_the_latest_of_every_dead_member(tmp_path, monkeypatch)
     st = g._dead_state("car-1")
     assert st["inputs"] == {m1: 10} and st["seqs"] == {d: 9, a: 1} and st["alarms"] == {a: "cleared"}
     assert st["raised"] == {}
+
+
+def test_status_shows_each_members_vehicles_and_those_without_an_owner():
+    from magmesh.commands.status import group_assignment, render
+
+    def member(inst, owned, seen):
+        return {"role": "dmc_detector", "instance": inst, "answered": True,
+                "status": {"role": "dmc_detector", "instance": inst, "impl": "threshold",
+                           "vehicles": sorted(seen),  # what it has state for (warming included)
+                           "group": {"name": "dmc", "vehicles": owned, "releasing": [], "seen": seen}}}
+
+    services = [member("dmc-1", ["car-1"], ["car-1", "car-2", "car-3"]), member("dmc-2", ["car-2"], ["car-2"])]
+    result = {"services": services, "bad_replies": [], "groups": group_assignment(services)}
+    assert result["groups"] == {"dmc_detector/dmc": {"vehicles": {"dmc-1": ["car-1"], "dmc-2": ["car-2"]},
+                                                     "unowned": ["car-3"], "duplicates": []}}
+    text = render(result)
+    rows = {ln.split()[1]: ln for ln in text.splitlines() if ln.startswith("dmc_detector")}
+    assert "car-1" in rows["dmc-1"] and "car-2" not in rows["dmc-1"] and "car-2" in rows["dmc-2"]
+    assert "group dmc_detector/dmc: 2 members, 2 vehicles held; dmc-1: car-1; dmc-2: car-2" in text
+    assert "without an owner: car-3" in text
