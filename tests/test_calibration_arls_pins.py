@@ -224,8 +224,10 @@ def test_refinement_reaches_the_weighted_geometric_fit(model, noise):
                                    (ls.offset[:n], ls.M[:n, :n] / ls.field_radius_nt))
     S_ref = ref.params.M[:n, :n] / ref.params.field_radius_nt
     S_alg = alg.params.M[:n, :n] / alg.params.field_radius_nt
-    assert np.linalg.norm(ref.params.offset[:n] - b) < 2e-5 * c.radius_nt
-    assert np.abs(S_ref - S).max() < 1e-4 * np.abs(S).max()
+    # (measured: 8e-7 / 2e-7 of the field and 8e-6 / 7e-7 of S in 3-D / 2-D; a Jacobian without the
+    # symmetric cross terms lands 1e-5 / 2e-5 away)
+    assert np.linalg.norm(ref.params.offset[:n] - b) < 4e-6 * c.radius_nt
+    assert np.abs(S_ref - S).max() < 1.5e-5 * np.abs(S).max()
     assert np.linalg.norm(alg.params.offset[:n] - b) > 5e-5 * c.radius_nt  # the refinement did something
     assert np.abs(S_alg - S).max() > 5e-4 * np.abs(S).max()
     # the weights are IGG-III of the final geometric residuals over their robust scale
@@ -288,3 +290,20 @@ def test_result_fields_and_refusals():
     r_few = arls.fit_arls(few, "2d")
     assert not r_few.ok and "too few samples" in r_few.reason
     assert arls.fit_arls(c.m_nt[::50], "2d").ok  # 20 clean samples do
+
+
+def test_a_high_scale_floor_keeps_every_sample_in_both_loops():
+    """σ̂ is floored at ``min_sigma_rel`` × median |v| in the algebraic and the geometric loop alike: with a
+    floor of 100 × the median residual no residual is large, every weight stays 1 and ARLS is least squares
+    (algebraic) or the unweighted geometric fit (refined)."""
+    c, m, gross = _paper_2d_cloud(7, n=800)
+    st = arls.ArlsSettings(min_sigma_rel=100.0, refine=False)
+    alg = arls.fit_arls(m, "2d", settings=st)
+    assert alg.n_gross_rejected == 0 and np.all(alg.weights == 1.0)
+    np.testing.assert_allclose(alg.params.offset, two_step.fit_ls(m, "2d").params.offset, atol=1e-6 * c.radius_nt)
+    ref = arls.fit_arls(m, "2d", settings=arls.ArlsSettings(min_sigma_rel=100.0))
+    assert ref.n_gross_rejected == 0 and np.all(ref.weights == 1.0)
+    ls = two_step.fit_ls(m, "2d").params
+    b, S = _weighted_geometric_fit(m[:, :2], np.ones(len(m)), 2, (ls.offset[:2], ls.M[:2, :2] / ls.field_radius_nt))
+    assert np.linalg.norm(ref.params.offset[:2] - b) < 2e-5 * c.radius_nt
+    assert np.linalg.norm(arls.fit_arls(m, "2d").params.offset[:2] - b) > 1e-3 * c.radius_nt  # the default rejects

@@ -132,6 +132,13 @@ def test_fit_ls_reports_the_fit_and_refuses_a_non_ellipse():
     # a hyperbola: the least-squares quadric is not an ellipse
     t = np.linspace(-2, 2, 200)
     hyp = np.column_stack([np.cosh(t), np.sinh(t), np.zeros_like(t)]) * 1000.0
+    t0 = time.perf_counter()
     bad = two_step.fit_ls(hyp, "2d")
+    elapsed_ms = 1e3 * (time.perf_counter() - t0)
     assert not bad.ok and bad.params is None and "no ellipsoid" in bad.reason and bad.method == "ls"
-    assert bad.model == "2d" and bad.n_samples == 200 and bad.rmse_nt is None and bad.duration_ms > 0.0
+    assert bad.model == "2d" and bad.n_samples == 200 and bad.rmse_nt is None
+    assert 0.0 < bad.duration_ms <= elapsed_ms
+    # the model defaults to the ellipsoid
+    d = two_step.fit_ls(c.m_nt)
+    assert d.model == "3d" and d.params.model == "3d"
+    np.testing.assert_array_equal(d.params.offset, r.params.offset)

@@ -207,6 +207,9 @@ def test_classify_is_loose_stage1_then_kc_above_kc_min():
     lo = fcm.FcmModel(CENTRES, "paper", LOOSE, kc_min=float(kc_all[2]) - 1e-6).classify(f)[0]
     hi = fcm.FcmModel(CENTRES, "paper", LOOSE, kc_min=float(kc_all[1]) + 1e-6).classify(f)[0]
     assert lo[2] and not hi[1]
+    # valid only when K_c is above kc_min: a K_c equal to it is not enough
+    at = fcm.FcmModel(CENTRES, "paper", LOOSE, kc_min=float(kc_all[1])).classify(f)[0]
+    assert not at[1] and at[0]
 
 
 def test_model_checks_its_arguments():
@@ -257,6 +260,11 @@ def test_order_by_error_sorts_by_centre_norm_stably():
     c = np.array([[0.5, 0.5], [0.0, 0.1], [0.1, 0.0], [0.9, 0.0], [0.05, 0.0]])
     np.testing.assert_array_equal(fcm.order_by_error(c), c[[4, 1, 2, 0, 3]])  # [0,.1] before [.1,0]: a tie
     np.testing.assert_array_equal(fcm.order_by_error(c.tolist()), c[[4, 1, 2, 0, 3]])
+    # many clusters with equal sizes keep their order (a quicksort would shuffle these 40)
+    base = np.array([(0.3, 0.4), (0.4, 0.3), (0.0, 0.5), (0.5, 0.0)])
+    many = base[np.arange(40) % 4] * np.where(np.arange(40) % 5 == 0, 1.5, 1.0)[:, None]
+    small = np.flatnonzero(np.arange(40) % 5 != 0)
+    np.testing.assert_array_equal(fcm.order_by_error(many), many[np.r_[small, np.arange(0, 40, 5)]])
 
 
 # ---- training -----------------------------------------------------------------------------------
@@ -364,6 +372,8 @@ def test_detector_refuses_on_kc_alone_and_says_so():
     lenient = fcm.FcmDetector(model, fcm.FcmDetectorSettings(kc_min=last.credibility * 0.5))
     assert lenient.kc_min == pytest.approx(last.credibility * 0.5) and _stream(lenient, 3.5)[-1].valid
     assert fcm.FcmDetector(model).kc_min == 0.8
+    at = fcm.FcmDetector(model, fcm.FcmDetectorSettings(kc_min=last.credibility))
+    assert not _stream(at, 3.5)[-1].valid  # K_c equal to kc_min is not above it
 
 
 def _single(d):

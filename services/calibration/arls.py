@@ -90,7 +90,7 @@ def _refine_geometric(x: np.ndarray, X0: np.ndarray, n: int, st: ArlsSettings):
         # ∂r/∂c = −g S ; ∂r/∂S_ij (sym) = g_i d_j + g_j d_i (i ≠ j), g_i d_i (i = j)
         J_c = -(g @ S)
         cols = []
-        for i, j in zip(iu[0], iu[1], strict=True):
+        for i, j in zip(iu[0], iu[1], strict=True):  # pragma: no mutate (strict=: triu_indices gives equal lengths)
             cols.append(g[:, i] * d[:, j] + (g[:, j] * d[:, i] if i != j else 0.0))
         J = np.column_stack([J_c, *cols])
         sig = robust_sigma(r, st.min_sigma_rel)
@@ -119,7 +119,7 @@ def fit_arls(m_nt, model: str = "3d", radius_nt: float | None = None,
              settings: ArlsSettings = ArlsSettings()) -> two_step.FitResult:
     """ARLS fit of N×3 samples (nT). Returns the parameters, the final weights and the gross-error count."""
     t0 = time.perf_counter()
-    m = np.asarray(m_nt, float)
+    m = np.asarray(m_nt, float)  # pragma: no mutate (dtype: model_axes and magcal.apply convert again)
     x, norm = two_step.normalise(two_step.model_axes(m, model))
     n = x.shape[1]
     A = two_step.design_matrix(x)

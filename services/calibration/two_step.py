@@ -137,7 +137,7 @@ def rmse(m_nt: np.ndarray, params: magcal.MagParams, weights: np.ndarray | None 
 def fit_ls(m_nt, model: str = "3d", radius_nt: float | None = None) -> FitResult:
     """Plain Two-Step LS fit of N×3 samples (nT). ``radius_nt`` fixes R (e.g. the IGRF field strength)."""
     t0 = time.perf_counter()
-    m = np.asarray(m_nt, float)
+    m = np.asarray(m_nt, float)  # pragma: no mutate (dtype: model_axes and magcal.apply convert again)
     x, norm = normalise(model_axes(m, model))
     A = design_matrix(x)
     try:
