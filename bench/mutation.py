@@ -131,16 +131,41 @@ def _mutmut(work: Path, *args: str, timeout_s: float | None = None) -> subproces
                           text=True, timeout=timeout_s)
 
 
-def run_core(name: str, work_root: Path, max_children: int, survivors: bool, log=print) -> dict:
+def _resume(work: Path, core: Core) -> list[str]:
+    """Bring an earlier run's test files up to date; return the mutants to test (again): those that survived,
+    had no test, or were not reached (a run stopped before its end).
+
+    Killed mutants stay killed: tests were only added. The core itself must be unchanged, else the old
+    verdicts are of another file.
+    """
+    if (REPO / core.source).read_bytes() != (work / core.source).read_bytes():
+        raise RuntimeError(f"{core.source} changed since the run in {work}: run without --resume")
+    for rel in core.tests:
+        for dst in (work / rel, work / "mutants" / rel):
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(REPO / rel, dst)
+    res = _mutmut(work, "results", "--all", "true")
+    return [line.strip().rpartition(": ")[0] for line in res.stdout.splitlines()
+            if line.strip().rpartition(": ")[2] in ("survived", "no tests", "not checked")]
+
+
+def run_core(name: str, work_root: Path, max_children: int, survivors: bool, log=print, resume: bool = False,
+             ) -> dict:
     core = CORES[name]
     work = work_root / name
-    if work.exists():
-        shutil.rmtree(work)
-    work.mkdir(parents=True)
-    _copy_tree(work)
-    _write_config(work, core)
     t0 = time.monotonic()
-    run = _mutmut(work, "run", "--max-children", str(max_children))
+    if resume and (work / "mutants").is_dir():
+        again = _resume(work, core)
+        log(f"  resuming {work}: {len(again)} mutants (survived, without a test or not reached) tested again",
+            flush=True)
+        run = _mutmut(work, "run", "--max-children", str(max_children), *again) if again else None
+    else:
+        if work.exists():
+            shutil.rmtree(work)
+        work.mkdir(parents=True)
+        _copy_tree(work)
+        _write_config(work, core)
+        run = _mutmut(work, "run", "--max-children", str(max_children))
     res = _mutmut(work, "results", "--all", "true")
     counts = dict.fromkeys(STATUS_KEYS, 0)
     names: dict[str, list[str]] = {}
@@ -153,8 +178,9 @@ def run_core(name: str, work_root: Path, max_children: int, survivors: bool, log
             names.setdefault(status, []).append(mutant)
     total = sum(counts.values())
     if total == 0:
-        tail = (run.stdout + run.stderr)[-3000:]
-        raise RuntimeError(f"mutmut found no mutants for {core.source} (exit {run.returncode}):\n{tail}")
+        tail = (run.stdout + run.stderr)[-3000:] if run is not None else ""
+        code = run.returncode if run is not None else None
+        raise RuntimeError(f"mutmut found no mutants for {core.source} (exit {code}):\n{tail}")
     detected = counts["killed"] + counts["timeout"] + counts["caught by type check"] + counts["segfault"]
     scored = detected + counts["survived"] + counts["no tests"]
     out = {"core": name, "source": core.source, "tests": list(core.tests),
@@ -187,10 +213,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--goal", type=float, default=90.0, help="score each core must reach, %% (default 90)")
     ap.add_argument("--survivors", action="store_true", help="print the diff of each surviving mutant")
     ap.add_argument("--json", type=Path, help="also write the results as JSON here")
+    ap.add_argument("--resume", action="store_true",
+                    help="with --workdir: keep an earlier run's verdicts there and test only its survivors, "
+                         "mutants without a test and those not reached, against the current test files (the core "
+                         "must be unchanged); the seconds reported are those of this pass")
     a = ap.parse_args(argv)
     unknown = [c for c in a.cores if c not in CORES]
     if unknown:
         print(f"unknown core(s) {', '.join(unknown)}; choose from {', '.join(CORES)}.", file=sys.stderr)
+        return 2
+    if a.resume and a.workdir is None:
+        print("--resume needs --workdir: the directory of the run to resume.", file=sys.stderr)
         return 2
     try:
         import mutmut  # noqa: F401
@@ -209,7 +242,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for n in names:
             print(f"mutating {CORES[n].source} against {', '.join(CORES[n].tests)} ...", flush=True)
-            r = run_core(n, work_root, a.max_children, a.survivors)
+            try:
+                r = run_core(n, work_root, a.max_children, a.survivors, resume=a.resume)
+            except RuntimeError as e:
+                print(f"{n}: {e}", file=sys.stderr)
+                return 2
             rows.append(r)
             print(f"  {n}: {r['killed']} of {r['killed'] + r['survived'] + r['no_tests']} killed "
                   f"({r['score_pct']} %), {r['survived']} survived, {r['no_tests']} without a test, "

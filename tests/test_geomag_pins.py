@@ -550,3 +550,113 @@ def test_streaming_matcher_searches_around_the_corrected_ins_once_a_fix_was_acce
     fresh = GeomagMatcher(GRID, ms)  # the same samples searched around the raw INS: the truth is out of reach
     [f] = [f for f in _feed(fresh, h[12:], jumped) if f is not None]
     assert not (f.result.found and f.result.hausdorff_nt < 1e-6)
+
+
+# ---- details the cases above leave open -----------------------------------------------------------
+
+
+def test_no_match_result_fields():
+    r = match_sequence(GRID, np.zeros(30), GRID.to_metres(np.arange(30)[:, None] * np.array([1.0, 0.0])),
+                       MatchSettings(n_samples=30))
+    assert r.found is False and r.lambda_nt == 8.4 and r.search_area_m2 == 0.0
+    for v in (r.start_ij, r.end_ij, r.end_m):
+        assert v.shape == (2,) and np.all(np.isnan(v))
+    AcceptSettings(agree_radius_m=0.5)
+
+
+def test_ambiguous_ends_a_run_of_agreeing_fixes():
+    acc = MofNAcceptor(AcceptSettings(m_agree=2, n_window=3, min_margin_nt=0.5))
+    acc.update(_res([0, 0]), np.zeros(2))
+    assert acc.update(_res([0, 0]), np.zeros(2)) == "accepted" and acc.agreeing == 2
+    assert acc.update(_res([0, 0], margin=0.1), np.zeros(2)) == "ambiguous" and acc.agreeing == 0
+
+
+def test_filter_reset_leaves_a_zero_covariance():
+    kf = InsErrorFilter()
+    kf.update(0.0, [1.0, 2.0])
+    kf.reset()
+    assert kf.P.shape == (4, 4) and not kf.P.any()
+
+
+def _line_matcher(every=12, **kw):
+    ms = MatcherSettings(match=MatchSettings(n_samples=12, lambda_nt=12.0, search_radius_m=100.0),
+                         accept=AcceptSettings(m_agree=1, n_window=1), match_every_samples=every, **kw)
+    return GeomagMatcher(GRID, ms)
+
+
+# a straight line two cells a sample from node (1, 8): the second INS position is two cells from the first
+LINE_START = np.array([1.0, 8.0])
+LINE = np.arange(24)[:, None] * np.array([1.0, 0.0])  # one cell a sample, 24 samples
+LINE_FAST = np.arange(12)[:, None] * np.array([2.0, 0.0])
+
+
+def test_the_search_is_centred_on_the_first_ins_position_of_the_strip():
+    h = GRID.bilinear(*(LINE_START + LINE_FAST).T)
+    ins3 = np.column_stack([GRID.to_metres(LINE_START + LINE_FAST), np.full(12, 35.0)])  # with a height
+    m = _line_matcher()
+    [f] = [f for f in _feed(m, h, ins3) if f is not None]
+    # a 100 m radius: nodes within one cell of the first INS position; the second one is two cells on
+    assert f.result.found and f.result.hausdorff_nt == pytest.approx(0.0, abs=1e-9)
+    assert f.correction_m.shape == (2,) and np.allclose(f.correction_m, 0.0) and f.ins_end_m.shape == (2,)
+    assert np.allclose(m.acceptor._history[-1], f.correction_m)  # the acceptor judged the published correction
+    assert m.corrected_position(ins3[-1]).shape == (2,)
+    # the next strip, searched around the first INS position corrected by the accepted fix
+    h2 = GRID.bilinear(*(LINE_START + LINE_FAST).T)
+    [f2] = [f for f in _feed(m, h2, ins3, t0=12.0) if f is not None]
+    assert f2.result.hausdorff_nt == pytest.approx(0.0, abs=1e-9)
+
+
+def test_the_first_match_waits_for_the_cadence_when_it_is_longer_than_the_strip():
+    h = GRID.bilinear(*(LINE_START + LINE[:15]).T)
+    m = _line_matcher(every=15)
+    fixes = _feed(m, h, GRID.to_metres(LINE_START + LINE[:15]))
+    assert [k for k, f in enumerate(fixes) if f is not None] == [14]
+
+
+def test_a_failed_match_publishes_nan_corrections_and_the_fresh_state_is_zero():
+    m = _line_matcher()
+    st = m.internal_states
+    assert st["divergence_m"] == 0.0 and st["last_match_ms"] == 0.0 and st["n_matches"] == 0
+    ins = GRID.to_metres(np.array([[30.0, 30.0]] * 12))  # off the map: nothing fits
+    [f] = [f for f in _feed(m, np.zeros(12), ins) if f is not None]
+    assert not f.result.found and f.status == "rejected" and not f.accepted
+    assert f.correction_m.shape == (2,) and np.all(np.isnan(f.correction_m)) and math.isnan(f.divergence_m)
+    assert m.internal_states["divergence_m"] == 0.0 and m.internal_states["last_hausdorff_nt"] is None
+
+
+def test_divergence_alarm_is_strictly_beyond_its_distance():
+    h = GRID.bilinear(*(LINE_START + LINE_FAST).T)
+    truth = GRID.to_metres(LINE_START + LINE_FAST)
+    ms = MatcherSettings(match=MatchSettings(n_samples=12, lambda_nt=12.0, search_radius_m=600.0),
+                         accept=AcceptSettings(m_agree=1, n_window=1), match_every_samples=12,
+                         divergence_alarm_m=500.0)
+    m = GeomagMatcher(GRID, ms)
+    [f] = [f for f in _feed(m, h, truth - [300.0, 400.0]) if f is not None]
+    assert f.accepted and f.divergence_m == 500.0 and not m.flags["diverged"]
+    m = GeomagMatcher(GRID, dataclasses.replace(ms, divergence_alarm_m=499.0))
+    _feed(m, h, truth - [300.0, 400.0])
+    assert m.flags["diverged"]
+
+
+def test_match_time_is_reported_in_milliseconds():
+    import time
+
+    h = GRID.bilinear(*(LINE_START + LINE_FAST).T)
+    ins = GRID.to_metres(LINE_START + LINE_FAST)
+    m = _line_matcher()
+    _feed(m, h[:11], ins[:11])
+    t0 = time.perf_counter()
+    m.update(11.0, h[11], ins[11])
+    outer_ms = (time.perf_counter() - t0) * 1e3
+    assert 1e-3 * outer_ms < m.internal_states["last_match_ms"] <= outer_ms
+
+
+def test_corrected_position_predicts_the_drift_to_the_time_asked():
+    m = _line_matcher()
+    assert m.corrected_position((0.0, 0.0)) is None
+    m.filter.update(0.0, [100.0, 0.0])
+    m.filter.update(100.0, [200.0, 0.0])  # a drift of about 1 m/s east
+    c_now = m.corrected_position((0.0, 0.0, 50.0))
+    c_later = m.corrected_position((0.0, 0.0, 50.0), t_s=200.0)
+    assert c_now.shape == (2,) and np.allclose(c_now, m.filter.correction_at(100.0))
+    assert np.allclose(c_later, m.filter.correction_at(200.0)) and c_later[0] > c_now[0] + 20.0

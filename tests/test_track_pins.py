@@ -698,3 +698,84 @@ def test_reset_forgets_everything():
                        "field_learning": True, "field_deviating": False}
     assert (m.n_gnss, m.n_attitude, m.n_gnss_untrusted, m.n_mag, m.t_s) == (0, 0, 0, 0, None)
     assert m.internal_states["cusum"] == 0.0 and m.internal_states["bursts"] == 0
+
+
+# ---- details the cases above leave open -----------------------------------------------------------
+
+
+def test_gnss_reasons_name_the_failing_criterion():
+    m = TrackMonitor(TrackMonitorSettings(gnss_fix_types=("rtk_fixed", "rtk_float")))
+    q = m.track.gnss_quality
+    assert q("dgps", 18, 1.0, 0.01) == (False, "fix type dgps is not one of rtk_fixed, rtk_float")
+    assert q("rtk_float", 5, 1.0, 0.01) == (False, "5 satellites (< 6)")
+    assert q("rtk_float", 6, 3.5, 0.01) == (False, "PDOP 3.5 (> 3)")
+    assert q("rtk_float", 6, 3.0, 0.25) == (False, "stated accuracy 0.25 m (> 0.1 m)")
+    assert q("rtk_float", 6, 3.0, None) == (True, "ok")
+
+
+def test_counters_and_the_last_time_are_kept():
+    m = _mon()
+    _gnss(m, 0.0, 0.0, n=3, fix=("dgps", 9, 1.0, 0.5))
+    _gnss(m, 0.375, 0.0, n=2)
+    assert (m.n_gnss, m.n_gnss_untrusted, m.t_s) == (5, 3, 0.5)
+    m.update_attitude(0.625, 0.0, None)
+    m.update_attitude(0.75, 0.0, 0.0)
+    assert (m.n_attitude, m.t_s) == (2, 0.75)
+    m.update_mag(0.8, (1.0, 2.0, 3.0))
+    m.update_mag(0.9, (1.0, 2.0, 3.0))
+    assert m.n_mag == 2
+
+
+def test_route_direction_uses_both_ends_and_the_far_margin_is_inclusive():
+    m = TrackMonitor(TrackMonitorSettings())
+    m.set_route((100.0, 200.0, 0.0), (130.0, 240.0, 0.0), "off-origin")  # length 50, direction (0.6, 0.8)
+    m.update_gnss(0.0, (100.0, 200.0, 0.0), (4.0, -3.0, 0.0), *RTK)
+    assert m.internal_states["cross_track_rate_m_s"] == pytest.approx(0.6 * -3.0 - 0.8 * 4.0)
+    assert m.flags["track_armed"] is False
+    # along-track exactly length + margin: still on the leg (the detector arms there)
+    m = TrackMonitor(TrackMonitorSettings(route_margin_m=4.0))
+    m.set_route((0.0, 0.0, 0.0), (0.0, 64.0, 0.0), "short")
+    for i in range(41):
+        m.update_gnss(i * DT, (0.0, 68.0, 0.0), (0.0, 0.0, 0.0), *RTK)
+    assert m.track.along_track_m == 68.0 and m.flags["track_armed"]
+    m.set_route((0.0, 0.0, 0.0), (1e-6, 0.0, 0.0), "tiny")  # at the limit: accepted
+    assert m.route.route_id == "tiny" and m.flags["track_armed"] is False
+
+
+def test_cleared_track_event_fields():
+    m = _armed()
+    _gnss(m, 10.0, 2.0, n=3)
+    ev = _gnss(m, 11.0, 0.0, n=17)
+    [c] = [e for e in ev if e.source == "track"]
+    assert (c.state, c.unit, c.severity, c.threshold) == ("cleared", "m", "critical", 0.5)
+    assert c.reason == "cross-track deviation 0.00 m back below 0.5 m for 2 s"
+
+
+def test_field_strength_is_the_norm_of_all_three_axes():
+    f = FieldStrengthMonitor(TrackMonitorSettings(field_ref_nt=50000.0, field_sigma_nt=10.0))
+    f.update(0.0, (20000.0, 30000.0, -36055.5))
+    assert f.field_nt == pytest.approx(math.sqrt(20000.0 ** 2 + 30000.0 ** 2 + 36055.5 ** 2))
+
+
+def test_field_gap_restarts_the_window_even_when_the_window_is_longer():
+    s = TrackMonitorSettings(field_ref_nt=50000.0, field_sigma_nt=10.0, field_window_s=3.0)
+    f = FieldStrengthMonitor(s)
+    f.update(0.0, _b(50000.0))
+    f.update(0.5, _b(50000.0))
+    f.update(1.5, _b(53000.0))  # a gap of exactly max_attitude_gap_s: the window is kept
+    assert f.median_nt == pytest.approx(50000.0)
+    f.update(2.75, _b(54000.0))  # a longer gap: only this sample
+    assert f.median_nt == pytest.approx(54000.0)
+
+
+def test_field_learning_counts_samples_and_age_from_the_first_one():
+    s = TrackMonitorSettings(warmup_s=1.0, learn_s=1.0, field_window_s=1e-3)
+    f = FieldStrengthMonitor(s)
+    t0 = 100.0
+    for i in range(8):  # 100 .. 100.875: warm-up
+        f.update(t0 + i * DT, _b(50000.0))
+    for i in range(19):  # 101 .. 103.25 (≥ warm-up + learn), 19 samples
+        f.update(t0 + 1.0 + i * 0.125, _b(50000.0 + i))
+    assert f.learning and len(f.learning_samples) == 19
+    f.update(t0 + 3.375, _b(50019.0))  # the 20th
+    assert not f.learning and f.ref_nt == pytest.approx(50009.5)
