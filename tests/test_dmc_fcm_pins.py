@@ -241,6 +241,7 @@ def test_json_roundtrip_keeps_every_setting(tmp_path):
     assert d["format"] == fcm.MODEL_FORMAT and d["version"] == fcm.MODEL_VERSION and d["features"] == ["dm", "dh"]
     path = model.save(tmp_path / "deep" / "er" / "m.json")
     assert path == tmp_path / "deep" / "er" / "m.json" and path.read_text().endswith("}\n")
+    assert len(path.read_text().splitlines()) > 20  # one value a line: a committed model diffs readably
     back = fcm.FcmModel.load(path)
     np.testing.assert_allclose(back.centres, model.centres, atol=1e-8)
     assert (back.feature_set, back.loose, back.m, back.kc_min, back.n_good_clusters) == ("paper", LOOSE, 1.7, 0.65, 3)
