@@ -113,6 +113,11 @@ class GroupMember:
         self.skipped_early += 1
         return True
 
+    def holds(self, vehicle: Any) -> bool:
+        """Whether this member speaks for ``vehicle`` now (it holds it, or hands it over and has not heard that
+        the new owner took it)."""
+        return vehicle in self.owned or vehicle in self.release
+
     # ---- main loop side ---------------------------------------------------------------------------
     def admits(self, key: str, payload: bytes | None = None) -> bool:
         """Whether the input on ``key`` is handled here (its vehicle is held, warming or being handed over)."""

@@ -201,6 +201,16 @@ class Service:
         rt = self._rt
         return rt is not None and rt.alarm_published.get(keys.alarm(vehicle, source)) == "raised"
 
+    def held_alarm_raised_t_s(self, vehicle: str, source: str) -> float | None:
+        """When the alarm :meth:`holds_alarm` reports was raised (its ``t_s``; a clear names it), else None."""
+        rt = self._rt
+        if rt is None or not self.holds_alarm(vehicle, source):
+            return None
+        with rt.lock:
+            msg = rt.raised.get(keys.alarm(vehicle, source))
+        t = msg.get("t_s") if isinstance(msg, dict) else None
+        return float(t) if isinstance(t, (int, float)) and not isinstance(t, bool) else None
+
     @property
     def vehicle_states(self) -> dict[str, Any]:
         return self._runtime.vehicle_state
@@ -489,12 +499,13 @@ class Runner:
             self._alarm_sent(key, msg)
         elif msg_type == "cal_params":  # what this instance set, for consumers to confirm (cal_params_trusted)
             self.params_sent[key] = [msg.get("param_id"), seq, t_s]
+        if self.journal is not None:  # before the put: a kill between the two never sends one seq twice
+            self.journal.set("o" + key, seq)
         self._publisher(key).put(payload)
         self.seq[key] = seq
         self.count_out[key].n += 1
         self.n_sent += 1
         if self.journal is not None:
-            self.journal.set("o" + key, seq)
             self.journal.sent(self.n_sent)
         if self.reconcile_pending and msg_type not in ("alarm", "reject"):
             self.out_since_start[vehicle] = self.out_since_start.get(vehicle, 0) + 1
@@ -1254,6 +1265,8 @@ class Runner:
             with self.lock:
                 raised = list(self.raised.items())
             for key, msg in raised:
+                if self.group is not None and not self.group.holds(msg.get("vehicle")):
+                    continue  # a group member speaks only for the vehicles it holds (not one restored or handed over)
                 if qke.intersects(zenoh.KeyExpr(key)):
                     query.reply(key, messages.encode(msg, check=False), encoding=_encoding(key))
         except Exception as e:

@@ -168,3 +168,37 @@ def test_status_shows_each_members_vehicles_and_those_without_an_owner():
     assert "car-1" in rows["dmc-1"] and "car-2" not in rows["dmc-1"] and "car-2" in rows["dmc-2"]
     assert "group dmc_detector/dmc: 2 members, 2 vehicles held; dmc-1: car-1; dmc-2: car-2" in text
     assert "without an owner: car-3" in text
+
+
+def test_cut_splits_a_vehicles_outputs_between_holder_and_new_owner():
+    import threading
+
+    from magmesh.group_member import GroupMember
+
+    class Rt(_Rt):
+        def __init__(self):
+            self.last_in_t, self.lock = {"car-1": 100.0}, threading.Lock()
+            self.seq, self.alarm_published, self.raised = {"magmesh/car-1/dmc": 41}, {}, {}
+            self.drops = {}
+
+    holder, new = GroupMember(Rt(), "dmc"), GroupMember(Rt(), "dmc")
+    holder.owned.add("car-1")
+    new.warming["car-1"] = "dmc-1"
+    k = "magmesh/car-1/dmc"
+    for t in (100.0, 100.6):  # outputs computed while warming: kept, published only if at or after the cut
+        assert not new.gate(k, "dmc", "car-1", t, {})
+    r = holder.control({"op": "g_release", "lead_s": 0.5, "vehicles": ["car-1"]})
+    cut = r["releasing"]["car-1"]["cut"]
+    assert r["releasing"]["car-1"]["seqs"] == {"magmesh/car-1/dmc": 41}  # what the new owner continues
+    assert cut == 100.5 and holder.holds("car-1") and "car-1" not in holder.owned
+    assert holder.gate(k, "dmc", "car-1", 100.4, {})  # before the cut: the holder's
+    assert not holder.gate(k, "dmc", "car-1", 100.5, {}) and "car-1" in holder.passed
+    new._arm("car-1", "dmc-1", cut)
+    assert [h[3] for h in new.held] == [100.6] and "car-1" in new.arm and "car-1" not in new.warming
+    assert not new.gate(k, "dmc", "car-1", 100.8, {}) and [h[3] for h in new.held] == [100.6, 100.8]
+    # the reader threads pass every sample of a vehicle in any of these states, and drop another's
+    for g in (holder, new):
+        g.seen.update({"car-1", "car-2"})
+        assert not g.skips("magmesh/car-1/clean/mag/1")
+        assert g.skips("magmesh/car-2/clean/mag/1") and not g.skips("magmesh/car-2/cal/params/1")
+        assert not g.skips("magmesh/car-3/clean/mag/1")  # never seen: the loop decides (maybe to take it)
