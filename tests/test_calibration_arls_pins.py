@@ -290,6 +290,10 @@ def test_result_fields_and_refusals():
     r_few = arls.fit_arls(few, "2d")
     assert not r_few.ok and "too few samples" in r_few.reason
     assert arls.fit_arls(c.m_nt[::50], "2d").ok  # 20 clean samples do
+    c3 = synthetic.make_cloud(synthetic.CloudSettings(model="3d", n_samples=400, noise_nt=20.0, seed=24))
+    d = arls.fit_arls(c3.m_nt)  # the model defaults to the ellipsoid
+    assert d.model == "3d" and d.params.model == "3d"
+    np.testing.assert_array_equal(d.params.offset, arls.fit_arls(c3.m_nt, "3d").params.offset)
 
 
 def test_a_high_scale_floor_keeps_every_sample_in_both_loops():

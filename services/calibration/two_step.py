@@ -118,7 +118,7 @@ def solution_to_params(X: np.ndarray, norm: Normalisation, model: str, radius_nt
 
 
 def model_axes(m_nt: np.ndarray, model: str) -> np.ndarray:
-    m = np.asarray(m_nt, float)
+    m = np.asarray(m_nt, float)  # pragma: no mutate (dtype: normalise divides, the design matrix is float either way)
     if m.ndim != 2 or m.shape[1] != 3:
         raise ValueError(f"samples must be N×3, got shape {m.shape}")
     if model not in MODELS:

@@ -199,7 +199,7 @@ class FcmModel:
         if d.get("version") != MODEL_VERSION:
             raise ValueError(f"DMC FCM model version {d.get('version')!r}; this code reads version {MODEL_VERSION}")
         lt = d["loose_thresholds"]
-        return cls(np.asarray(d["centres"], float), d["feature_set"],
+        return cls(np.asarray(d["centres"], float), d["feature_set"],  # pragma: no mutate (dtype: __post_init__ converts)
                    Thresholds(lt["dm_nt"], lt["ddm_nt_s"], lt["dh_deg"], lt["ddh_deg_s"]), float(d["m"]),
                    float(d["kc_min"]), int(d["n_good_clusters"]), dict(d.get("training", {})),
                    core.FeatureSettings(**d.get("feature_settings", {})))
