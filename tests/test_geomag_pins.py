@@ -660,3 +660,19 @@ def test_corrected_position_predicts_the_drift_to_the_time_asked():
     c_later = m.corrected_position((0.0, 0.0, 50.0), t_s=200.0)
     assert c_now.shape == (2,) and np.allclose(c_now, m.filter.correction_at(100.0))
     assert np.allclose(c_later, m.filter.correction_at(200.0)) and c_later[0] > c_now[0] + 20.0
+
+
+def test_exhaustive_search_is_centred_on_the_first_ins_position():
+    h = GRID.bilinear(*(LINE_START + LINE_FAST).T)
+    ins = GRID.to_metres(LINE_START + LINE_FAST)
+    x = match_exhaustive(GRID, h, ins, MatchSettings(n_samples=12, search_radius_m=100.0))
+    assert np.allclose(x.start_ij, LINE_START) and x.hausdorff_nt == pytest.approx(0.0, abs=1e-9)
+
+
+def test_filter_settings_small_values_and_the_gate_at_exactly_one():
+    FilterSettings(fix_std_m=0.5, gate_sigma=0.5)
+    # P = R = 16 per axis, no drift, no process noise: S = 32 I; ν = (4, 4): νᵀS⁻¹ν = 1 = gate² (gate 1)
+    kf = InsErrorFilter(FilterSettings(fix_std_m=4.0, drift_rate_noise_m_s2=0.0, gate_sigma=1.0))
+    kf.update(0.0, [0.0, 0.0, 9.0])  # a third component is ignored
+    assert kf.update(0.0, [4.0, 4.0, 9.0]) and kf.test_ratio == 1.0  # at the gate: fused
+    assert kf.x[0] == pytest.approx(2.0) and kf.x[1] == pytest.approx(2.0)

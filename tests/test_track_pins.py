@@ -507,7 +507,7 @@ def test_the_burst_gate_is_its_minimum_while_sigma_is_small():
 
 
 def test_the_recovery_of_the_flight_controllers_filter_is_modelled_out():
-    k = 2.0
+    k = 1.0  # the default gain
     m = _mon(**{**ROBUST_GATE_ONLY, "fc_mag_gain_per_s": k})
     _att(m, 0.0, 0.0, n=8)
     _att(m, 1.0, 0.5, n=2)  # a burst of two samples pulls the filter: D ← D·e^{−k dt} + k·e·dt
@@ -557,7 +557,8 @@ def test_learn_sigmas_reference_values():
     rng = np.random.default_rng(2)
     s = TrackMonitorSettings(sigma_floor_rad=1e-4)
     x = rng.normal(0.002, 0.01, 400)
-    x[::37] += 0.5  # bursts
+    x[::37] += 0.5  # bursts, both ways
+    x[5::41] -= 0.5
     meds = rng.normal(0, 0.003, 400)
     samples = [(i * 0.1, float(v), float(md)) for i, (v, md) in enumerate(zip(x, meds, strict=True))]
     got = learn_sigmas(samples, s)
@@ -779,3 +780,59 @@ def test_field_learning_counts_samples_and_age_from_the_first_one():
     assert f.learning and len(f.learning_samples) == 19
     f.update(t0 + 3.375, _b(50019.0))  # the 20th
     assert not f.learning and f.ref_nt == pytest.approx(50009.5)
+
+
+def _excised(ts, es, gate=0.035, window_s=0.6):
+    """Reference of the robust test's burst excision while σ is learned: a sample farther than the gate from
+    the running median takes the median's place; the median is over the excised samples of the window."""
+    xs, out, med = [], [], None
+    for t, e in zip(ts, es, strict=True):
+        x = med if med is not None and abs(e - med) > gate else e
+        xs.append((t, x))
+        med = float(np.median([v for tj, v in xs if t - tj <= window_s]))
+        out.append((t, x, med))
+    return out
+
+
+@pytest.mark.parametrize("test", ["robust", "paper"])
+def test_sigma_is_learned_from_the_excised_innovation_robust_and_the_raw_one_paper(test):
+    rng = np.random.default_rng(12)
+    t0 = 50.0  # the age counts from the first sample, not from t = 0
+    ts = t0 + np.arange(48) * DT
+    es = rng.normal(0, 0.004, 48)
+    es[[12, 20, 21, 33]] += [0.3, -0.25, -0.25, 0.4]  # bursts inside the learning window
+    m = _mon(innovation_test=test, warmup_s=1.0, learn_s=4.5, fc_mag_gain_per_s=0.0)
+    for t, e in zip(ts, es, strict=True):
+        m.update_attitude(float(t), 0.0, float(e))
+    assert m.flags["learning"] is False
+    ref = _excised(ts, es)
+    kept = [(t, x if test == "robust" else e, md) for (t, x, md), e in zip(ref, es, strict=True) if t - t0 >= 1.0]
+    kept = kept[: int(round(5.5 / DT)) - 8 + 1]  # up to warm-up + learn_s
+    want = learn_sigmas(kept, m.settings)
+    assert m.innovation.sigma_rad == pytest.approx(want["innovation_sigma_rad"], rel=1e-12)
+    assert m.innovation.block_sigma_rad == pytest.approx(want["block_sigma_rad"], rel=1e-12)
+    assert m.innovation.median_sigma_rad == pytest.approx(want["median_sigma_rad"], rel=1e-12)
+
+
+def test_learn_sigmas_block_length_edge_cases():
+    s = TrackMonitorSettings(sigma_floor_rad=1e-5, block_s=0.5)
+    x = np.array([0.01, -0.02, 0.015, 0.0, -0.01, 0.02, -0.005, 0.01] * 4)
+    # all at one time stamp: blocks of one sample (the block length is taken as the sample interval)
+    same = learn_sigmas([(3.0, float(v), 0.0) for v in x], s)
+    sig = same["innovation_sigma_rad"]
+    assert same["block_sigma_rad"] == pytest.approx(np.std(np.clip(x, -3 * sig, 3 * sig)), rel=1e-12)
+    # samples every 0.5 s: one sample per 0.5 s block
+    one = learn_sigmas([(0.5 * i, float(v), 0.0) for i, v in enumerate(x)], s)
+    assert one["block_sigma_rad"] == pytest.approx(same["block_sigma_rad"], rel=1e-12)
+    # every stamp twice (steps 0, 0.25, 0, ...): the interval is 0.25 s, two samples a block
+    pairs = learn_sigmas([(0.25 * (i // 2), float(v), 0.0) for i, v in enumerate(x)], s)
+    cl = np.clip(x, -3 * sig, 3 * sig)
+    assert pairs["block_sigma_rad"] == pytest.approx(np.std(cl.reshape(16, 2).mean(axis=1)), rel=1e-12)
+
+
+def test_warmup_counts_from_the_first_sample_and_the_paper_reason():
+    m = _mon(innovation_test="paper", **{**GIVEN, "warmup_s": 2.0})
+    assert not _att(m, 100.0, 0.2, n=16)  # 100 .. 101.875 s
+    [r] = _inn(_att(m, 102.0, 6 * SIG))
+    assert r.reason == ("heading innovation +2.69° exceeds 5σ = 2.24°: "
+                        "the magnetometer heading disagrees with the attitude")
