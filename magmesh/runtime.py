@@ -199,7 +199,7 @@ class Service:
         """Whether the mesh's alarm ``source`` of ``vehicle`` stands raised as this instance holds it (restored
         after a restart, or taken over in a swap): a logic that latches its alarms starts its latch from this."""
         rt = self._rt
-        return rt is not None and rt.alarm_published.get(keys.alarm(vehicle, source)) == "raised"
+        return rt is not None and getattr(rt, "alarm_published", {}).get(keys.alarm(vehicle, source)) == "raised"
 
     def held_alarm_raised_t_s(self, vehicle: str, source: str) -> float | None:
         """When the alarm :meth:`holds_alarm` reports was raised (its ``t_s``; a clear names it), else None."""

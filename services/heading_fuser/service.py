@@ -116,6 +116,7 @@ class HeadingFuser(Service):
     def new_vehicle(self, vehicle: str) -> VehicleState:
         st = VehicleState(self.make_filter(self.core_settings(vehicle)))
         st.alarm_raised = self.holds_alarm(vehicle, "heading")  # after a restart: the latch as the mesh knows it
+        st.alarm_raised_t = self.held_alarm_raised_t_s(vehicle, "heading")  # its clear names the raise time
         table = ((self.vehicles_config.get(vehicle, {}) or {}).get("mag_params") or {}).get(self.settings.sensor)
         if table:
             try:

@@ -26,7 +26,7 @@ from magmesh.runtime import Service
 from schemas import keys
 from services.physical import refuse_unphysical
 
-from .core import AlarmEvent, TrackMonitor, TrackMonitorSettings, mag_heading
+from .core import AlarmEvent, TrackMonitor, TrackMonitorSettings, _Hysteresis, mag_heading
 
 
 @dataclass(frozen=True)
@@ -50,6 +50,9 @@ class TrackMonitorService(Service):
     impl = "track_monitor"
     Settings = Settings
     CONSUMES = ("clean/route", "clean/gnss", "clean/attitude", "clean/mag/{sensor} or cal/mag/{sensor}")
+    # a restored raised alarm is each detector's own latch again (new_vehicle): it clears on the detector's clear
+    # condition held for its hold time, never because a restart has not seen the condition yet
+    ADOPTS_RESTORED_ALARMS = True
     PRODUCES = ("track", "alarm/track", "alarm/heading_innovation", "alarm/mag_anomaly")
 
     def subscriptions(self) -> list[str]:
@@ -64,6 +67,9 @@ class TrackMonitorService(Service):
     def _sigma_path(self, vehicle: str):
         return paths.state_dir() / self.settings.state_subdir / f"{vehicle}.json"
 
+    def _route_path(self, vehicle: str):
+        return paths.state_dir() / self.settings.state_subdir / f"{vehicle}.route.{self.instance}.json"
+
     def new_vehicle(self, vehicle: str) -> TrackMonitor:
         s = self.settings
         gain = (self.vehicles_config.get(vehicle) or {}).get("attitude_mag_gain_per_s")
@@ -72,6 +78,23 @@ class TrackMonitorService(Service):
         mon = TrackMonitor(s)
         mon.saved_sigma = False
         mon.last_mag = None
+        for source, owner, attr in (("track", mon.track, "state"), ("heading_innovation", mon.innovation, "state"),
+                                    ("mag_anomaly", mon, "anomaly")):
+            if self.holds_alarm(vehicle, source):  # after a restart: the latch as the mesh knows it
+                setattr(owner, attr, _Hysteresis(raised=True,
+                                                 raised_t_s=self.held_alarm_raised_t_s(vehicle, source)))
+                if source == "mag_anomaly":
+                    mon.anomaly_source = "an earlier run"
+        if getattr(self._rt, "resumed_from", None) is not None:
+            # restarted after a crash: the route in force before it (published once per leg, not again)
+            try:
+                r = json.loads(self._route_path(vehicle).read_text())
+                mon.set_route(r["a_enu_m"], r["b_enu_m"], r["route_id"])
+                self.log.info("%s: route %s restored from before the restart", vehicle, r["route_id"])
+            except FileNotFoundError:
+                pass
+            except (ValueError, KeyError, TypeError) as e:
+                self.log.warning("%s: ignoring unreadable saved route (%s)", vehicle, e)
         if s.persist_sigma and mon.innovation.learning:
             path = self._sigma_path(vehicle)
             try:
@@ -97,6 +120,14 @@ class TrackMonitorService(Service):
         if stream == "route":
             mon.set_route(msg["a_enu_m"], msg["b_enu_m"], msg["route_id"])
             self.log.info("%s: route %s %s → %s", info.vehicle, msg["route_id"], msg["a_enu_m"], msg["b_enu_m"])
+            try:  # for a restart after a crash (the route is published once per leg)
+                path = self._route_path(info.vehicle)
+                path.parent.mkdir(parents=True, exist_ok=True)
+                tmp = path.with_suffix(".tmp")
+                tmp.write_text(json.dumps({k: msg[k] for k in ("a_enu_m", "b_enu_m", "route_id")}))
+                os.replace(tmp, path)
+            except OSError as e:
+                self.log.warning("%s: could not save the route for a restart: %s", info.vehicle, e)
         elif stream == "gnss":
             if "pos_enu_m" not in msg:
                 self.count_drop(info.key, "no pos_enu_m")
