@@ -111,6 +111,12 @@ def test_car_roll_pitch_removes_forward_and_centripetal_acceleration():
     assert oe.car_roll_pitch(acc) == pytest.approx((math.atan2(0.2, 9.8), math.atan2(0.1, math.hypot(0.2, 9.8))))
     np.testing.assert_array_equal(acc, keep)
     assert all(isinstance(x, float) for x in got)
+    # centripetal = speed × yaw rate: either one alone removes nothing sideways
+    flat = np.array([0.0, 1.0, 9.8])
+    assert oe.car_roll_pitch(flat, 0.0, 10.0) == pytest.approx(oe.car_roll_pitch(flat))
+    assert oe.car_roll_pitch(flat, 0.0, yaw_rate_rad_s=0.3) == pytest.approx(oe.car_roll_pitch(flat))
+    # integer readings are accepted (the correction is applied in floating point)
+    assert oe.car_roll_pitch([1, 0, 10], 0.5) == pytest.approx(oe.car_roll_pitch([1.0, 0.0, 10.0], 0.5))
 
 
 # ---- the model ----------------------------------------------------------------------------------
