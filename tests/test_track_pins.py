@@ -836,3 +836,40 @@ def test_warmup_counts_from_the_first_sample_and_the_paper_reason():
     [r] = _inn(_att(m, 102.0, 6 * SIG))
     assert r.reason == ("heading innovation +2.69° exceeds 5σ = 2.24°: "
                         "the magnetometer heading disagrees with the attitude")
+
+
+@pytest.mark.parametrize("clip,clear_at", [(3.0, 3.75), (2.5, 3.75)])
+def test_robust_clear_waits_for_the_block_mean_after_a_median_gate_alarm(clip, clear_at):
+    # raised by the median gate (7σ); from 1.25 s on e = 0: the median is quiet from 1.5 s, the last block mean
+    # (7σ clipped to 3σ, or to exactly 2.5σ = the clear level) only once the next block closes at 1.75 s
+    m = _mon(**ROBUST_GATE_ONLY, clip_sigma=clip)
+    r = _inn(_att(m, 0.0, 7 * SIG, n=10))
+    assert [e.t_s for e in r] == [0.375]
+    assert m.innovation.block_mean_rad == pytest.approx(clip * SIG)
+    assert not _inn(_att(m, 1.25, 0.0, n=int((clear_at - 1.25) / DT)), "cleared")
+    c = _inn(_att(m, clear_at, 0.0), "cleared")
+    assert len(c) == 1 and c[0].t_s == clear_at
+    assert c[0].threshold == pytest.approx(math.degrees(2.5 * SIG)) and c[0].value == 0.0
+
+
+def test_robust_median_at_the_clear_level_is_not_quiet():
+    m = _mon(**{**ROBUST_GATE_ONLY, "block_sigma_rad": 2 * SIG})  # block means are quiet below 5σ
+    assert _inn(_att(m, 0.0, 7 * SIG, n=4))
+    assert not _inn(_att(m, 0.5, 2.5 * SIG, n=40), "cleared")  # the median stays at 2.5σ: never quiet
+    assert m.flags["innovation_alarm"]
+
+
+def test_robust_gate_fires_at_exactly_the_persistence_and_names_the_gate():
+    m = _mon(**ROBUST_GATE_ONLY, gate_persist_s=0.25)
+    assert not _att(m, 0.0, 7 * SIG, n=2)
+    [r] = _inn(_att(m, 0.25, 7 * SIG))
+    assert r.t_s == 0.25
+    assert r.reason.startswith("median heading innovation +3.13° exceeds 6σ = 2.69°")
+
+
+def test_a_step_reason_gives_the_jump_from_the_level_before_it():
+    m = _mon(**ROBUST_GATE_ONLY)
+    _att(m, 0.0, 0.02, n=8)
+    _att(m, 1.0, 0.5, n=4)
+    [r] = _inn(_att(m, 1.5, 0.5))
+    assert r.reason.startswith("the magnetometer heading jumped by +27.50° and stayed there 0.50 s")
