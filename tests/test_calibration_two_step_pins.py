@@ -29,6 +29,11 @@ def test_normalise_centres_on_the_median_and_scales_by_the_median_distance():
     d = np.hypot(m[:, 0] - 3.0, m[:, 1] - 11.0)
     assert norm.scale == pytest.approx(np.sort(d)[2])
     np.testing.assert_allclose(x, (m - [3.0, 11.0]) / norm.scale)
+    # any positive spread will do, however small the unit (a cloud in tesla rather than nT)
+    small = m * 1e-9
+    xs, ns = two_step.normalise(small)
+    np.testing.assert_allclose(xs, x, rtol=1e-9)
+    assert ns.scale == pytest.approx(norm.scale * 1e-9)
     with pytest.raises(ValueError, match="spread"):
         two_step.normalise(np.ones((10, 3)))
     with pytest.raises(ValueError, match="spread"):
