@@ -815,8 +815,10 @@ class MagLagEstimator:
     time per sample are constant). The lag is the candidate with the smallest residual, refined by a
     parabola through its neighbours. Comparing rotations over a baseline instead of the field's
     derivative keeps the magnetometer's noise from being amplified by the sample rate. Only pairs that
-    turned by at least ``min_turn_rad`` and whose strengths are near the reference count (a disturbed
-    field adds nothing); one pair per ``period_s``. It reports 0 until ``min_samples`` pairs were seen.
+    turned by at least ``min_turn_rad`` (half of ``min_rate_rad_s`` over the baseline) and whose strength
+    is within 10 % of the reference count (a disturbed field adds nothing); one pair per ``period_s``. It
+    reports 0 until ``min_samples`` pairs were seen. The gyro ring buffer (``n_buf`` samples) must span
+    up to twice ``baseline_s`` plus ``max_delay_s``: 512 samples do up to ~1.1 kHz.
     """
 
     def __init__(self, max_delay_s: float = 0.05, step_s: float = 0.001, min_rate_rad_s: float = 0.5,
