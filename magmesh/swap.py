@@ -53,7 +53,8 @@ class Swapper:
         self.lead_s = lead_s
         self.stall_s = stall_s
 
-    def _control(self, role: str, instance: str, req: dict, timeout: float = 3.0) -> dict:
+    def _control(self, role: str, instance: str, req: dict, timeout: float = 10.0) -> dict:
+        # answered by the instance's own loop, behind its queue: on a loaded machine that takes seconds
         payload = msgpack.packb(req, use_bin_type=True)
         for rep in self.sup.session.get(keys.svc_control(role, instance), payload=payload, timeout=timeout):
             if rep.ok is not None:

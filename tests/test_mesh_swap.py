@@ -16,8 +16,9 @@ from schemas import keys
 pytestmark = pytest.mark.mesh
 
 
-def swap(port: int, role: str, impl: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "magmesh", "swap", role, impl, "--connect", endpoint(port), "--json"],
+def swap(port: int, role: str, impl: str, *extra: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "magmesh", "swap", role, impl, *extra, "--connect", endpoint(port),
+                           "--json"],
                           cwd=REPO, capture_output=True, text=True, timeout=90)
 
 
@@ -25,7 +26,8 @@ def test_swap_threshold_to_fcm_and_back_loses_nothing(tmp_path):
     port = free_port()
     sup = subprocess.Popen(
         [sys.executable, "-m", "magmesh", "up", str(REPO / "deploy" / "mesh.toml"), "--endpoint", endpoint(port),
-         "--only", "sim-car-1,ingest-1,dmc-1", "--duration", "600", "--log-dir", str(tmp_path / "logs"), "--quiet",
+         # the demo's two detectors: swap must pick the car's (dmc-1) and leave the quasi-static one alone
+         "--only", "sim-car-1,ingest-1,dmc-1,replay-broad-1,dmc-broad-1", "--duration", "600", "--log-dir", str(tmp_path / "logs"), "--quiet",
          "--set", "sim-car-1.speed=3", "--set", "sim-car-1.loop=false", "--set", "sim-car-1.duration_s=480",
          "--set", "sim-car-1.layout=urban_a"],
         cwd=REPO, stdout=open(tmp_path / "up.log", "ab"), stderr=subprocess.STDOUT, start_new_session=True,
@@ -35,6 +37,8 @@ def test_swap_threshold_to_fcm_and_back_loses_nothing(tmp_path):
         dmc = Collector(client, keys.dmc("car-1"))
         alarms = Collector(client, keys.alarm("car-1", "dmc"))
         assert wait_alive(client, keys.svc_token("dmc_detector", "dmc-1"), 60)
+        assert wait_alive(client, keys.svc_token("dmc_detector", "dmc-broad-1"), 60)
+        broad_pid = query_status(client, keys.svc_status("dmc_detector", "dmc-broad-1"))["pid"]
         # swap while the detector holds alarm/dmc raised: the hand-over must neither repeat nor lose a transition
         assert alarms.wait_for(lambda k, m: m["state"] == "raised", 120), "no alarm raised on the urban drive"
         r1 = swap(port, "dmc_detector", "fcm")
@@ -49,7 +53,7 @@ def test_swap_threshold_to_fcm_and_back_loses_nothing(tmp_path):
         assert dmc.wait_for(lambda k, m: m["t_s"] > t_after_second + 10, 60)
         time.sleep(0.5)
         # a swap that cannot succeed leaves the holder in charge
-        r3 = swap(port, "dmc_detector", "no_such_impl")
+        r3 = swap(port, "dmc_detector", "no_such_impl", "--instance", "dmc-1-threshold")
         assert r3.returncode == 1, r3.stdout + r3.stderr
         failed = json.loads(r3.stdout)
         assert failed["ok"] is False and failed["holder"] == "dmc-1-threshold", failed
@@ -58,6 +62,10 @@ def test_swap_threshold_to_fcm_and_back_loses_nothing(tmp_path):
         assert holder["holds_role"] and holder["mode"] == "active"
         t_end = max(m["t_s"] for _, m in dmc.items)
         assert dmc.wait_for(lambda k, m: m["t_s"] > t_end + 3, 60)
+        broad = query_status(client, keys.svc_status("dmc_detector", "dmc-broad-1"))
+        assert broad["pid"] == broad_pid and broad["impl"] == "quasistatic", "the swaps touched broad-1's detector"
+        sup_status = query_status(client, keys.svc_status("supervisor", "main"))
+        assert sup_status["processes"]["dmc-broad-1"]["restarts"] == 0, sup_status["processes"]["dmc-broad-1"]
     finally:
         stop(sup, 10)
         client.close()

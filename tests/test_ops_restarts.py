@@ -103,11 +103,16 @@ def status(client, inst: str, tries: int = 20) -> dict:
 def kill_and_wait(client, tap: Tap, inst: str) -> dict:
     """SIGKILL ``inst``; wait for its token to go and come back and for each of its steady outputs to flow."""
     role = ROLES[inst]
-    before = status(client, inst)
-    in_keys = [k for k in before["in"]]
-    outs = [k for k, c in before["out"].items() if c["n"] >= 5 and "/alarm/" not in k and "/params/" not in k
-            and not k.endswith("/rejects")]
+    deadline = time.monotonic() + 120
+    while True:  # serving: some steady output (a loaded machine starts slowly)
+        before = status(client, inst)
+        outs = [k for k, c in before["out"].items() if c["n"] >= 5 and "/alarm/" not in k and "/params/" not in k
+                and not k.endswith("/rejects")]
+        if outs or time.monotonic() > deadline:
+            break
+        time.sleep(1.0)
     assert outs, f"{inst} has no steady output to watch: {before['out']}"
+    in_keys = [k for k in before["in"]]
     t_kill = time.monotonic()
     os.kill(before["pid"], signal.SIGKILL)
     while time.monotonic() - t_kill < 5 and any(
@@ -213,8 +218,9 @@ def check(res: dict) -> list[str]:
             for s in sorted(counted):
                 assert s in by_seq, f"{inst} counted {k} seq {s} lost, but it was never published"
                 a = by_seq[s][0]
-                # (before the kill: samples it had received but not handled yet, a backlog on a loaded machine)
-                assert kill["t_kill"] - 10.0 <= a <= kill["t_serving"] + 2.0, (
+                # (long before the kill too: samples it had received but not handled, a backlog on a loaded
+                # machine; the one-to-one checks below show they were not handled)
+                assert a <= kill["t_serving"] + 2.0, (
                     f"{inst} counted {k} seq {s} lost, but it arrived {a - kill['t_kill']:+.2f} s from the kill "
                     f"(back serving at {kill['t_serving'] - kill['t_kill']:+.2f} s)")
             # published after the kill and before the new process's runtime began (it subscribes after that);
