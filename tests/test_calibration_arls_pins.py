@@ -157,7 +157,7 @@ def test_iterations_stop_when_x_stops_changing():
     c, m, gross = _paper_2d_cloud(5)
     one = arls.fit_arls(m, "2d", settings=arls.ArlsSettings(refine=False, max_iterations=1))
     full = arls.fit_arls(m, "2d", settings=ALGEBRAIC)
-    assert one.iterations == 1 and not one.converged
+    assert one.iterations == 1 and one.converged is False
     assert full.converged and 2 <= full.iterations < ALGEBRAIC.max_iterations
     # one re-weighting is not yet the answer: the converged fit is closer to the truth
     assert _offset_err_pct(full.params, c) < _offset_err_pct(one.params, c)
@@ -290,6 +290,14 @@ def test_result_fields_and_refusals():
     r_few = arls.fit_arls(few, "2d")
     assert not r_few.ok and "too few samples" in r_few.reason
     assert arls.fit_arls(c.m_nt[::50], "2d").ok  # 20 clean samples do
+    # samples on a line: the very first (plain LS) solve is singular, no iteration ran
+    t = np.linspace(-1.0, 1.0, 64)
+    line = np.column_stack([1000.0 * t, 2000.0 * t, np.zeros_like(t)])
+    r_line = arls.fit_arls(line, "2d")
+    assert not r_line.ok and r_line.iterations == 0 and r_line.converged is False
+    # the algebraic fit honours a given field strength too
+    alg_r = arls.fit_arls(m, "2d", radius_nt=c.radius_nt, settings=ALGEBRAIC).params
+    assert alg_r.field_radius_nt == c.radius_nt
     c3 = synthetic.make_cloud(synthetic.CloudSettings(model="3d", n_samples=400, noise_nt=20.0, seed=24))
     d = arls.fit_arls(c3.m_nt)  # the model defaults to the ellipsoid
     assert d.model == "3d" and d.params.model == "3d"

@@ -93,6 +93,7 @@ def test_speed_rate_is_the_least_squares_slope_over_the_window():
     assert len(wide.t) == 9
     same = oe.SpeedRate()
     assert same.update(1.0, 4.0) == 0.0 and same.update(1.0, 6.0) == 0.0  # no time spread: no slope
+    assert same.t == [1.0, 1.0]  # an equal time stamp is not the clock going back
     back = oe.SpeedRate()
     back.update(5.0, 1.0)
     back.update(5.2, 2.0)

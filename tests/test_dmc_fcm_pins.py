@@ -313,7 +313,7 @@ def test_train_without_reference_orders_by_centre_size_and_keeps_two():
 
 def test_train_with_reference_orders_by_heading_error_and_keeps_the_small_ones():
     f, err, groups = _training_features(2)
-    model = fcm.train([f], "paper", heading_err_deg=[err], good_cluster_deg=2.0, kc_min=0.7)
+    model = fcm.train([f], "paper", heading_err_deg=[err], kc_min=0.7)  # "small" is < 2° by default
     assert model.kc_min == 0.7 and model.training["cluster_order"] == "heading_error"
     # groups ordered by their error: 0.5°, 1°, 6°, 8°, 12° → the first two (< 2°) make K_c
     for got, want in zip(model.centres, groups, strict=True):
@@ -338,6 +338,7 @@ def test_train_defaults_and_settings_carried():
     ext = fcm.train([f])
     assert ext.feature_set == "extended" and ext.centres.shape == (5, 4) and ext.loose == fcm.LOOSE
     assert ext.feature_settings == core.FeatureSettings()
+    assert ext.training["seed"] == 0 and ext.training["tol"] == 0.01 and ext.training["c"] == 5
 
 
 # ---- the streaming detector ---------------------------------------------------------------------

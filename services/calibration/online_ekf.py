@@ -108,7 +108,7 @@ class SpeedRate:
             self.v.pop(0)
         if len(self.t) < 2:
             return 0.0
-        t = np.asarray(self.t) - self.t[-1]
+        t = np.asarray(self.t) - self.t[-1]  # pragma: no mutate (any shift cancels in t − mean; it only conditions)
         v = np.asarray(self.v)
         tc = t - t.mean()
         den = float(tc @ tc)
