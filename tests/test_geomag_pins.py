@@ -286,7 +286,8 @@ def test_a_strip_that_does_not_fit_is_no_match():
     h, ins, start = _planted()
     long = np.arange(30)[:, None] * np.array([1.0, 0.0])  # 29 cells: longer than the 24-node map
     r = match_sequence(GRID, np.zeros(30), GRID.to_metres(long), MatchSettings(n_samples=30))
-    assert not r.found and "does not fit" in r.reason and r.hausdorff_nt == math.inf
+    assert not r.found and r.reason == "the strip does not fit on the map inside the search area"
+    assert r.hausdorff_nt == math.inf
     assert np.all(np.isnan(r.start_ij)) and r.runner_up_nt is None and r.margin_nt is None
     x = match_exhaustive(GRID, np.zeros(30), GRID.to_metres(long), MatchSettings(n_samples=30))
     assert not x.found and "does not fit" in x.reason
@@ -676,3 +677,45 @@ def test_filter_settings_small_values_and_the_gate_at_exactly_one():
     kf.update(0.0, [0.0, 0.0, 9.0])  # a third component is ignored
     assert kf.update(0.0, [4.0, 4.0, 9.0]) and kf.test_ratio == 1.0  # at the gate: fused
     assert kf.x[0] == pytest.approx(2.0) and kf.x[1] == pytest.approx(2.0)
+
+
+@pytest.mark.parametrize("window,rank", [(None, 1.0), (1, 0.75)])
+def test_exhaustive_search_is_the_minimum_over_the_fine_lattice(window, rank):
+    h, ins, start = _planted()
+    h = h + np.linspace(-3.0, 3.0, 12)  # not exact: the minimum is a real comparison
+    s = MatchSettings(n_samples=12, window_samples=window, rank_frac=rank, subdivisions=2, search_radius_m=250.0)
+    x = match_exhaustive(GRID, h, ins, s, chunk=13)
+    # reference: every lattice start i/2, j/2 of the box around (8.33, 6.67) ± 2.5 cells: nodes 6..10 and 5..9
+    gi, gj = np.meshgrid(np.arange(12, 21) / 2, np.arange(10, 19) / 2, indexing="ij")
+    starts = np.stack([gi.ravel(), gj.ravel()], axis=-1)
+    strips = GRID.bilinear(starts[:, :1] + OFFS[None, :, 0], starts[:, 1:] + OFFS[None, :, 1])
+    d = hausdorff(h, strips, window, rank)
+    assert x.n_fine == len(starts) and x.term_evaluations == len(starts) * 12 * 2
+    assert x.hausdorff_nt == pytest.approx(d.min()) and np.allclose(x.start_ij, starts[np.argmin(d)])
+    assert x.search_area_m2 == pytest.approx(4 * 4 * 1e4)
+
+
+@pytest.mark.parametrize("dx,dy", [(100.0, 50.0), (50.0, 100.0)])
+def test_exhaustive_search_needs_a_whole_cell_on_each_axis(dx, dy):
+    g = _smooth_map(dx=dx, dy=dy)
+    start = np.array([8.0, 8.0])
+    h = g.bilinear(*(start + OFFS).T)
+    ins = g.to_metres(start + OFFS)
+    x = match_exhaustive(g, h, ins, MatchSettings(n_samples=12, search_radius_m=60.0))  # < 1 cell on one axis
+    assert x.found is False and x.reason == "the strip does not fit on the map inside the search area"
+    assert match_exhaustive(g, h, ins, MatchSettings(n_samples=12, search_radius_m=100.0)).found
+
+
+def test_heading_search_of_one_degree_and_around_the_given_centre():
+    h, ins, start = _planted()
+    b = math.radians(1.0)
+    rot = np.array([[math.cos(b), math.sin(b)], [-math.sin(b), math.cos(b)]])
+    ins_rot = ins[0] + (ins - ins[0]) @ rot.T
+    s = dataclasses.replace(PLANT, heading_search_deg=1.0, heading_step_deg=1.0, search_radius_m=150.0)
+    r = match_sequence(GRID, h, ins_rot, s)
+    assert r.rotation_deg == -1.0 and r.hausdorff_nt == pytest.approx(0.0, abs=1e-9)
+    # the INS 500 m off; the search centred on the given (corrected) position finds the start, the INS alone not
+    off = ins_rot + [500.0, 0.0]
+    r = match_sequence(GRID, h, off, s, centre_m=ins_rot[0])
+    assert r.rotation_deg == -1.0 and np.allclose(r.start_ij, start)
+    assert not np.allclose(match_sequence(GRID, h, off, s).start_ij, start)
