@@ -455,11 +455,12 @@ def test_cusum_sides_are_floored_at_zero_and_a_gap_restarts_it():
     assert m.internal_states["cusum"] == 15.0
 
 
-def test_robust_clear_needs_the_median_and_the_block_mean_quiet_and_resets_the_cusum():
+def test_robust_clear_after_a_cusum_alarm_waits_for_the_next_block_and_resets_the_cusum():
     m = _cusum_mon()
     assert _inn(_blocks(m, 0.0, 2 * SIG, 16))  # raised at 79 DT = 9.875 s; the last block mean 2σ
-    # from 10 s on e = 0: the median (2σ at most) is below 2.5σ at once, but the last block mean 2σ is not
-    # below 2.5 block σ = 1.25σ until the next block closes at 10.5 s; the hold of 2 s ends at 12.5 s
+    # from 10 s on e = 0: the median (2σ at most) is below 2.5σ at once, but the CUSUM (g = 16 > 15) fires, and
+    # the last block mean 2σ is not below 2.5 block σ = 1.25σ, until the next block closes at 10.5 s (g = 13,
+    # mean 0); the hold of 2 s ends at 12.5 s
     assert not _att(m, 10.0, 0.0, n=20)  # 10.0 .. 12.375
     assert m.flags["innovation_alarm"]
     c = _inn(_att(m, 12.5, 0.0), "cleared")
