@@ -874,3 +874,37 @@ def test_a_step_reason_gives_the_jump_from_the_level_before_it():
     _att(m, 1.0, 0.5, n=4)
     [r] = _inn(_att(m, 1.5, 0.5))
     assert r.reason.startswith("the magnetometer heading jumped by +27.50° and stayed there 0.50 s")
+
+
+def test_a_fresh_monitor_reports_nothing_yet():
+    m = TrackMonitor(TrackMonitorSettings())
+    st = m.internal_states
+    assert st["gnss_reason"] == "no GNSS yet"
+    assert st["cross_track_m"] is None and st["cross_track_rate_m_s"] is None and st["along_track_m"] is None
+    assert m.track.cross_track_signed_m is None
+
+
+def test_combined_events_carry_the_first_detectors_figures_and_clear_on_attitude_samples():
+    m = _armed(anomaly_clear_hold_s=1.0, **GIVEN, innovation_test="paper")
+    ev = _gnss(m, 10.0, 2.0, n=3)
+    tr, an = ev
+    assert an.reason == f"magnetic anomaly: the track deviation detector fired first ({tr.reason})"
+    assert (an.value, an.threshold, an.unit, an.severity, an.raised_t_s, an.t_s) == (
+        tr.value, tr.threshold, "m", "critical", 10.25, 10.25)
+    ev = _gnss(m, 10.375, 0.0, n=17)  # the track clears at 12.375 s
+    assert [e.state for e in ev if e.source == "track"] == ["cleared"]
+    out = []
+    for i in range(10):  # attitude samples without a magnetometer heading still run the combined hold
+        out += m.update_attitude(12.5 + i * DT, 0.0, None)
+    [c] = out
+    assert (c.source, c.state, c.t_s, c.value, c.threshold, c.unit, c.severity, c.raised_t_s) == (
+        "mag_anomaly", "cleared", 13.375, None, None, "", "critical", 10.25)  # 1 s after the track cleared
+    assert c.reason == "magnetic anomaly cleared: track and heading innovation quiet for 1 s (raised by track)"
+
+
+def test_innovation_cleared_event_units():
+    m = _mon(innovation_test="paper", **GIVEN)
+    _att(m, 0.0, 6 * SIG)
+    [c] = _inn(_att(m, 0.125, 0.0, n=17), "cleared")
+    assert (c.unit, c.severity) == ("deg", "warning")
+    assert c.reason == "heading innovation back within 2.5σ for 2 s"
