@@ -6,8 +6,8 @@ The checks (:func:`check_run`) are made on what subscribers saw:
 
 - each vehicle's ``dmc`` stream: seq never repeats or goes back, epochs never repeat; every seq gap lies on a
   vehicle held by a killed instance at its kill (outputs it had sent that never left it) and every epoch missing
-  (a pair of clean samples without a ``dmc`` output) is either counted ``lost_in_takeover`` by the instance that
-  took the vehicle over or one of those seq gaps;
+  (a pair of clean samples without a ``dmc`` output) is counted: ``lost_in_takeover`` by the instance that took
+  the vehicle over, ``upstream_gap`` (an input gap its holder saw), or one of those seq gaps;
 - each vehicle's ``alarm/dmc``: seq contiguous and states alternating (no transition lost or repeated);
 - for the vehicles no kill touched (moved only by hand-overs), the alarm transitions equal those of one detector
   fed every epoch offline (the same code, the same samples): a move caused no transition and hid none.
@@ -201,10 +201,13 @@ def check_run(data: list[tuple[str, Any]], final: dict[str, dict], kills: list[d
                 problems.append(f"the test's subscriber lost clean/mag/{s} samples of {v}")
     killed_vehicles = {v for k in kills for v in k["vehicles"]}
     lost = {}  # per vehicle: lost_in_takeover (max over the two sensors' keys) over every live member
+    up_v = {}  # per vehicle: input seq gaps the detector saw on the vehicle's samples (upstream_gap)
     for v in vehicles:
         per_key = [max((int(((st.get("drops") or {}).get(keys.clean_mag(v, s)) or {}).get("lost_in_takeover", 0))
                         for st in final.values()), default=0) for s in ("1", "2")]
         lost[v] = max(per_key)
+        up_v[v] = max(sum(int(((st.get("drops") or {}).get(keys.clean_mag(v, s)) or {}).get("upstream_gap", 0))
+                          for st in final.values()) for s in ("1", "2"))
     upstream = sum(int(d.get("upstream_gap", 0)) for st in final.values() for k, d in (st.get("drops") or {}).items()
                    if "/clean/mag/" in k)
     seq_missing = {}
@@ -225,9 +228,11 @@ def check_run(data: list[tuple[str, Any]], final: dict[str, dict], kills: list[d
         epochs_missing[v] = sum(1 for t in pairs if ts[0] <= t <= ts[-1] and t not in t_dmc)
         if seq_missing[v] and v not in killed_vehicles:
             problems.append(f"{v}: {seq_missing[v]} dmc seq missing, but no kill touched it")
-        if epochs_missing[v] != lost[v] + seq_missing[v]:
+        # every missing epoch counted: by the new owner of a dead member's vehicle (lost_in_takeover), as an input
+        # gap the holder saw (upstream_gap), or as an output the killed process never got out (a seq gap)
+        if epochs_missing[v] != lost[v] + up_v[v] + seq_missing[v]:
             problems.append(f"{v}: {epochs_missing[v]} epochs missing, counted lost_in_takeover {lost[v]} + "
-                            f"{seq_missing[v]} sent by a killed instance but never out of it")
+                            f"upstream_gap {up_v[v]} + {seq_missing[v]} sent by a killed instance but never out of it")
     if duplicates:
         problems.append(f"{duplicates} dmc outputs repeated or out of order")
     lost_tr = repeated_tr = 0
@@ -257,7 +262,7 @@ def check_run(data: list[tuple[str, Any]], final: dict[str, dict], kills: list[d
         problems.append("alarm transitions differ from one detector fed every epoch: " + "; ".join(changed)[:2000])
     return {"problems": problems, "seq_missing": sum(seq_missing.values()), "duplicates": duplicates,
             "epochs_missing": sum(epochs_missing.values()), "lost_in_takeover": sum(lost.values()),
-            "upstream_gap": upstream,
+            "upstream_gap": upstream, "upstream_gap_per_vehicle": {v: n for v, n in up_v.items() if n},
             "lost_alarm_transitions": lost_tr, "repeated_alarm_transitions": repeated_tr,
             "alarm_transitions": sum(len(a) for a in alarms.values()),
             "reference_transitions_compared": compared, "transitions_changed_by_moves": len(changed),

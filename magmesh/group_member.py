@@ -107,7 +107,9 @@ class GroupMember:
         (a take-over is not delayed behind the others' samples). Parameter sets always go on (kept for a take);
         a sample skipped just before this member takes its vehicle over is counted by the take-over's seq gap."""
         v = vehicle_of(key)
-        if v is None or v not in self.seen or v in self.owned or v in self.warming or v in self.arm \
+        # in the order a vehicle goes through them (warming, taking, held, releasing): each state change enters
+        # the next before it leaves the last, so a check made while the loop moves it still finds it
+        if v is None or v not in self.seen or v in self.warming or v in self.arm or v in self.owned \
                 or v in self.release or _is_params(key):
             return False
         self.skipped_early += 1
@@ -213,7 +215,10 @@ class GroupMember:
             hand[v] = {"seqs": {k: s for k, s in rt.seq.items() if k.startswith(pre)},
                        "drops": {k: dict(d) for k, d in list(rt.drops.items()) if k.startswith(pre)},
                        "alarms": {k: s for k, s in rt.alarm_published.items() if k.startswith(pre)},
-                       "raised": raised, "passed": v in self.passed, "last_in_t": rt.last_in_t.get(v),
+                       # past the cut: an output at or after it came, or its input went a lead beyond it (a logic
+                       # that publishes nothing for a while still lets the vehicle go)
+                       "raised": raised, "last_in_t": rt.last_in_t.get(v),
+                       "passed": v in self.passed or rt.last_in_t.get(v, float("-inf")) >= self.release[v] + self.lead_s,
                        "cut": self.release[v]}
         return {"group": self.name, "instance": self.me, "leaving": self.leaving, "owned": sorted(self.owned),
                 "releasing": hand}
@@ -499,7 +504,11 @@ class GroupMember:
                 t = hand.get("last_in_t")
                 if v not in self.progress or self.progress[v][0] != t:
                     self.progress[v] = (t, now)
-                if hand.get("passed") or now - self.progress[v][1] >= self.stall_s:
+                # a holder that is only slow (its loop behind) is waited for; it is passed over only when the
+                # vehicle's input itself stopped before the cut (nothing more will come before it)
+                stalled = now - self.progress[v][1] >= self.stall_s and \
+                    self.rt.last_in_t.get(v, float("-inf")) < cut
+                if hand.get("passed") or stalled:
                     self.progress.pop(v, None)
                     self._post(lambda v=v, hand=hand: self._takeover(v, hand))
                     lead_done.append((holder, v))

@@ -23,7 +23,8 @@ def _check(res: dict, n_vehicles: int, n_kills: int, final_members: list[str]) -
     assert all(k["takeover_s"] != float("inf") for k in kills), kills  # every vehicle of a dead member resumed
     assert f["reference_transitions_compared"] > 0, "no alarm transition to compare: the move check is vacuous"
     assert f["duplicates"] == 0 and f["repeated_alarm_transitions"] == 0 and f["lost_alarm_transitions"] == 0, f
-    assert f["epochs_missing"] == f["lost_in_takeover"] + f["seq_missing"], f
+    assert f["epochs_missing"] == f["lost_in_takeover"] + sum(f["upstream_gap_per_vehicle"].values()) \
+        + f["seq_missing"], f
     for e in res["events"]:
         if e["step"] == "scale":
             assert e["reply"]["ok"] and all(e["reply"]["handed_over"].values()), e["reply"]
@@ -37,8 +38,8 @@ def _check(res: dict, n_vehicles: int, n_kills: int, final_members: list[str]) -
     print(f"\nelastic: {n_vehicles} cars, {f['dmc_outputs']} dmc outputs; kills: "
           + ", ".join(f"{k['instance']} holding {len(k['vehicles'])} (outputs resumed after {k['takeover_s']:.2f} s)"
                       for k in kills)
-          + f"; epochs missing {f['epochs_missing']} = lost_in_takeover {f['lost_in_takeover']} + never out of a "
-            f"killed process {f['seq_missing']}; {f['alarm_transitions']} alarm transitions, "
+          + f"; epochs missing {f['epochs_missing']} = lost_in_takeover {f['lost_in_takeover']} + upstream_gap "
+            f"{f['upstream_gap_per_vehicle']} + never out of a killed process {f['seq_missing']}; {f['alarm_transitions']} alarm transitions, "
             f"{f['reference_transitions_compared']} of moved-only vehicles equal to one detector's")
 
 
