@@ -34,11 +34,9 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
-import msgpack
-
 from schemas import keys
 
-from . import groups
+from . import groups, zconf
 
 log = logging.getLogger("magmesh.group")
 
@@ -435,15 +433,7 @@ class GroupMember:
         return {self.me} | {i for i in self._tokens if i.startswith(pre)}
 
     def _query(self, inst: str, req: dict, timeout: float = 1.0) -> dict | None:
-        payload = msgpack.packb(req, use_bin_type=True)
-        for rep in self.rt.session.get(keys.svc_control(self.role, inst), payload=payload, timeout=timeout):
-            if rep.ok is not None:
-                try:
-                    res = msgpack.unpackb(rep.ok.payload.to_bytes(), strict_map_key=False)
-                except Exception:  # noqa: BLE001
-                    return None
-                return res if isinstance(res, dict) and res.get("ok") else None
-        return None
+        return zconf.control_request(self.rt.session, self.role, inst, req, timeout)
 
     def _round(self) -> None:
         live = self._live_members()

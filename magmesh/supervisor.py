@@ -647,15 +647,7 @@ class Supervisor:
         return impls[spec_impl(spec) or default].role
 
     def _control_instance(self, role: str, inst: str, req: dict, timeout: float = 2.0) -> dict | None:
-        payload = msgpack.packb(req, use_bin_type=True)
-        for rep in self.session.get(keys.svc_control(role, inst), payload=payload, timeout=timeout):
-            if rep.ok is not None:
-                try:
-                    res = msgpack.unpackb(rep.ok.payload.to_bytes(), strict_map_key=False)
-                except Exception:  # noqa: BLE001
-                    return None
-                return res if isinstance(res, dict) and res.get("ok") else None
-        return None
+        return zconf.control_request(self.session, role, inst, req, timeout)
 
     def groups_status(self) -> dict:
         """Per group process: its instances, the vehicles each holds (from their status) and every vehicle a

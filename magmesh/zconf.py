@@ -120,3 +120,21 @@ def open_client(args: argparse.Namespace, timeout_s: float, what: str = "magmesh
         raise UserError(f"{what}: could not connect to {where(args)} within {timeout_s:g} s ({detail}). Is the mesh "
                         f"running (magmesh up) and is the endpoint right? Use --connect ENDPOINT, --timeout S.", 1)
     return box["session"]
+
+
+def control_request(session, role: str, instance: str, req: dict, timeout: float) -> dict | None:
+    """Ask an instance's control key (``magmesh/svc/{role}/{instance}/control``); its reply when it answered
+    ``ok``, else None (no answer within ``timeout`` s, a refusal, or a reply that is not a msgpack map)."""
+    import msgpack
+
+    from schemas import keys
+
+    payload = msgpack.packb(req, use_bin_type=True)
+    for rep in session.get(keys.svc_control(role, instance), payload=payload, timeout=timeout):
+        if rep.ok is not None:
+            try:
+                res = msgpack.unpackb(rep.ok.payload.to_bytes(), strict_map_key=False)
+            except Exception:  # noqa: BLE001 - any undecodable reply is no answer
+                return None
+            return res if isinstance(res, dict) and res.get("ok") else None
+    return None
