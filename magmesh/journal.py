@@ -19,7 +19,8 @@ import struct
 import threading
 from pathlib import Path
 
-SLOTS = 8192  # keys per journal (in + out); a key beyond that is not journalled (counted in ``full``)
+SLOTS = 8192  # keys live at once (in + out); a key beyond that is not journalled (counted in ``full``); the slots
+# of keys freed as idle (:meth:`Journal.forget`) are used again
 _EMPTY = -(2**63)
 _FMT = struct.Struct("<q")
 #: slots 0..3: slot index of the input key being handled, its seq, outputs sent when it began, outputs sent
@@ -31,6 +32,8 @@ class Journal:
         self.path = Path(path)
         self.index_path = self.path.with_suffix(".keys.json")
         self.slot: dict[str, int] = {}
+        self.free: list[int] = []  # slots of forgotten keys
+        self.n_slots = 0  # slots ever given out this run
         self.full = 0
         self.mm: mmap.mmap | None = None
         self._lock = threading.Lock()  # a new key's slot (the receive thread journals first-received seqs too)
@@ -66,15 +69,18 @@ class Journal:
             self.mm = mmap.mmap(fd, SLOTS * 8)
         finally:
             os.close(fd)
-        self.slot = {}
-        self._write_index([])
+        self.slot, self.free, self.n_slots = {}, [], 0
+        self._write_index()
         for k in _RESERVED:  # fixed slots 0..3: the sample in progress and the outputs sent
             self.set(k, _EMPTY if k == "~slot" else 0)
         for k, v in list(previous.items())[:SLOTS]:
             if not k.startswith("~"):
                 self.set(k, v)
 
-    def _write_index(self, names: list[str]) -> None:
+    def _write_index(self) -> None:
+        names = [""] * self.n_slots  # a free slot has no name (and holds the empty value)
+        for k, i in self.slot.items():
+            names[i] = k
         tmp = self.index_path.with_suffix(".tmp")
         tmp.write_text(json.dumps(names))
         os.replace(tmp, self.index_path)
@@ -89,17 +95,39 @@ class Journal:
                 with self._lock:
                     i = self.slot.get(key)
                     if i is None:
-                        if len(self.slot) >= SLOTS:
+                        if self.free:
+                            i = self.free.pop()
+                        elif self.n_slots < SLOTS:
+                            i, self.n_slots = self.n_slots, self.n_slots + 1
+                        else:
                             self.full += 1
                             return
-                        i = len(self.slot)
                         _FMT.pack_into(mm, i * 8, int(value))
                         self.slot[key] = i
-                        self._write_index(list(self.slot))  # a new key: rare (bounded by SLOTS)
+                        self._write_index()  # a new key: rare (bounded by the keys alive at once)
                         return
             _FMT.pack_into(mm, i * 8, int(value))
         except (ValueError, OSError):  # closed by a stop in progress: nothing left to account for
             return
+
+    def forget(self, names: list[str]) -> None:
+        """Free the slots of keys whose state the service has freed (idle keys): what they held is no longer
+        anything to account for at a restart, and their slots serve new keys."""
+        mm = self.mm
+        if mm is None:
+            return
+        with self._lock:
+            gone = [n for n in names if n in self.slot and not n.startswith("~")]
+            if not gone:
+                return
+            try:
+                for n in gone:
+                    i = self.slot.pop(n)
+                    _FMT.pack_into(mm, i * 8, _EMPTY)  # emptied before the index forgets it: never misread
+                    self.free.append(i)
+                self._write_index()
+            except (ValueError, OSError):
+                return
 
     def begin(self, key: str, seq: int, n_sent: int) -> None:
         """A sample starts being handled: its key's slot, its seq, and the outputs sent so far."""
@@ -128,7 +156,7 @@ class Journal:
         """(key, seq) of the sample a previous run was handling when it died (None when there is none)."""
         slot = previous.get("~slot", _EMPTY)
         names = previous.get("~names") or []
-        if slot == _EMPTY or not 0 <= slot < len(names):
+        if slot == _EMPTY or not 0 <= slot < len(names) or not names[slot]:
             return None, 0
         return names[slot], previous.get("~seq", 0)
 

@@ -333,6 +333,18 @@ def _sum(d: dict) -> int:
     return sum(d.values())
 
 
+def _rss_kb() -> int | None:
+    """This process's resident memory, in KiB (None where /proc is not there)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    return None
+
+
 def _top(d: dict, weight: Callable[[Any], int], n: int = STATUS_TOP_KEYS) -> list:
     """The ``n`` largest entries of a per-key table (status replies stay bounded however many keys there are)."""
     items = list(d.items())
@@ -1130,6 +1142,13 @@ class Runner:
             c = self.count_in.pop(k, None)
             self.evicted_in += c.n if c is not None else 0
             self.in_seq.pop(k, None)
+            with self._rx_lock:
+                self._first_rx.pop(k, None)
+            self.resumed_in.discard(k)
+            self.takeover_in.discard(k)
+            self._refused_seqs.pop(k, None)
+            if self.journal is not None:
+                self.journal.forget([p + k for p in "iflut"])
             self._fold_drops(k)
             hook = getattr(self.svc, "evict_key", None)
             if hook is not None:
@@ -1166,6 +1185,8 @@ class Runner:
             self.seq.pop(k, None)
             self._out_idle.pop(k, None)
             self._fold_drops(k)
+            if self.journal is not None:
+                self.journal.forget(["o" + k])
             self.evicted["publishers"] += 1
         n = sum(self.evicted.values()) - n0
         if n:
@@ -1207,6 +1228,8 @@ class Runner:
                 "host": os.uname().nodename,
                 "magmesh_version": __version__,
                 "uptime_s": round(now - self.started_mono, 3),
+                "rss_kb": _rss_kb(),
+                "py_heap_blocks": sys.getallocatedblocks(),  # Python objects' memory blocks (a leak shows here)
                 "vehicle_pattern": self.svc.vehicle_pattern,
                 **self.counters(),
                 "rebases": dict(self.rebases),

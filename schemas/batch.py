@@ -291,7 +291,7 @@ def stream_name(info: Any) -> str:
     return "/".join(info.rest)
 
 
-@lru_cache(maxsize=65536)
+@lru_cache(maxsize=keys.KEY_CACHE)
 def stream_key(kind: str, vehicle: str, name: str) -> str:
     """The per-stream key of a stream inside a batch: ``(clean, car-1, mag/1)`` → magmesh/car-1/clean/mag/1."""
     head, _, sensor = name.partition("/")

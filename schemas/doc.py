@@ -115,7 +115,8 @@ def render() -> str:
 ## Status replies
 
 `magmesh/svc/{role}/{instance}/status` answers a msgpack map: `role`, `impl`, `instance`, `pid`, `host`,
-`magmesh_version`, `uptime_s`, `vehicle_pattern`, `vehicles`, `consumes`, `produces`, `in` and `out`
+`magmesh_version`, `uptime_s`, `rss_kb` (resident memory), `py_heap_blocks` (`sys.getallocatedblocks()`: grows
+with a leak of Python objects), `vehicle_pattern`, `vehicles`, `consumes`, `produces`, `in` and `out`
 (`{key: {n, rate_hz}}`), `rejects`, `drops` (`{key: {reason: n}}`), `drops_total`, `queue_depth`,
 `last_error`, `settings`, `alarms_raised`, `mode` (active, standby, retiring, retired), `holds_role`,
 `suppressed`, plus service-specific entries.

@@ -10,9 +10,17 @@ subscription: ``*`` (every vehicle), an exact id, or a Zenoh chunk pattern such 
 
 from __future__ import annotations
 
+import os
 import re
 from dataclasses import dataclass
 from functools import lru_cache
+
+#: entries of each per-key cache (parsed keys, their clean keys, streams, types): a bounded memory per process
+#: however many vehicles come and go; keys beyond it are parsed again (MAGMESH_KEY_CACHE sets it)
+try:
+    KEY_CACHE = max(16, int(os.environ.get("MAGMESH_KEY_CACHE", "") or 8192))
+except ValueError:
+    KEY_CACHE = 8192
 
 ROOT = "magmesh"
 SVC = "svc"
@@ -162,7 +170,7 @@ def clean_all(vehicle: str = "*") -> str:
     return f"{ROOT}/{_v(vehicle)}/clean/**"
 
 
-@lru_cache(maxsize=65536)
+@lru_cache(maxsize=KEY_CACHE)
 def raw_to_clean(raw_key: str) -> str:
     """``magmesh/v/raw/x/..`` → ``magmesh/v/clean/x/..`` (the ingest mapping)."""
     info = parse(raw_key)
@@ -280,7 +288,7 @@ def parse(key: str) -> KeyInfo:
     return _parse(key)
 
 
-@lru_cache(maxsize=65536)
+@lru_cache(maxsize=KEY_CACHE)
 def _parse(key: str) -> KeyInfo:
     if len(key) > MAX_KEY_LEN:
         raise KeyError_(f"key {_short(key)} is {len(key)} characters long (max {MAX_KEY_LEN})")

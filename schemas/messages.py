@@ -550,7 +550,7 @@ def make(msg_type: str, vehicle: str, t_s: float, seq: int, **fields: Any) -> di
 
 
 #: which message type a key carries (by kind/stream); the mapping lives with the key grammar
-@lru_cache(maxsize=65536)
+@lru_cache(maxsize=_keys.KEY_CACHE)
 def type_for_key(key: str) -> str:
     """Message type of a data key; raises only :class:`schemas.keys.KeyError_` (service keys included)."""
     return _keys.message_type(key)

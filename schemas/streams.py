@@ -146,7 +146,7 @@ def stream_for_key(key: str) -> Stream:
     return _stream_for_key(key)
 
 
-@lru_cache(maxsize=65536)
+@lru_cache(maxsize=keys.KEY_CACHE)
 def _stream_for_key(key: str) -> Stream:
     info = keys.parse(key)
     if info.kind == keys.SVC:

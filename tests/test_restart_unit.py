@@ -162,3 +162,39 @@ def test_a_key_received_but_never_handled_before_a_kill_is_counted_from_its_firs
     assert r3.drops[key]["lost_during_restart"] == 30  # seqs 30..59: never handled by any run
     assert r3.restart_gaps[key] == [[30, 59]]
     assert [m["seq"] for _, m in s3.out] == [0, 1]
+
+
+def test_journal_frees_the_slots_of_forgotten_keys_and_uses_them_again(tmp_path):
+    j = Journal(tmp_path / "x.seq")
+    j.open({})
+    j.set("ia", 5)
+    j.set("ib", 6)
+    j.forget(["ia", "i-never-seen"])
+    assert {k: v for k, v in Journal(tmp_path / "x.seq").load().items() if not k.startswith("~")} == {"ib": 6}
+    n = j.n_slots
+    j.set("ic", 7)  # takes ia's slot
+    assert j.n_slots == n and j.slot["ic"] not in (j.slot["ib"],)
+    assert {k: v for k, v in Journal(tmp_path / "x.seq").load().items() if not k.startswith("~")} == \
+        {"ib": 6, "ic": 7}
+    j.begin("ic", 8, 0)
+    assert j.in_progress(Journal(tmp_path / "x.seq").load()) == ("ic", 8)
+
+
+def test_an_evicted_key_leaves_nothing_behind(tmp_path, monkeypatch):
+    """Idle eviction frees a key's first-received seq and its journal entries, so churn of vehicles neither
+    grows the process nor fills the journal, and a later restart does not count the idle time as missed."""
+    key = keys.clean_mag("car-1", "1")
+    r, sess = _runner(tmp_path, monkeypatch)
+    r._note_first_rx(key, messages.encode(messages.make("mag", "car-1", 10.0, 0, sensor="1",
+                                                        b_nt=[20000.0, 1000.0, -40000.0])))
+    _feed(r, range(0, 3))
+    assert "i" + key in r.journal.slot and "f" + key in r.journal.slot
+    out_key = sess.out[0][0]
+    assert "o" + out_key in r.journal.slot
+    r.evict_idle(now=1e12)
+    r.evict_idle(now=2e12)  # outputs go once seen idle over a whole period
+    assert key not in r._first_rx
+    assert not [k for k in r.journal.slot if not k.startswith("~")], r.journal.slot
+    r2, _ = _runner(tmp_path, monkeypatch)  # killed; the vehicle comes back much later
+    _feed(r2, range(1000, 1002))
+    assert r2.drops.get(key, {}).get("lost_during_restart", 0) == 0
