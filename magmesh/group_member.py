@@ -560,6 +560,7 @@ class GroupMember:
         pre = f"{keys.ROOT}/{v}/"
         out: dict = {"seqs": {}, "inputs": {}, "lost": {}, "alarms": {}, "raised": {}, "found": False}
         alarm_seq: dict[str, int] = {}
+        first_rx: dict[str, int] = {}
         d = state_dir()
         for f in sorted((d / "journal").glob(f"{self.role}.{self.name}-*.seq")):
             inst = f.name[len(self.role) + 1:-len(".seq")]
@@ -571,10 +572,16 @@ class GroupMember:
             if ikey is not None and prev.get("~sent", 0) > prev.get("~sent_at_begin", 0):
                 prev[ikey] = max(prev.get(ikey, pseq), pseq)
             for k, s in prev.items():
-                if k[:1] in "oit" and k[1:].startswith(pre):
+                if k[:1] == "f" and k[1:].startswith(pre):  # received, never handled there
+                    if ("i" + k[1:]) not in prev:
+                        first_rx[k[1:]] = min(int(s), first_rx.get(k[1:], int(s)))
+                        out["found"] = True
+                elif k[:1] in "oit" and k[1:].startswith(pre):
                     tgt = out["seqs"] if k[0] == "o" else out["inputs"] if k[0] == "i" else out["lost"]
                     tgt[k[1:]] = max(int(s), tgt.get(k[1:], -1))
                     out["found"] = True
+        for k, s in first_rx.items():  # a key no dead member handled is missed from the first seq any received
+            out["inputs"].setdefault(k, s - 1)
         for f in sorted((d / "alarms").glob(f"{self.role}.{self.name}-*.json")):
             inst = f.name[len(self.role) + 1:-len(".json")]
             if inst in self.live:

@@ -150,6 +150,22 @@ def test_dead_state_takes_the_latest_of_every_dead_member(tmp_path, monkeypatch)
     assert st["raised"] == {}
 
 
+def test_dead_state_counts_keys_received_but_never_handled_from_their_first_seq(tmp_path, monkeypatch):
+    """A member killed with a vehicle's samples still queued (never handled) left only their first-received seq:
+    the survivor counts that key's loss from there, unless another dead member handled the key."""
+    from magmesh.group_member import GroupMember
+
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
+    jd = tmp_path / "journal"
+    m1, m2, m3 = (f"magmesh/car-1/clean/mag/{s}" for s in (1, 2, 3))
+    _journal(jd / "dmc_detector.dmc-2.seq", {"i" + m1: 20, "f" + m2: 30})
+    _journal(jd / "dmc_detector.dmc-3.seq", {"f" + m1: 40, "f" + m2: 25, "f" + m3: 7, "f" + "magmesh/car-9/imu": 3})
+    g = GroupMember(_Rt(), "dmc")
+    g.live = {"dmc-1"}
+    st = g._dead_state("car-1")
+    assert st["found"] and st["inputs"] == {m1: 20, m2: 24, m3: 6}
+
+
 def test_status_shows_each_members_vehicles_and_those_without_an_owner():
     from magmesh.commands.status import group_assignment, render
 
