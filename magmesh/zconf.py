@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
@@ -112,6 +113,9 @@ def open_client(args: argparse.Namespace, timeout_s: float, what: str = "magmesh
             done.set()
 
     threading.Thread(target=_open, name="zenoh-open", daemon=True).start()
+    if timeout_s > 5.0 and not done.wait(2.0):  # a long wait says what it waits for
+        print(f"{what}: connecting to {where(args)} (up to {timeout_s:g} s; Ctrl-C stops) ...", file=sys.stderr,
+              flush=True)
     if not done.wait(timeout_s + 5.0):
         raise UserError(f"{what}: could not connect to {where(args)} within {timeout_s:g} s. Is the mesh running "
                         f"(magmesh up) and is the endpoint right? Use --connect ENDPOINT, --timeout S.", 1)
