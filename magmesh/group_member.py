@@ -346,6 +346,8 @@ class GroupMember:
             for k, s in dead["inputs"].items():
                 rt.in_seq[k] = int(s)
                 rt.takeover_in.add(k)  # the first gap on it is lost_in_takeover (runtime._accepted)
+            if dead["inputs"]:
+                rt.recovering[v] = "lost_in_takeover"  # what its joins held died with it (count_join_loss)
             if dead["raised"] and not rt.svc.ADOPTS_RESTORED_ALARMS:
                 rt.reconcile_pending.update({k: v for k in dead["raised"]})
                 rt.reconcile_at = time.monotonic() + 0.5

@@ -192,6 +192,12 @@ class Service:
     def count_drop(self, key: str, reason: str, n: int = 1) -> None:
         self._runtime.count_drop(key, reason, n)
 
+    def count_join_loss(self, key: str, vehicle: str, reason: str) -> None:
+        """A sample a join gave up (its partner never came). Right after a restart or a takeover, before the
+        vehicle's first output, its partner was held by the process that died: that is a loss of the restart
+        (``lost_during_restart``) or the takeover (``lost_in_takeover``), not a skip; otherwise ``reason``."""
+        self._runtime.count_join_loss(key, vehicle, reason)
+
     def state_for(self, vehicle: str) -> Any:
         return self._runtime.state_for(vehicle)
 
@@ -411,6 +417,8 @@ class Runner:
         self._refused_seqs: dict[str, set[int]] = {}  # input key -> seqs refused since its last accepted sample
         self._rx_lock = threading.Lock()
         self.takeover_in: set[str] = set()  # input keys taken from a dead group member: first gap is lost_in_takeover
+        # vehicle -> lost_during_restart | lost_in_takeover: resumed from a journal, no output yet (count_join_loss)
+        self.recovering: dict[str, str] = {}
         self.group = None  # magmesh.group_member.GroupMember when the service runs in a group (--group)
         self.resumed_from: dict | None = None  # what the journal of the run before a crash said
         self.clean_stop = False
@@ -467,6 +475,8 @@ class Runner:
     def publish(self, key: str, msg_type: str, vehicle: str, t_s: float, fields: dict) -> dict | None:
         if msg_type == "alarm":
             self.alarm_declared[key] = fields.get("state")
+        elif self.recovering and msg_type != "reject":
+            self.recovering.pop(vehicle, None)  # its logic runs on what this process received
         if self.group is not None and msg_type != "reject" and not self.group.gate(key, msg_type, vehicle, t_s, fields):
             return None  # a vehicle this member does not publish for (now): see magmesh/group_member.py
         if self.mode == "active" and self.cut and msg_type != "reject":
@@ -652,10 +662,12 @@ class Runner:
             elif k[:1] == "i":
                 self.in_seq[k[1:]] = int(v)
                 self.resumed_in.add(k[1:])
+                self.recovering[k[1:].split("/")[1]] = "lost_during_restart"
                 n_in += 1
             elif k[:1] == "f" and ("i" + k[1:]) not in prev:  # received, never handled: missed from there on
                 self.in_seq[k[1:]] = int(v) - 1
                 self.resumed_in.add(k[1:])
+                self.recovering[k[1:].split("/")[1]] = "lost_during_restart"
                 n_in += 1
             elif k[:1] == "l":  # samples missed in earlier restarts of this run of the mesh
                 self.drops[k[1:]]["lost_during_restart"] = int(v)
@@ -775,6 +787,17 @@ class Runner:
 
     def count_drop(self, key: str, reason: str, n: int = 1) -> None:
         self.drops[key][reason] += n
+
+    def count_join_loss(self, key: str, vehicle: str, reason: str) -> None:
+        how = self.recovering.get(vehicle) if self.recovering else None
+        if how == "lost_in_takeover":
+            self._lost_in_takeover(key, 1)
+        elif how == "lost_during_restart":
+            self.drops[key]["lost_during_restart"] += 1
+            if self.journal is not None:
+                self.journal.set("l" + key, self.drops[key]["lost_during_restart"])
+        else:
+            self.count_drop(key, reason)
 
     def count_rebase(self, what: str) -> None:
         """A stream's seq or clock was re-based (one event, however large the jump)."""
@@ -1162,6 +1185,7 @@ class Runner:
             st = self.vehicle_state.pop(v, _MISSING)
             self.first_in_t.pop(v, None)
             self.last_in_t.pop(v, None)
+            self.recovering.pop(v, None)
             if st is not _MISSING:
                 hook = getattr(self.svc, "evict_vehicle", None)
                 if hook is not None:

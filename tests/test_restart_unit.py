@@ -198,3 +198,20 @@ def test_an_evicted_key_leaves_nothing_behind(tmp_path, monkeypatch):
     r2, _ = _runner(tmp_path, monkeypatch)  # killed; the vehicle comes back much later
     _feed(r2, range(1000, 1002))
     assert r2.drops.get(key, {}).get("lost_during_restart", 0) == 0
+
+
+def test_a_join_loss_right_after_a_restart_is_a_loss_of_the_restart(tmp_path, monkeypatch):
+    """A partner held in the join of the process that died never comes back: the sample that waited for it is
+    counted lost_during_restart (until the vehicle's first output after the restart), later ones as skipped."""
+    key2 = keys.clean_mag("car-1", "2")
+    r, _ = _runner(tmp_path, monkeypatch)
+    _feed(r, range(0, 3))
+    r2, _ = _runner(tmp_path, monkeypatch)  # killed; restarted
+    assert r2.recovering == {"car-1": "lost_during_restart"}
+    r2.svc.count_join_loss(key2, "car-1", "unpaired")
+    assert r2.drops[key2]["lost_during_restart"] == 1 and r2.drops[key2]["unpaired"] == 0
+    assert r2.journal.slot.get("l" + key2) is not None
+    _feed(r2, range(3, 4))  # an output of car-1: its logic now runs on what this process received
+    assert not r2.recovering
+    r2.svc.count_join_loss(key2, "car-1", "unpaired")
+    assert r2.drops[key2]["unpaired"] == 1 and r2.drops[key2]["lost_during_restart"] == 1

@@ -141,8 +141,8 @@ class DmcDetectorService(Service):
             return
         joined, gave = state.aligner.push(info.sensor, msg["t_s"], msg["b_nt"])
         for g in gave:  # its partner never came (passed), came too late (expired), or too many waited
-            self.count_drop(keys.clean_mag(info.vehicle, g.stream),
-                            "unpaired" if g.reason == "passed" else f"unpaired_{g.reason}")
+            self.count_join_loss(keys.clean_mag(info.vehicle, g.stream), info.vehicle,
+                                 "unpaired" if g.reason == "passed" else f"unpaired_{g.reason}")
         a, b = self.sensors
         for j in joined:
             self._on_epoch(info, state, j.t_s, np.asarray(j.values[a], float), np.asarray(j.values[b], float))
