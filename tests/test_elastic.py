@@ -44,8 +44,6 @@ def _check(res: dict, n_vehicles: int, n_kills: int, final_members: list[str]) -
             f"{f['reference_transitions_compared']} of moved-only vehicles equal to one detector's")
 
 
-@pytest.mark.slow  # a known defect: after a kill -9 a taken-over vehicle can miss more epochs than are counted
-# (seen: 16 missing, 8 counted lost_in_takeover, on a loaded machine); out of the default suite until it is fixed
 def test_group_of_three_survives_a_kill_and_scales_to_four_and_two(tmp_path):
     # the fleet drives until the steps are done (then 2 s more): the run takes what the machine needs for them
     res = run_scenario(tmp_path, 6, 3, [("wait", 2), ("kill",), ("scale", 4), ("scale", 2)], duration_s=600.0,
@@ -53,7 +51,8 @@ def test_group_of_three_survives_a_kill_and_scales_to_four_and_two(tmp_path):
     _check(res, 6, 1, ["dmc-1", "dmc-2"])
 
 
-@pytest.mark.slow
+@pytest.mark.slow  # a known defect: after several kills a vehicle can miss more epochs than are counted
+# (seen: 14 missing, 9 counted lost_in_takeover); out of the default suite until it is fixed
 def test_group_kills_and_scaling_long(tmp_path):
     steps = [("wait", 2), ("kill",), ("scale", 1), ("wait", 3), ("scale", 4), ("kill",), ("kill",), ("scale", 2),
              ("kill",)]
