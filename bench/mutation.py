@@ -54,7 +54,8 @@ CORES: dict[str, Core] = {
                       "tests/test_calibration_two_step_pins.py")),
     "online_ekf": Core("services/calibration/online_ekf.py",
                        ("tests/test_calibration_core.py", "tests/test_calibration_online_ekf_pins.py")),
-    "heading_core": Core("services/heading_fuser/core.py", ("tests/test_heading_core.py", "tests/test_heading_pins.py")),
+    "heading_core": Core("services/heading_fuser/core.py", ("tests/test_heading_core.py", "tests/test_heading_pins.py",
+                                                         "tests/test_heading_rest_pins.py", "tests/test_heading_lag.py")),
     # the slow end-to-end cases (the unordered-set pipeline against the exhaustive search, the simulated survey,
     # 20 s and more each) are left out; test_geomag_pins.py pins the same steps on small maps. The spline-cache
     # test is of magmesh/geomap.py, not of this core.
