@@ -173,9 +173,11 @@ def test_client_commands_without_a_router_exit_non_zero(tmp_path, capsys, args):
 def test_ctrl_c_ends_a_client_waiting_for_a_connection():
     import signal
 
+    # as from a terminal: a test run started in the background of a shell inherits SIGINT ignored, and Python
+    # then installs no KeyboardInterrupt handler (seen: a clean-clone run under nohup hung here 90 s)
     p = subprocess.Popen([sys.executable, "-m", "magmesh", "status", "--connect", "tcp/127.0.0.1:1", "--timeout",
                           "300"], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                         start_new_session=True)
+                         start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         # interrupted once it says it is waiting on the connection (not at a fixed time: a start can take longer)
         first = p.stderr.readline()
