@@ -521,14 +521,16 @@ class Runner:
             self._alarm_sent(key, msg)
         elif msg_type == "cal_params":  # what this instance set, for consumers to confirm (cal_params_trusted)
             self.params_sent[key] = [msg.get("param_id"), seq, t_s]
-        if self.journal is not None:  # before the put: a kill between the two never sends one seq twice
+        if self.journal is not None:
+            # before the put: a kill between the two never sends one seq twice, and leaves the input handled with
+            # its output numbered; an output that never left the process is then a seq gap its consumers see,
+            # never also a lost input (the sent count after the put left a window where both were counted)
             self.journal.set("o" + key, seq)
+            self.journal.sent(self.n_sent + 1)
         self._publisher(key).put(payload)
         self.seq[key] = seq
         self.count_out[key].n += 1
         self.n_sent += 1
-        if self.journal is not None:
-            self.journal.sent(self.n_sent)
         if self.reconcile_pending and msg_type not in ("alarm", "reject"):
             self.out_since_start[vehicle] = self.out_since_start.get(vehicle, 0) + 1
         return msg
