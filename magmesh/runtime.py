@@ -795,9 +795,7 @@ class Runner:
         if how == "lost_in_takeover":
             self._lost_in_takeover(key, 1)
         elif how == "lost_during_restart":
-            self.drops[key]["lost_during_restart"] += 1
-            if self.journal is not None:
-                self.journal.set("l" + key, self.drops[key]["lost_during_restart"])
+            self._lost_during_restart(key, 1)
         else:
             self.count_drop(key, reason)
 
@@ -1011,6 +1009,13 @@ class Runner:
         if t1 > self.last_in_t.get(vehicle, float("-inf")):
             self.last_in_t[vehicle] = t1
 
+    def _lost_during_restart(self, key: str, n: int) -> None:
+        """Inputs missed while this instance was down (or held by the process that died): counted, and
+        journalled, so the count survives the next crash too."""
+        self.drops[key]["lost_during_restart"] += n
+        if self.journal is not None:
+            self.journal.set("l" + key, self.drops[key]["lost_during_restart"])
+
     def _lost_in_takeover(self, key: str, gap: int) -> None:
         """Inputs a dead group member had not handled when this one took its vehicle: counted, and journalled
         (the count moves on with the vehicle, through a hand-over or the next failover)."""
@@ -1122,11 +1127,9 @@ class Runner:
                 if key in self.takeover_in:  # not handled by a group member that died holding the vehicle
                     self._lost_in_takeover(key, gap)
                 elif key in self.resumed_in:
-                    self.drops[key]["lost_during_restart"] += gap
+                    self._lost_during_restart(key, gap)
                     if len(self.restart_gaps) < STATUS_TOP_KEYS or key in self.restart_gaps:
                         self.restart_gaps.setdefault(key, []).append([last + 1, sq - 1])  # which ones, for status
-                    if self.journal is not None:  # the count survives the next crash too
-                        self.journal.set("l" + key, self.drops[key]["lost_during_restart"])
                 else:
                     self.drops[key]["upstream_gap"] += gap
                     if self.journal is not None:  # a count of loss survives this process's own restart too
