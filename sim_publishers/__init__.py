@@ -1,0 +1,3 @@
+"""sim_publishers: importing magmesh first sets its process defaults (one BLAS thread) before numpy loads."""
+
+import magmesh  # noqa: F401

@@ -58,7 +58,7 @@ def test_car_parameters_converge_are_queryable_and_survive_a_restart(tmp_path):
     truth = car.true_mag_params(car.CarSimSettings(vehicle_seed=7), 50_000.0)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = zenoh.open(build_config(mode="router", listen=[endpoint]))
-    env = {"MAGMESH_STATE_DIR": str(tmp_path), "OPENBLAS_NUM_THREADS": "1"}
+    env = {"MAGMESH_STATE_DIR": str(tmp_path)}
     params: list[dict] = []
     calmag: list[dict] = []
     lock = threading.Lock()

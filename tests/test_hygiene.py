@@ -47,3 +47,22 @@ def test_the_guard_sees_a_bare_python():
     assert BARE.search(f"Popen(('{py}3', '-c', 'x'))")
     assert not BARE.search("args = [sys.executable, '-m', 'magmesh']")
     assert SHELL_BARE.search("exec python -m x\n")
+
+
+def test_every_process_entry_sets_one_blas_thread_before_numpy_loads():
+    """A service, simulator or bench process starts with one BLAS thread unless its user chose otherwise: with a
+    BLAS pool per process, spinning worker threads starved a DMC mesh test 9-fold on a busy 2-core machine."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")}
+    code = "import os, {pkg}; print(os.environ.get('OPENBLAS_NUM_THREADS'), os.environ.get('OMP_NUM_THREADS'))"
+    for pkg in ("magmesh", "services", "sim_publishers", "bench"):
+        r = subprocess.run([sys.executable, "-c", code.format(pkg=pkg)], cwd=REPO, env=env, capture_output=True,
+                           text=True, timeout=60)
+        assert r.returncode == 0, (pkg, r.stderr[-500:])
+        assert r.stdout.split() == ["1", "1"], (pkg, r.stdout)
+    r = subprocess.run([sys.executable, "-c", code.format(pkg="services")], cwd=REPO, capture_output=True, text=True,
+                       env={**env, "OPENBLAS_NUM_THREADS": "2"}, timeout=60)
+    assert r.stdout.split() == ["2", "1"], "a user's own setting is kept"

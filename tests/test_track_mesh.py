@@ -46,7 +46,7 @@ def test_slow_ramp_raises_mag_anomaly_within_the_goal(tmp_path):
     onset = 60.0
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = zenoh.open(build_config(mode="router", listen=[endpoint]))
-    env = {"MAGMESH_STATE_DIR": str(tmp_path), "OPENBLAS_NUM_THREADS": "1"}
+    env = {"MAGMESH_STATE_DIR": str(tmp_path)}
     alarms: list[dict] = []
     tracks: list[dict] = []
     lock = threading.Lock()

@@ -1,10 +1,6 @@
-import os
+from magmesh.runtime import main
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # small matrices on a shared machine: threads only spin
-
-from magmesh.runtime import main  # noqa: E402
-
-from .service import Calibration  # noqa: E402
+from .service import Calibration
 
 if __name__ == "__main__":
     main(Calibration)
