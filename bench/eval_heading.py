@@ -22,6 +22,9 @@
    (``imufusion``, magnetic rejection on) and the ``ahrs`` package's EKF; heading RMS over the
    ``movement`` samples (BROAD's own metric). A file that is not a usable trial is listed with the
    reason. Goal: at or below VQF on every trial; mean and worst trial below VQF's.
+
+3. ``--mesh``: the demo car through the real processes, the live ``heading`` key scored
+   (:mod:`bench.eval_heading_mesh`).
 """
 
 from __future__ import annotations
@@ -51,6 +54,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--broad-max-s", type=float, default=None, help="replay only the first this many seconds of each trial")
     p.add_argument("--no-sim", action="store_true", help="skip the simulated drives")
     p.add_argument("--no-broad", action="store_true", help="skip BROAD")
+    p.add_argument("--mesh", action="store_true",
+                   help="drive the demo car through the real processes (deploy/mesh.toml's car-1 services) and score "
+                        "the live heading key instead of the in-process runs")
+    p.add_argument("--mesh-duration-s", type=float, default=300.0, help="--mesh: length of the drive, s of sample time")
+    p.add_argument("--mesh-speed", type=float, default=5.0, help="--mesh: the car's replay speed, × real time")
+    p.add_argument("--mesh-impl", default=None, help="--mesh: heading_fuser implementation (default: the manifest's)")
 
 
 # ---- simulated drives -------------------------------------------------------------------------
@@ -222,6 +231,13 @@ def broad_summary(broad: dict) -> dict:
 
 
 def run(args: argparse.Namespace) -> dict:
+    if getattr(args, "mesh", False):
+        from bench import eval_heading_mesh
+
+        if args.mesh_duration_s <= 0 or args.mesh_speed <= 0:
+            raise SystemExit(f"--mesh-duration-s and --mesh-speed must be > 0 (got {args.mesh_duration_s:g} and "
+                             f"{args.mesh_speed:g}).")
+        return {"mesh": eval_heading_mesh.measure(args.mesh_duration_s, args.mesh_speed, heading_impl=args.mesh_impl)}
     result: dict = {"goal": {"sim_rms_deg": GOAL_SIM_RMS_DEG,
                              "broad": "at or below VQF on every trial; mean and worst trial below VQF's"},
                     "paper": {"dmc_gyro_heading_error_deg": 6.0, "adaptive_ahrs_heading_error_deg": 5.0}}
@@ -263,6 +279,10 @@ def run(args: argparse.Namespace) -> dict:
 
 def format_text(r: dict) -> str:
     lines = []
+    if "mesh" in r:
+        from bench import eval_heading_mesh
+
+        lines.append(eval_heading_mesh.format_text(r["mesh"]))
     if "sim" in r:
         lines.append("Simulated urban drives — heading error vs truth, whole drive (deg)")
         lines.append(f"{'drive':<16}" + "".join(f"{v:>22}" for v in VARIANTS))
