@@ -218,3 +218,34 @@ def test_cut_splits_a_vehicles_outputs_between_holder_and_new_owner():
         assert not g.skips("magmesh/car-1/clean/mag/1")
         assert g.skips("magmesh/car-2/clean/mag/1") and not g.skips("magmesh/car-2/cal/params/1")
         assert not g.skips("magmesh/car-3/clean/mag/1")  # never seen: the loop decides (maybe to take it)
+
+
+def test_a_restarted_member_taking_back_a_vehicle_nobody_took_counts_the_gap_from_its_own_journal():
+    """Killed, restarted before any survivor took its vehicle: it takes the vehicle back itself (no dead member
+    left anything), and its own journal's last handled seq (resume_journal) must survive the take, so that the
+    first sample after it counts the outage as lost_during_restart, not as nothing."""
+    from collections import defaultdict
+
+    from magmesh.group_member import GroupMember
+
+    m1, m2, other = "magmesh/car-1/clean/mag/1", "magmesh/car-1/clean/mag/2", "magmesh/car-2/clean/mag/1"
+    rt = _Rt()
+    rt.in_seq = {m1: 100, m2: 99, other: 5}
+    rt.resumed_in = {m1, m2, other}
+    rt.vehicle_state, rt.first_in_t, rt.last_in_t = {}, {"car-1": 1.0}, {"car-1": 2.0}
+    rt.recovering, rt.takeover_in = {}, set()
+    g = GroupMember(rt, "dmc")
+    nothing = {"seqs": {}, "inputs": {}, "lost": {}, "alarms": {}, "raised": {}, "found": False}
+    g._failover("car-1", nothing, None)
+    assert "car-1" in g.owned
+    assert rt.in_seq == {m1: 100, m2: 99, other: 5} and rt.recovering == {"car-1": "lost_during_restart"}
+    assert "car-1" not in rt.first_in_t, "the vehicle's times start again"
+    # a dead member that handled a key later than this run did: that key's gap is the takeover's
+    rt.seq, rt.drops, rt.alarm_published, rt.raised, rt.journal = {}, defaultdict(dict), {}, {}, None
+    rt.lock = __import__("threading").Lock()
+    rt._persist_alarms = lambda: None
+    g.owned.clear()
+    later = dict(nothing, inputs={m1: 150, m2: 50}, found=True)
+    g._failover("car-1", later, 1.0)
+    assert rt.in_seq[m1] == 150 and m1 in rt.takeover_in and m1 not in rt.resumed_in
+    assert rt.in_seq[m2] == 99 and m2 in rt.resumed_in and m2 not in rt.takeover_in
