@@ -149,6 +149,9 @@ def reference_transitions(clean: dict[str, list[dict]], manifest: Path, start_t:
         def count_drop(self, *a, **k):
             pass
 
+        def count_join_loss(self, *a, **k):
+            pass
+
         def reject(self, *a, **k):
             pass
 
