@@ -23,7 +23,6 @@ import os
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -90,43 +89,12 @@ def score(heading: list[dict], pose: list[dict], sources: list[dict], dmc_alarms
     return out
 
 
-class _Keep:
-    """Every decoded message of one key expression, in arrival order (a FIFO handler drained by a thread)."""
-
-    def __init__(self, session, kexpr: str):
-        import msgpack
-        import zenoh
-
-        self.items: list[dict] = []
-        self._sub = session.declare_subscriber(kexpr, zenoh.handlers.FifoChannel(200_000))
-
-        def run() -> None:
-            while True:
-                try:
-                    s = self._sub.recv()
-                except Exception:  # noqa: BLE001 - the session closed
-                    return
-                try:
-                    self.items.append(msgpack.unpackb(s.payload.to_bytes()))
-                except Exception:  # noqa: BLE001 - not a message: not scored
-                    pass
-
-        threading.Thread(target=run, daemon=True).start()
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def measure(duration_s: float = 300.0, speed: float = 5.0, manifest_path: Path | None = None,
             heading_impl: str | None = None, progress: bool = True, raw: dict | None = None) -> dict:
     """Drive the manifest's car once through its real processes; the figures of :func:`score` plus the set-up."""
     import zenoh
 
+    from bench.elastic_run import Collector, free_port
     from magmesh import supervisor, zconf
     from magmesh.paths import DEPLOY_DIR, REPO
 
@@ -139,12 +107,12 @@ def measure(duration_s: float = 300.0, speed: float = 5.0, manifest_path: Path |
                          f"{', '.join(PROCESSES)}; missing: {', '.join(missing)}.")
     sim = specs["sim-car-1"]
     sim = replace(sim, settings={**sim.settings, "speed": float(speed), "loop": False, "duration_s": float(duration_s)})
-    port = _free_port()
+    port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     router = zenoh.open(zconf.build_config(mode="router", listen=[endpoint]))
-    got = {"heading": _Keep(router, keys.heading(VEHICLE)), "pose": _Keep(router, keys.truth(VEHICLE, "pose")),
-           "sources": _Keep(router, keys.truth(VEHICLE, "sources")),
-           "dmc_alarms": _Keep(router, keys.alarm(VEHICLE, "dmc"))}
+    got = {"heading": Collector(router, keys.heading(VEHICLE)), "pose": Collector(router, keys.truth(VEHICLE, "pose")),
+           "sources": Collector(router, keys.truth(VEHICLE, "sources")),
+           "dmc_alarms": Collector(router, keys.alarm(VEHICLE, "dmc"))}
     procs: list[subprocess.Popen] = []
     with tempfile.TemporaryDirectory(prefix="magmesh-heading-mesh-") as tmp:
         env = dict(os.environ, MAGMESH_STATE_DIR=str(Path(tmp) / "state"), PYTHONUNBUFFERED="1")
@@ -163,7 +131,7 @@ def measure(duration_s: float = 300.0, speed: float = 5.0, manifest_path: Path |
             deadline = time.monotonic() + duration_s / max(speed, 0.1) * 3 + 60.0
             last_report = 0.0
             while time.monotonic() < deadline:
-                h = got["heading"].items
+                h = [m for _, m, _ in got["heading"].items[-1:] if isinstance(m, dict)]
                 if h and h[-1]["t_s"] >= duration_s - 0.5:
                     break
                 for p, name in zip(procs, PROCESSES[1:] + PROCESSES[:1], strict=True):
@@ -192,9 +160,8 @@ def measure(duration_s: float = 300.0, speed: float = 5.0, manifest_path: Path |
                     p.wait(5)
             router.close()
     if raw is not None:  # the received messages themselves, for a closer look
-        raw.update({k: list(v.items) for k, v in got.items()})
-    r = score(list(got["heading"].items), list(got["pose"].items), list(got["sources"].items),
-              list(got["dmc_alarms"].items))
+        raw.update({k: _msgs(v) for k, v in got.items()})
+    r = score(_msgs(got["heading"]), _msgs(got["pose"]), _msgs(got["sources"]), _msgs(got["dmc_alarms"]))
     r.update(duration_s=float(duration_s), speed=float(speed), wall_s=float(wall_s), manifest=str(path),
              heading_impl=heading_impl or supervisor.spec_impl(specs["heading-1"]) or "ekf",
              dmc_impl=supervisor.spec_impl(specs["dmc-1"]),
@@ -202,6 +169,10 @@ def measure(duration_s: float = 300.0, speed: float = 5.0, manifest_path: Path |
              goal={"rms_deg": GOAL_RMS_DEG, "magnetic_frac_clear": GOAL_MAGNETIC_FRAC_CLEAR,
                    "gyro_within_s": GYRO_WITHIN_S})
     return r
+
+
+def _msgs(c) -> list[dict]:
+    return [m for _, m, _ in list(c.items) if isinstance(m, dict)]
 
 
 def _wait_tokens(session, roles: list[str], timeout: float) -> None:
