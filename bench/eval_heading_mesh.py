@@ -123,9 +123,9 @@ def measure(duration_s: float = 300.0, speed: float = 5.0, manifest_path: Path |
                 spec = sim if name == "sim-car-1" else specs[name]
                 impl = heading_impl if name == "heading-1" else None
                 cmd = supervisor.command_for(spec, endpoint, path, impl_override=impl)
-                procs.append(subprocess.Popen(cmd, cwd=REPO, env=env, stdin=subprocess.DEVNULL,
-                                              stdout=open(logs / f"{name}.log", "ab"), stderr=subprocess.STDOUT,
-                                              start_new_session=True))
+                with open(logs / f"{name}.log", "ab") as log:  # the child keeps its own copy of the file
+                    procs.append(subprocess.Popen(cmd, cwd=REPO, env=env, stdin=subprocess.DEVNULL, stdout=log,
+                                                  stderr=subprocess.STDOUT, start_new_session=True))
                 if name == "heading-1":
                     _wait_tokens(router, ["ingest", "dmc_detector", "calibration", "heading_fuser"], 60.0)
             deadline = time.monotonic() + duration_s / max(speed, 0.1) * 3 + 60.0
@@ -161,7 +161,11 @@ def measure(duration_s: float = 300.0, speed: float = 5.0, manifest_path: Path |
             router.close()
     if raw is not None:  # the received messages themselves, for a closer look
         raw.update({k: _msgs(v) for k, v in got.items()})
-    r = score(_msgs(got["heading"]), _msgs(got["pose"]), _msgs(got["sources"]), _msgs(got["dmc_alarms"]))
+    try:
+        r = score(_msgs(got["heading"]), _msgs(got["pose"]), _msgs(got["sources"]), _msgs(got["dmc_alarms"]))
+    except ValueError as e:
+        raise SystemExit(f"the mesh heading eval could not score the drive after {wall_s:.0f} s: {e}. The services "
+                         f"ran, but the drive's messages did not reach the eval's subscriber.") from None
     r.update(duration_s=float(duration_s), speed=float(speed), wall_s=float(wall_s), manifest=str(path),
              heading_impl=heading_impl or supervisor.spec_impl(specs["heading-1"]) or "ekf",
              dmc_impl=supervisor.spec_impl(specs["dmc-1"]),
