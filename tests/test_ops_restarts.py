@@ -175,7 +175,9 @@ def check(res: dict) -> list[str]:
     for k, items in data.items():
         for (a0, m0), (a1, m1) in zip(items, items[1:], strict=False):
             d = m1["seq"] - m0["seq"]
-            assert d >= 1, f"{k}: seq repeated or went back ({m0['seq']} then {m1['seq']})"
+            assert d >= 1, (f"{k}: seq repeated or went back ({m0['seq']} then {m1['seq']}; arrived {a0:.2f} and "
+                            f"{a1:.2f}, t_s {m0.get('t_s')} and {m1.get('t_s')}, param_id {m0.get('param_id')} and "
+                            f"{m1.get('param_id')}; kills: {[(kl['inst'], round(kl['t_kill'], 2)) for kl in res['kills']]})")
             if d == 1:
                 continue
             at = [kl["inst"] for kl in res["kills"]
