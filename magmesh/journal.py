@@ -60,24 +60,33 @@ class Journal:
         return out
 
     def open(self, previous: dict[str, int]) -> None:
-        """Start this run's journal, carrying the previous run's values on (a second crash loses nothing)."""
+        """Start this run's journal, carrying the previous run's values on (a second crash loses nothing).
+
+        Under the lock, and the map published last: a receive thread journalling a first-received seq meanwhile
+        either waits or (before the map exists) writes nothing, never a slot or an index this open then resets.
+        """
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        with open(self.path, "wb") as f:
-            f.write(_FMT.pack(_EMPTY) * SLOTS)
-        fd = os.open(self.path, os.O_RDWR)
-        try:
-            self.mm = mmap.mmap(fd, SLOTS * 8)
-        finally:
-            os.close(fd)
-        self.slot, self.free, self.n_slots = {}, [], 0
-        self._write_index()
-        for k in _RESERVED:  # fixed slots 0..3: the sample in progress and the outputs sent
-            self.set(k, _EMPTY if k == "~slot" else 0)
-        for k, v in list(previous.items())[:SLOTS]:
-            if not k.startswith("~"):
-                self.set(k, v)
+        with self._lock:
+            with open(self.path, "wb") as f:
+                f.write(_FMT.pack(_EMPTY) * SLOTS)
+            fd = os.open(self.path, os.O_RDWR)
+            try:
+                mm = mmap.mmap(fd, SLOTS * 8)
+            finally:
+                os.close(fd)
+            self.slot, self.free, self.n_slots = {}, [], 0
+            carried = [(k, v) for k, v in previous.items() if not k.startswith("~")]
+            self.full += max(0, len(carried) - (SLOTS - len(_RESERVED)))
+            carried = carried[:SLOTS - len(_RESERVED)]
+            for k, v in [(k, _EMPTY if k == "~slot" else 0) for k in _RESERVED] + carried:
+                i, self.n_slots = self.n_slots, self.n_slots + 1  # fixed slots 0..3: the sample in progress
+                _FMT.pack_into(mm, i * 8, int(v))
+                self.slot[k] = i
+            self._write_index()
+            self.mm = mm
 
     def _write_index(self) -> None:
+        """The slot names, replaced atomically (called with the lock held: one writer of the temporary file)."""
         names = [""] * self.n_slots  # a free slot has no name (and holds the empty value)
         for k, i in self.slot.items():
             names[i] = k

@@ -653,6 +653,8 @@ class Runner:
         except OSError as e:
             self.journal = None
             self.last_error = f"seq journal unavailable: {e}"
+            self.svc.log.error("%s: after a crash of this run, its output seqs restart from 0 and what it missed "
+                               "goes uncounted", self.last_error)
             return
         if not prev:
             return

@@ -215,3 +215,50 @@ def test_a_join_loss_right_after_a_restart_is_a_loss_of_the_restart(tmp_path, mo
     assert not r2.recovering
     r2.svc.count_join_loss(key2, "car-1", "unpaired")
     assert r2.drops[key2]["unpaired"] == 1 and r2.drops[key2]["lost_during_restart"] == 1
+
+
+def test_journal_open_beside_receive_threads_loses_no_key_and_keeps_its_layout(tmp_path, monkeypatch):
+    """Receive threads journal first-received seqs while the service opens its journal: the open never fails
+    (one writer of the index at a time), the reserved slots stay first, and every key set once the journal is
+    open is in what a restarted run loads. (The index's rename is slowed to widen the window of a race.)"""
+    import os
+    import threading
+    import time
+
+    import magmesh.journal as journal
+
+    real_replace = os.replace
+
+    def slow_replace(a, b):
+        time.sleep(0.002)
+        real_replace(a, b)
+
+    monkeypatch.setattr(journal.os, "replace", slow_replace)
+
+    for trial in range(10):
+        j = Journal(tmp_path / f"x{trial}.seq")
+        go, opened = threading.Event(), threading.Event()
+        after_open: list[list[str]] = [[] for _ in range(3)]
+
+        def hammer(n: int, seen: list[str]) -> None:
+            go.wait()
+            for i in range(300):
+                was_open = opened.is_set()
+                k = f"f{n}-{i}"
+                j.set(k, i)
+                if was_open:
+                    seen.append(k)
+
+        threads = [threading.Thread(target=hammer, args=(n, after_open[n])) for n in range(3)]
+        for t in threads:
+            t.start()
+        go.set()
+        j.open({"ocarried": 41})
+        opened.set()
+        for t in threads:
+            t.join()
+        loaded = Journal(tmp_path / f"x{trial}.seq").load()
+        assert loaded["~names"][:4] == ["~slot", "~seq", "~sent_at_begin", "~sent"], loaded["~names"][:6]
+        assert loaded["ocarried"] == 41
+        missing = [k for seen in after_open for k in seen if k not in loaded]
+        assert not missing, f"trial {trial}: {len(missing)} keys set after open are not in the journal"
