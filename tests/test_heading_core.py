@@ -93,6 +93,37 @@ def test_dmc_invalid_switches_to_gyro_and_back_without_a_jump():
     assert steps[(t[1:] > 40) & (t[1:] < 50)].max() < 0.2
 
 
+def _back_to_magnetic_s(settings: Settings, extra_field_nt=None) -> float:
+    """Seconds from the end of a 0.3 s DMC outage (t 20.0–20.3 s) to magnetic mode again."""
+    t, g, a, m, truth = synth(30.0, 0.1, seed=5, extra_field_nt=extra_field_nt)
+    dmc = ~((t >= 20.0) & (t < 20.3))
+    h, modes, _ = run(HeadingFilter(settings), g, a, m, dmc)
+    assert set(modes[(t >= 20.01) & (t < 20.3)]) == {"gyro_only"}
+    back = np.flatnonzero((t >= 20.3) & (modes == "magnetic"))
+    assert back.size, "never magnetic again"
+    assert np.nanmax(err_deg(h, truth)[t > 15]) < 1.5
+    return float(t[back[0]] - 20.3)
+
+
+def test_holds_after_a_short_dmc_only_outage_scale_with_it():
+    """A 0.3 s outage that only the DMC verdict caused: both holds last about as long as it (≥ min_hold_s), so
+    magnetic mode is back in about 0.6 s instead of clear_hold_s + recovery_hold_s; turned off, or with the field
+    checks failing in the outage too, the full holds apply."""
+    s = Settings(declination_rad=DECL)
+    quick = _back_to_magnetic_s(s)
+    assert 2 * 0.3 - 0.05 <= quick <= 2 * 0.3 + 0.3, quick
+    full = _back_to_magnetic_s(Settings(declination_rad=DECL, holds_scale_with_outage=False))
+    assert full >= s.clear_hold_s + s.recovery_hold_s - 0.05, full
+
+    def blip(t):  # the field itself 40 % off in the outage: the field checks fail too
+        extra = np.zeros((len(t), 3))
+        extra[(t >= 20.0) & (t < 20.3)] = [0.0, 20000.0, 0.0]
+        return extra
+
+    bad = _back_to_magnetic_s(s, blip)
+    assert bad >= s.clear_hold_s + s.recovery_hold_s - 0.05, bad
+
+
 def test_recovery_slews_a_drifted_heading_back_at_a_bounded_rate():
     # the gyro drifts 20° during a 100 s DMC outage (a bias that appears with it and goes with it, so
     # the filter cannot learn it); the magnetometer is clean afterwards

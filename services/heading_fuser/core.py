@@ -131,6 +131,11 @@ class Settings:
     hard_iron_tau_s: float = 10.0  # its averaging time constant
     hard_iron_noise_gain: float = 10.0  # R_m multiplier for the field with the tracked magnet removed
     recovery_exit_rad: float = 0.035  # back to magnetic once |innovation| stays below this for recovery_hold_s
+    # a gyro_only stretch that only the DMC verdict caused (the field checks never failed in it) is judged over
+    # by that independent detector: both holds after it last as long as the stretch did, within
+    # [min_hold_s, clear_hold_s] and [min_hold_s, recovery_hold_s] (a 0.3 s kerb-side blip does not cost 3 s)
+    holds_scale_with_outage: bool = True
+    min_hold_s: float = 0.2
     rejection_timeout_s: float = 5.0  # persistent gate rejections this long in magnetic → recovering
     # alarm
     heading_alarm_std_rad: float = 0.087  # heading σ above this while not magnetic raises the flag (5°)
@@ -288,6 +293,9 @@ class HeadingFilter:
         self._inside_gate_since_t: float | None = None
         self._rejected_since_t: float | None = None
         self._gyro_only_since_t: float | None = None
+        self._left_magnetic_t: float | None = None  # when the filter last left magnetic mode
+        self._outage_field_bad = False  # the field checks failed since the filter last entered magnetic
+        self._outage_s: float | None = None  # how long ago that was, once the DMC cleared (None: full holds)
         self.transitions: list[tuple[float, str, str, str]] = []  # (t_s, from, to, reason)
         self.mag_delay_s = s.mag_delay_s
         self._lag = MagLagEstimator(s.mag_delay_max_s) if s.mag_delay_online else None
@@ -333,11 +341,23 @@ class HeadingFilter:
         right = np.array([fwd[1], -fwd[0], 0.0])
         return h, math.sqrt(max(right @ Pn @ right, 0.0)), math.sqrt(max(fwd @ Pn @ fwd, 0.0))
 
+    def _hold(self, full_s: float) -> float:
+        """A hold after gyro_only: ``full_s``, or, when only the DMC's verdict kept the magnetometer out, the
+        time since the filter left magnetic mode (at least ``min_hold_s``)."""
+        if self._outage_s is None:
+            return full_s
+        return min(full_s, max(self.settings.min_hold_s, self._outage_s))
+
     def _set_mode(self, mode: str, reason: str) -> None:
         if mode == self.mode:
             return
         log.debug("t=%.2f s: %s → %s (%s)", self.t_s, self.mode, mode, reason)
         self.transitions.append((self.t_s, self.mode, mode, reason))
+        if self.mode == "magnetic":
+            self._left_magnetic_t = self.t_s
+            self._outage_s = None
+        elif mode == "magnetic":
+            self._outage_field_bad = False
         if mode == "gyro_only":
             self._gyro_only_since_t = self.t_s
         elif mode == "magnetic":
@@ -638,6 +658,8 @@ class HeadingFilter:
         usable = not fl.mag_rejected_gate and not sample_bad
         # ---- mode logic (§1) ----
         fused = fused_weak = False
+        if window_bad:  # (reset on entering magnetic: "the field checks failed since the filter left it")
+            self._outage_field_bad = True
         if self.mode == "magnetic":
             if disturbed:
                 self._set_mode("gyro_only", "DMC says invalid" if not fl.dmc_valid else "field strength/dip off reference")
@@ -670,7 +692,10 @@ class HeadingFilter:
             else:
                 if self._clear_since_t is None:
                     self._clear_since_t = t
-                if t - self._clear_since_t >= s.clear_hold_s:
+                    since = self._left_magnetic_t
+                    scaled = s.holds_scale_with_outage and not self._outage_field_bad and since is not None
+                    self._outage_s = t - since if scaled else None
+                if t - self._clear_since_t >= self._hold(s.clear_hold_s):
                     self._set_mode("recovering", "disturbance cleared")
         elif self.mode == "recovering":
             if disturbed:
@@ -688,7 +713,7 @@ class HeadingFilter:
                         self._inside_gate_since_t = None
                     elif self._inside_gate_since_t is None:
                         self._inside_gate_since_t = t
-                    elif t - self._inside_gate_since_t >= s.recovery_hold_s:
+                    elif t - self._inside_gate_since_t >= self._hold(s.recovery_hold_s):
                         self._set_mode("magnetic", "magnetometer consistent and its heading agrees")
                 else:
                     self._inside_gate_since_t = None
