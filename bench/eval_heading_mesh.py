@@ -95,6 +95,7 @@ def measure(duration_s: float = 300.0, speed: float = 5.0, manifest_path: Path |
     import zenoh
 
     from bench.elastic_run import Collector, free_port
+    from bench.mesh_bench import _wait_tokens
     from magmesh import supervisor, zconf
     from magmesh.paths import DEPLOY_DIR, REPO
 
@@ -127,7 +128,10 @@ def measure(duration_s: float = 300.0, speed: float = 5.0, manifest_path: Path |
                     procs.append(subprocess.Popen(cmd, cwd=REPO, env=env, stdin=subprocess.DEVNULL, stdout=log,
                                                   stderr=subprocess.STDOUT, start_new_session=True))
                 if name == "heading-1":
-                    _wait_tokens(router, ["ingest", "dmc_detector", "calibration", "heading_fuser"], 60.0)
+                    services = [(supervisor.Supervisor._role_of_spec(specs[n]), n) for n in PROCESSES[1:]]
+                    if not _wait_tokens(router, [keys.svc_token(r, n) for r, n in services], 60.0):
+                        raise SystemExit("the mesh heading eval's services did not come up within 60 s: "
+                                         + ", ".join(n for _, n in services))
             deadline = time.monotonic() + duration_s / max(speed, 0.1) * 3 + 60.0
             last_report = 0.0
             while time.monotonic() < deadline:
@@ -177,19 +181,6 @@ def measure(duration_s: float = 300.0, speed: float = 5.0, manifest_path: Path |
 
 def _msgs(c) -> list[dict]:
     return [m for _, m, _ in list(c.items) if isinstance(m, dict)]
-
-
-def _wait_tokens(session, roles: list[str], timeout: float) -> None:
-    deadline = time.monotonic() + timeout
-    left = set(roles)
-    while left and time.monotonic() < deadline:
-        for role in list(left):
-            if any(r.ok is not None for r in session.liveliness().get(keys.svc_token(role, "*"), timeout=1.0)):
-                left.discard(role)
-        time.sleep(0.2)
-    if left:
-        raise SystemExit(f"the mesh heading eval's services did not come up within {timeout:.0f} s: "
-                         f"{', '.join(sorted(left))}")
 
 
 def _pct(x: float | None) -> str:
