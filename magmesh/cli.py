@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import math
 import os
 import pkgutil
@@ -101,5 +102,22 @@ def main(argv: list[str] | None = None) -> int:
     return int(rc or 0)
 
 
+#: set by a command that has stopped everything it started (``magmesh up``): the process then leaves without the
+#: interpreter's finalisation, which can abort it (glibc "FATAL: exception not rethrown", exit −6) when a daemon
+#: thread is still inside a Zenoh call, turning a clean exit code into a crash
+EXIT_WITHOUT_FINALISING = False
+
+
+def run_main() -> None:
+    """The process entry point (``magmesh`` and ``python -m magmesh``)."""
+    rc = main()
+    if EXIT_WITHOUT_FINALISING:
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(rc)
+    sys.exit(rc)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    run_main()

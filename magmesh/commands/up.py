@@ -79,4 +79,8 @@ def run(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"secured mesh: mutual TLS and access control on {prepared['endpoint']}; operators attach with "
                   f"--config {prepared['operator']}", flush=True)
-    return sup.run(args.duration)
+    rc = sup.run(args.duration)
+    from .. import cli
+
+    cli.EXIT_WITHOUT_FINALISING = True  # every child and the session are stopped (see cli.run_main)
+    return rc
