@@ -95,7 +95,7 @@ def measure(duration_s: float = 300.0, speed: float = 5.0, manifest_path: Path |
     import zenoh
 
     from bench.elastic_run import Collector, free_port
-    from bench.mesh_bench import _wait_tokens
+    from bench.mesh_bench import wait_tokens
     from magmesh import supervisor, zconf
     from magmesh.paths import DEPLOY_DIR, REPO
 
@@ -128,8 +128,8 @@ def measure(duration_s: float = 300.0, speed: float = 5.0, manifest_path: Path |
                     procs.append(subprocess.Popen(cmd, cwd=REPO, env=env, stdin=subprocess.DEVNULL, stdout=log,
                                                   stderr=subprocess.STDOUT, start_new_session=True))
                 if name == "heading-1":
-                    services = [(supervisor.Supervisor._role_of_spec(specs[n]), n) for n in PROCESSES[1:]]
-                    if not _wait_tokens(router, [keys.svc_token(r, n) for r, n in services], 60.0):
+                    services = [(supervisor.role_of_spec(specs[n]), n) for n in PROCESSES[1:]]
+                    if not wait_tokens(router, [keys.svc_token(r, n) for r, n in services], 60.0):
                         raise SystemExit("the mesh heading eval's services did not come up within 60 s: "
                                          + ", ".join(n for _, n in services))
             deadline = time.monotonic() + duration_s / max(speed, 0.1) * 3 + 60.0

@@ -139,7 +139,8 @@ def _stop(procs: dict) -> None:
             p.kill()
 
 
-def _wait_tokens(session, tokens: list[str], timeout: float = 30.0) -> bool:
+def wait_tokens(session, tokens: list[str], timeout: float = 30.0) -> bool:
+    """Whether every liveliness token in ``tokens`` is up within ``timeout`` s."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         live = {str(r.ok.key_expr) for r in session.liveliness().get(keys.svc_all(), timeout=1.0) if r.ok}
@@ -199,7 +200,7 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         if wire == "v2":
             sink_key, batch_stream = f"magmesh/*/benchout/{keys.BATCH}", "mag/2"
     try:
-        if not _wait_tokens(router, tokens):
+        if not wait_tokens(router, tokens):
             raise RuntimeError(f"{kind}: services did not come up (logs in {tmp})")
         sink = Sink(router, sink_key, latency=not max_mode, batch_stream=batch_stream)
         time.sleep(0.5)

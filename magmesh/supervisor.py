@@ -256,6 +256,12 @@ def implementations(module: str) -> tuple[dict[str, type], str]:
     return classes, next(iter(classes))
 
 
+def role_of_spec(spec: ProcessSpec) -> str:
+    """The role a process runs (that of its implementation)."""
+    impls, default = implementations(spec.module)
+    return impls[spec_impl(spec) or default].role
+
+
 def spec_impl(spec: ProcessSpec) -> str | None:
     """The implementation a process's ``args`` ask for (``--impl NAME``), or None for the module's default."""
     args = [str(a) for a in spec.args]
@@ -619,7 +625,7 @@ class Supervisor:
         leaving = have[n:]
         handed = {}
         if leaving:
-            role = self._role_of_spec(spec)
+            role = role_of_spec(spec)
             for inst in leaving:
                 self._control_instance(role, inst, {"op": "g_leave"})
             deadline = time.monotonic() + leave_timeout_s
@@ -640,11 +646,6 @@ class Supervisor:
                    else "") + (f" ({', '.join(leaving)} left the group and stopped)" if leaving else ""))
         return {"ok": True, "name": name, "instances": self.group_children(name), "started": started,
                 "stopped": leaving, "handed_over": handed, "took_s": round(time.monotonic() - t0, 2)}
-
-    @staticmethod
-    def _role_of_spec(spec: ProcessSpec) -> str:
-        impls, default = implementations(spec.module)
-        return impls[spec_impl(spec) or default].role
 
     def _control_instance(self, role: str, inst: str, req: dict, timeout: float = 2.0) -> dict | None:
         return zconf.control_request(self.session, role, inst, req, timeout)
