@@ -8,7 +8,7 @@ import os as _os
 # two other busy processes beside it). One BLAS / OpenMP thread per process is the default; a user who sets these
 # variables keeps theirs. This runs before numpy loads: ``services``, ``sim_publishers`` and ``bench`` import
 # this package first.
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
     _os.environ.setdefault(_var, "1")
 
 __version__ = "0.1.0"
