@@ -332,8 +332,7 @@ class GroupMember:
         self.post_cut[v] = a[1]
         mine = [h for h in self.held if h[2] == v]
         self.held = [h for h in self.held if h[2] != v]
-        for item in mine:
-            self.rt.publish(*item)
+        self.rt._release_held(mine)
         self.stats["handovers_in"] += 1
 
     def _failover(self, v: str, dead: dict, since: float | None) -> None:

@@ -36,6 +36,7 @@ class Journal:
         self.n_slots = 0  # slots ever given out this run
         self.full = 0
         self.mm: mmap.mmap | None = None
+        self._view = None  # the slots as a numpy array (frames write many at once, see :meth:`array`)
         self._lock = threading.Lock()  # a new key's slot (the receive thread journals first-received seqs too)
 
     def load(self) -> dict[str, int]:
@@ -119,6 +120,25 @@ class Journal:
         except (ValueError, OSError):  # closed by a stop in progress: nothing left to account for
             return
 
+    def slot_of(self, name: str) -> int:
+        """The slot of ``name`` (given one, holding the empty value, on first use); -1 when none is free."""
+        i = self.slot.get(name)
+        if i is None:
+            self.set(name, _EMPTY)
+            i = self.slot.get(name, -1)
+        return i
+
+    def array(self):
+        """The slots as a writable numpy int64 array over the map (writes land in the file at once, as
+        :meth:`set`'s do); None when the journal is not open."""
+        if self.mm is None:
+            return None
+        if self._view is None:
+            import numpy as np
+
+            self._view = np.frombuffer(self.mm, dtype="<i8")
+        return self._view
+
     def forget(self, names: list[str]) -> None:
         """Free the slots of keys whose state the service has freed (idle keys): what they held is no longer
         anything to account for at a restart, and their slots serve new keys."""
@@ -172,7 +192,11 @@ class Journal:
     def remove(self) -> None:
         """A clean stop: nothing to account for at the next start."""
         if self.mm is not None:
-            self.mm.close()
+            self._view = None  # a numpy view keeps the map exported: drop it before closing
+            try:
+                self.mm.close()
+            except BufferError:  # an array view handed out is still alive somewhere: the map closes with it
+                pass
             self.mm = None
         for p in (self.path, self.index_path):
             try:

@@ -35,13 +35,17 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import msgpack
+import numpy as np
 
 from schemas import batch as batches
+from schemas import frame as fleetframe
 from schemas import keys, messages, streams
 from schemas.keys import KeyInfo
 from schemas.messages import SchemaError
 
 from . import __version__, zconf
+from .frames import NONE as _NO_SEQ
+from .frames import SeqTable, StreamKeys
 
 QUEUE_CAPACITY = 65536
 ALARM_HISTORY = 64  # alarm / cal-params samples each publisher keeps for late joiners and miss recovery
@@ -75,6 +79,8 @@ LOST_REASONS = frozenset(("upstream_gap", "handler_error", "queue_overflow", "in
 
 _ENCODINGS: dict[str, Any] = {}
 _CLEAN_BATCH = f"/clean/{keys.BATCH}"
+_FLEET = f"{keys.ROOT}/{keys.FLEET}/"
+_ROW_ENC = None  # msgspec encoder of per-vehicle rows (publish_rows), made on first use
 
 
 def _encoding(key: str) -> Any:
@@ -91,6 +97,64 @@ def _encoding(key: str) -> Any:
         if len(_ENCODINGS) < 65536:
             _ENCODINGS[key] = enc
     return enc
+
+
+def _invalid_rows(msg_type: str, cols: dict, t_s: list, n: int) -> bool:
+    """Whether some row breaks the contract's numeric constraints (non-finite, out of range, wrong width):
+    such rows go through the validating single-message path (which refuses them, counted invalid_output)."""
+    try:
+        if not np.isfinite(np.asarray(t_s, float)).all():
+            return True
+        for f in messages.MESSAGES[msg_type].fields:
+            c = cols.get(f.name)
+            if c is None:
+                if f.required:
+                    return True
+                continue
+            if f.kind in ("float", "vec3", "floats", "mat3"):
+                a = np.asarray([math_nan if x is None else x for x in c] if f.nullable else c, float)
+                if f.kind != "float":
+                    w = 3 if f.kind == "vec3" else (9 if f.kind == "mat3" else f.length)
+                    if a.ndim != 2 or (w is not None and a.shape[1] != w):
+                        return True
+                fin = np.isfinite(a)
+                if f.nullable:
+                    fin |= np.isnan(a)
+                if not fin.all():
+                    return True
+                if f.lo is not None and (a < f.lo).any():
+                    return True
+                if f.hi is not None and (a > f.hi).any():
+                    return True
+            elif f.kind == "str" and f.choices and any(x not in f.choices for x in c):
+                return True
+    except (TypeError, ValueError):
+        return True
+    return False
+
+
+math_nan = float("nan")
+
+
+def frame_kinds_for(subscriptions: list[str]) -> list[str]:
+    """The fleet frame kinds (clean, cal, dmc) that carry the per-vehicle streams of these subscriptions."""
+    out = []
+    for kexpr in subscriptions:
+        parts = kexpr.split("/")
+        if len(parts) < 3 or parts[0] != keys.ROOT or parts[1] in (keys.SVC, keys.FLEET):
+            continue
+        kind = parts[2]
+        if kind == "clean":
+            k = "clean"
+        elif kind == "cal" and (len(parts) < 4 or parts[3] in ("mag", "*", "**")):
+            k = "cal"
+        elif kind == "dmc":
+            k = "dmc"
+        else:
+            continue
+        if k not in out:
+            out.append(k)
+    return out
 
 
 def drop_category(reason: str) -> str:
@@ -172,6 +236,30 @@ class Service:
     def publish_batch(self, key: str, vehicle: str, cols: dict) -> int:
         """Publish validated samples of a vehicle's streams as one batch (``clean/batch``); returns samples sent."""
         return self._runtime.publish_batch(key, vehicle, cols)
+
+    #: a service that takes whole fleet frames (contract v3) defines ``on_frame(frame)``: ``frame`` is a
+    #: :class:`schemas.frame.Frame` holding only the streams and vehicles the service subscribes to (and, in a
+    #: group, holds), rows sorted by vehicle then time, seq already tracked per vehicle and stream. Without it, the
+    #: runtime hands each vehicle's samples of a frame to ``on_batch`` / ``on_message`` as if they had come alone.
+    on_frame: Callable | None = None
+    #: take fleet frames for the per-vehicle clean/, cal/mag and dmc streams subscribed to (ingest does not)
+    FRAME_INPUT: bool = True
+
+    def publish_frame(self, kind: str, vehicles: list[str], streams_: dict) -> int:
+        """Publish rows of many vehicles as one fleet frame on ``magmesh/fleet/{shard}/{kind}`` (``streams_``: name →
+        :class:`schemas.frame.Stream` with ``seq`` filled, or None to number each vehicle's rows here on its own
+        per-vehicle key); returns the rows sent."""
+        return self._runtime.publish_frame(kind, vehicles, streams_)
+
+    def publish_rows(self, msg_type: str, keys_: list[str], vehicles: list[str], t_s: list, cols: dict) -> int:
+        """Publish one v1 message per row on its per-vehicle key (``cols``: field → list of n values); the fast
+        path of many outputs at once (a frame's epochs). Returns the messages sent."""
+        return self._runtime.publish_rows(msg_type, keys_, vehicles, t_s, cols)
+
+    @property
+    def shard(self) -> str:
+        """This instance's shard name: the key chunk of the frames it publishes."""
+        return self.instance
 
     def alarm(self, vehicle: str, source: str, state: str, severity: str, reason: str,
               value: float | None, threshold: float | None, t_s: float, unit: str = "", **extra: Any) -> dict:
@@ -385,7 +473,7 @@ class Runner:
         self.started_mono = time.monotonic()
         self.started_wall = time.time()
         self.publishers: dict[str, Any] = {}
-        self.seq: dict[str, int] = {}
+        self.seq: SeqTable = SeqTable()  # output key -> last seq sent (frames number many keys at once)
         self.count_in: dict[str, _Counter] = defaultdict(_Counter)
         self.count_out: dict[str, _Counter] = defaultdict(_Counter)
         self.drops: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
@@ -406,7 +494,7 @@ class Runner:
         self.passed_cut: set[str] = set()
         self.alarm_published: dict[str, str] = {}  # alarm key -> last state published ("raised"/"cleared")
         self.suppressed = 0
-        self.in_seq: dict[str, int] = {}
+        self.in_seq: SeqTable = SeqTable()  # input key -> last seq handled (frames track many keys at once)
         self.params_sent: dict[str, list] = {}  # cal/params key -> [param_id, seq, t_s] last published
         self.journal = None  # magmesh.journal.Journal: last input/output seq per key, survives kill -9
         self.resumed_in: set[str] = set()  # input keys whose first gap after a restart is lost_during_restart
@@ -447,6 +535,15 @@ class Runner:
         self.batches_out = 0
         self._sub_exprs: list[Any] = []
         self._wants: dict[str, bool] = {}
+        # fleet frames (contract v3): per (frame key, stream) the vehicles' keys and seq slots; frames in and out
+        self._fkeys: dict[tuple[str, str], StreamKeys] = {}
+        self.frames_in = 0
+        self.frames_out = 0
+        self.frames_missed = 0  # frames whose seq never arrived (their samples show as per-stream seq gaps)
+        self.frame_seq_in: dict[str, int] = {}
+        self._ofkeys: dict[tuple[str, str, str], tuple] = {}  # output frame rows: per (kind, name) keys and slots
+        self._row_cache: dict[str, list] = {}  # publish_rows: key -> [publisher, journal slot, out counter]
+        self.mirrors: dict[str, str] = {}  # message type -> frame kind its rows are mirrored in (publish_rows)
         service._rt = self
 
     # ---- output ---------------------------------------------------------------------------
@@ -570,6 +667,212 @@ class Runner:
         self.count_out[key].n += 1
         self.batches_out += 1
         return n
+
+    # ---- fleet frames and many rows out (contract v3) ------------------------------------------------
+    def _gated(self) -> bool:
+        """Whether outputs may be held back or suppressed now (a hand-over in progress, or a group member)."""
+        return self.mode != "active" or bool(self.cut) or self.group is not None
+
+    def publish_frame(self, kind: str, vehicles: list[str], streams_: dict) -> int:
+        """One fleet frame of this instance's shard. A stream whose ``seq`` is None has its rows numbered here,
+        per vehicle, on their per-vehicle keys (the numbers single samples there would carry, journalled as
+        theirs). While outputs are gated (hand-over, group) each row goes through the same per-vehicle gate as a
+        single message: a row held back goes out later alone on its per-vehicle key."""
+        from .frames import stream_key
+
+        out: dict[str, fleetframe.Stream] = {}
+        rows = 0
+        for name, st in streams_.items():
+            if st.n == 0:
+                continue
+            if self._gated():
+                st = self._gate_frame_rows(kind, name, vehicles, st)
+                if st is None or st.n == 0:
+                    continue
+            if st.seq is None:
+                g_vi, starts, ends = st.groups()
+                ok = self._ofkeys.get((kind, name))
+                if ok is None or ok[0] != vehicles or ok[3] != self.seq.generation:
+                    ks = [stream_key(kind, v, name) for v in vehicles]
+                    ok = (list(vehicles), ks, self.seq.slots_for(ks), self.seq.generation,
+                          np.full(len(ks), -1, np.int64))
+                    self._ofkeys[(kind, name)] = ok
+                slots = ok[2][g_vi]
+                prev = self.seq.arr[slots]
+                prev = np.where(prev == _NO_SEQ, -1, prev)
+                counts = ends - starts
+                seq = np.repeat(prev + 1 - starts, counts) + np.arange(st.n)
+                self.seq.arr[slots] = prev + counts
+                st = fleetframe.Stream(st.name, st.msg_type, st.vi, st.t_s, seq, st.cols)
+                self._journal_out(ok, g_vi, prev + counts)
+            out[name] = st
+            rows += st.n
+        if not out:
+            return 0
+        fkey = keys.fleet_frame(self.svc.shard, kind)
+        fseq = self.seq.get(fkey, -1) + 1
+        payload = fleetframe.encode(self.svc.shard, kind, fseq, vehicles, out)
+        if self.journal is not None:
+            self.journal.set("o" + fkey, fseq)
+        self._publisher(fkey).put(payload)
+        self.seq[fkey] = fseq
+        self.count_out[fkey].n += rows
+        self.frames_out += 1
+        self.n_sent += 1
+        return rows
+
+    def _journal_out(self, ok: tuple, g_vi: np.ndarray, last: np.ndarray) -> None:
+        j = self.journal
+        arr = j.array() if j is not None else None
+        if arr is None:
+            return
+        js = ok[4][g_vi]
+        missing = js < 0
+        if missing.any():
+            for i in g_vi[missing].tolist():
+                ok[4][i] = j.slot_of("o" + ok[1][i])
+            js = ok[4][g_vi]
+        good = js >= 0
+        arr[js[good]] = last[good]
+
+    def _gate_frame_rows(self, kind: str, name: str, vehicles: list[str], st: Any) -> Any:
+        """The rows of a frame that are this instance's to publish now (see :meth:`publish`); rows to hold are
+        kept as single messages on their per-vehicle keys (published when the hand-over completes)."""
+        from .frames import stream_key
+
+        keep = np.zeros(st.n, bool)
+        for i in range(st.n):
+            v = vehicles[int(st.vi[i])]
+            k = stream_key(kind, v, name)
+            t = float(st.t_s[i])
+            fields = {f: st.column(f, i) for f in st.cols}
+            # the row as the message it would be alone: the gate holds it, suppresses it, or lets it through
+            verdict = self._gate(k, st.msg_type, v, t, fields)
+            keep[i] = verdict
+        return st.take(keep) if not keep.all() else st
+
+    def _gate(self, key: str, msg_type: str, vehicle: str, t_s: float, fields: dict) -> bool:
+        """:meth:`publish`'s hand-over and group rules for one output: True = publish now; False = suppressed or
+        held (a held one is published later through :meth:`publish`)."""
+        if self.group is not None and not self.group.gate(key, msg_type, vehicle, t_s, fields):
+            return False
+        if self.mode == "active" and self.cut:
+            cut = self.cut.get(vehicle)
+            if cut is not None:
+                if t_s < cut:
+                    self.suppressed += 1
+                    return False
+                del self.cut[vehicle]
+            return True
+        if self.mode != "active":
+            cut = self.cut.get(vehicle)
+            if self.mode == "standby":
+                if cut is not None and t_s >= cut:
+                    self.held.append((key, msg_type, vehicle, t_s, fields))
+                else:
+                    self.suppressed += 1
+                return False
+            if self.mode == "retiring":
+                if cut is None or t_s >= cut:
+                    self.passed_cut.add(vehicle)
+                    self.held.append((key, msg_type, vehicle, t_s, fields))
+                    return False
+                return True
+            self.suppressed += 1
+            return False
+        return True
+
+    def publish_rows(self, msg_type: str, keys_: list[str], vehicles: list[str], t_s: list, cols: dict,
+                     mirror: str | None = None) -> list[int]:
+        """One v1 message per row on its per-vehicle key; returns each row's seq (-1: not sent now — held back
+        or suppressed by a hand-over). ``mirror``: also publish the rows sent as one fleet frame of that kind
+        (with the same seqs), for the services that take frames; rows held back are mirrored when released."""
+        global _ROW_ENC
+        n = len(keys_)
+        out = [-1] * n
+        if not n:
+            return out
+        if mirror:
+            self.mirrors[msg_type] = mirror
+        names = list(cols)
+        colv = [c.tolist() if isinstance(c, np.ndarray) else ([c] * n if isinstance(c, str) else c)
+                for c in (cols[f] for f in names)]
+        t_s = t_s.tolist() if isinstance(t_s, np.ndarray) else t_s
+        cols = dict(zip(names, colv, strict=True))
+        bad = _invalid_rows(msg_type, cols, t_s, n)
+        if self._gated() or self.recovering or self.reconcile_pending or bad:
+            for i in range(n):
+                m = self.publish(keys_[i], msg_type, vehicles[i], float(t_s[i]),
+                                 {f: c[i] for f, c in zip(names, colv, strict=True)})
+                if m is not None:
+                    out[i] = m["seq"]
+        else:
+            if _ROW_ENC is None:
+                import msgspec
+
+                _ROW_ENC = msgspec.msgpack.Encoder()
+            enc = _ROW_ENC.encode
+            ver = messages.MESSAGES[msg_type].version
+            seq, cache, j = self.seq, self._row_cache, self.journal
+            arr = j.array() if j is not None else None
+            for i in range(n):
+                k = keys_[i]
+                c = cache.get(k)
+                if c is None:
+                    c = cache[k] = [self._publisher(k), j.slot_of("o" + k) if j is not None else -1,
+                                    self.count_out[k]]
+                s = seq.get(k, -1) + 1
+                m = {"type": msg_type, "version": ver, "vehicle": vehicles[i], "t_s": t_s[i], "seq": s}
+                for f, cv in zip(names, colv, strict=True):
+                    m[f] = cv[i]
+                if arr is not None and c[1] >= 0:
+                    arr[c[1]] = s  # before the put, as _send journals (a kill between never repeats a seq)
+                c[0].put(enc(m))
+                seq[k] = s
+                c[2].n += 1
+                out[i] = s
+            self.n_sent += n
+            if j is not None:
+                j.sent(self.n_sent)
+        if mirror:
+            self._mirror_rows(mirror, msg_type, vehicles, t_s, cols, out)
+        return out
+
+    def _mirror_rows(self, kind: str, msg_type: str, vehicles: list[str], t_s: list, cols: dict,
+                     seqs: list[int]) -> None:
+        idx = [i for i, s in enumerate(seqs) if s >= 0]
+        if not idx:
+            return
+        names: dict[str, int] = {}
+        vi = np.fromiter((names.setdefault(vehicles[i], len(names)) for i in idx), np.uint32, len(idx))
+        order = np.argsort(vi, kind="stable")
+        idx_a = np.asarray(idx)[order]
+        fcols = {}
+        for f, c in cols.items():
+            if isinstance(c, np.ndarray):
+                fcols[f] = c[idx_a]
+            elif isinstance(c, str):
+                fcols[f] = c
+            else:
+                vals = [c[i] for i in idx_a.tolist()]
+                fcols[f] = vals[0] if vals and all(isinstance(x, str) and x == vals[0] for x in vals) else vals
+        st = fleetframe.Stream(msg_type, msg_type, vi[order], np.asarray(t_s, float)[idx_a],
+                               np.asarray(seqs, np.int64)[idx_a], fcols)
+        self.publish_frame(kind, list(names), {msg_type: st})
+
+    def _release_held(self, held: list) -> int:
+        """Publish outputs held during a hand-over; those of a mirrored type go out as one frame too."""
+        sent: dict[str, list] = {}
+        for item in held:
+            m = self.publish(*item)
+            if m is not None and item[1] in self.mirrors:
+                sent.setdefault(item[1], []).append(m)
+        for mt, msgs in sent.items():
+            fields = [f.name for f in messages.MESSAGES[mt].fields]
+            cols = {f: [m.get(f) for m in msgs] for f in fields if all(f in m for m in msgs)}
+            self._mirror_rows(self.mirrors[mt], mt, [m["vehicle"] for m in msgs], [m["t_s"] for m in msgs], cols,
+                              [m["seq"] for m in msgs])
+        return len(held)
 
     def republish(self, key: str, msg: dict) -> dict | None:
         """Publish the fields of an already validated input message on another key (no re-validation)."""
@@ -834,6 +1137,15 @@ class Runner:
                 return
             if kind == "s":
                 k = str(item.key_expr)
+                if k.startswith(_FLEET):  # a fleet frame: many vehicles, filtered in the main loop
+                    ev = ("s", k, item.payload.to_bytes())
+                    while not self.stop_event.is_set():
+                        try:
+                            self.q.put(ev, timeout=0.2)
+                            break
+                        except queue.Full:
+                            continue
+                    continue
                 if self.group is not None and self.group.skips(k):
                     continue  # another group member's vehicle: never queued (magmesh/group_member.py)
                 ev = ("s", k, item.payload.to_bytes())
@@ -881,6 +1193,15 @@ class Runner:
 
         A batch path calls this once per sample (or :meth:`check_input` then :meth:`dispatch`).
         """
+        if key.startswith(_FLEET):
+            self._cur_key, self._cur_rejected = key, False
+            try:
+                self.handle_frame(key, payload)
+            except Exception as e:  # noqa: BLE001 - a failure met on an input is counted as lost, never fatal
+                self._handler_failed(key, e)
+            finally:
+                self._cur_key = None
+            return
         if self.group is not None and not self.group.admits(key, payload):
             return  # a vehicle another member of the group serves (skipped by design, counted in the group's status)
         self._cur_key, self._cur_rejected = key, False
@@ -950,6 +1271,11 @@ class Runner:
             self._batch_accepted(skey, info.vehicle, c)
         if not wanted:
             return
+        self._dispatch_streams(key, info, b, wanted)
+
+    def _dispatch_streams(self, key: str, info: KeyInfo, b: Any, wanted: list[tuple[KeyInfo, Any]]) -> None:
+        """A vehicle's samples of several streams (a batch's, or its rows of a frame) to ``on_batch`` whole, or
+        one by one to ``on_message`` in sample-time order."""
         svc = self.svc
         state = self.state_for(info.vehicle)
         if svc.on_batch is not None:
@@ -1025,15 +1351,188 @@ class Runner:
         if self.journal is not None:
             self.journal.set("t" + key, self.drops[key]["lost_in_takeover"])
 
-    def _handler_failed(self, key: str, e: Exception) -> None:
+    def _handler_failed(self, key: str, e: Exception, n: int = 1) -> None:
         self.last_error = f"{type(e).__name__}: {e}"[:500]
         self.log_limited("handler-error", "handling a sample on %s failed: %s\n%s", str(key)[:200], e,
                          traceback.format_exc(limit=4))
         try:
-            k = keys.parse_data(key).key
+            info = keys.parse(key)
+            k = info.key if info.kind != keys.SVC else keys.BAD_KEY
         except Exception:  # noqa: BLE001
             k = keys.BAD_KEY
-        self.count_drop(k, "handler_error")
+        self.count_drop(k, "handler_error", n)
+
+    # ---- fleet frames (contract v3) ----------------------------------------------------------------
+    def handle_frame(self, key: str, payload: bytes) -> None:
+        """A fleet frame: decoded once, cut to the vehicles and streams this service takes (and, in a group,
+        holds), each vehicle's stream seq tracked as for single samples (gaps counted as loss, the journal
+        written after the handler), then handed to ``on_frame`` whole or to the per-vehicle handlers."""
+        info = keys.parse(key)
+        kind = info.rest[1]
+        now = time.monotonic()
+        self.key_seen[key] = now
+        try:
+            fr = fleetframe.decode(payload, where=key)
+        except SchemaError as e:
+            self.rejects_total += 1
+            self.count_in[key].n += 1
+            self.drops[key][f"rejected:{reject_code(e)}"] += 1
+            self.log_limited("frame-refused", "refused a frame on %s: %s", key[:200], e)
+            return
+        self.frames_in += 1
+        last = self.frame_seq_in.get(key)
+        if last is not None and fr.seq > last + 1:
+            self.frames_missed += fr.seq - last - 1
+        self.frame_seq_in[key] = fr.seq
+        admitted = self._group_admitted(fr, kind) if self.group is not None else None
+        taken: dict[str, fleetframe.Stream] = {}
+        done: list[tuple[StreamKeys, np.ndarray, np.ndarray]] = []
+        vmask = np.zeros(len(fr.vehicles), bool)
+        for name, st in fr.streams.items():
+            if st.n == 0:
+                continue
+            sk = self._stream_keys(key, kind, name, fr.vehicles)
+            want = sk.wanted if admitted is None else (sk.wanted & admitted)
+            if not want.any():
+                continue
+            rows = want[st.vi]
+            if not rows.all():
+                st = st.take(rows)
+                if st.n == 0:
+                    continue
+            g_vi, starts, ends = st.groups()
+            self._frame_seqs(sk, st, g_vi, starts, ends)
+            self.count_in[key].n += st.n
+            vmask[g_vi] = True
+            taken[name] = st
+            done.append((sk, g_vi, st.seq[ends - 1]))
+        if not taken:
+            return
+        self._frame_times(fr.vehicles, vmask, taken, now)
+        sub = fleetframe.Frame(fr.shard, kind, fr.t_s, fr.seq, fr.vehicles, taken)
+        if self.svc.on_frame is not None:
+            try:
+                self.svc.on_frame(sub)
+            except Exception as e:  # noqa: BLE001 - counted as lost on the frame key, never fatal
+                self._handler_failed(key, e, sub.n)
+        else:
+            self._frame_per_vehicle(key, kind, sub)
+        self._journal_frame(done)
+
+    def _stream_keys(self, key: str, kind: str, name: str, vehicles: list[str]) -> StreamKeys:
+        sk = self._fkeys.get((key, name))
+        if sk is None or sk.generation != self.in_seq.generation or sk.vehicles != vehicles:
+            sk = StreamKeys(vehicles, kind, name, self.in_seq, self.wants)
+            if len(self._fkeys) > 4096:
+                self._fkeys.clear()
+            self._fkeys[(key, name)] = sk
+        return sk
+
+    def _group_admitted(self, fr: Any, kind: str) -> np.ndarray:
+        """Which of a frame's vehicles this group member handles now (held, warming or being handed over)."""
+        g = self.group
+        out = np.zeros(len(fr.vehicles), bool)
+        name = next(iter(fr.streams), "imu")
+        from .frames import stream_key
+
+        for i, v in enumerate(fr.vehicles):
+            out[i] = g.admits(stream_key(kind, v, name))
+        return out
+
+    def _frame_seqs(self, sk: StreamKeys, st: Any, g_vi: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> None:
+        """Seq tracking of each vehicle's rows of one stream, as :meth:`_accepted` does sample by sample."""
+        tab = self.in_seq
+        slots = sk.slots[g_vi]
+        first = st.seq[starts]
+        lastq = st.seq[ends - 1]
+        prev = tab.arr[slots]
+        has = prev != _NO_SEQ
+        gap = np.where(has, first - np.where(has, prev, 0) - 1, 0)
+        inner = (lastq - first + 1) - (ends - starts)  # each publisher numbers a vehicle's stream consecutively
+        odd = np.flatnonzero((gap != 0) | (inner != 0))
+        special = self.resumed_in or self.takeover_in
+        for j in odd.tolist():
+            k = sk.keys[int(g_vi[j])]
+            gp = int(gap[j])
+            if gp > self.seq_jump_max:
+                self.count_rebase("seq_jump")
+            elif gp > 0:
+                if k in self.takeover_in:
+                    self._lost_in_takeover(k, gp)
+                elif k in self.resumed_in:
+                    self._lost_during_restart(k, gp)
+                    if len(self.restart_gaps) < STATUS_TOP_KEYS or k in self.restart_gaps:
+                        self.restart_gaps.setdefault(k, []).append([int(prev[j]) + 1, int(first[j]) - 1])
+                else:
+                    self.drops[k]["upstream_gap"] += gp
+                    if self.journal is not None:
+                        self.journal.set("u" + k, self.drops[k]["upstream_gap"])
+            elif gp < 0:
+                self.count_rebase("seq_back")
+            if inner[j] > 0:
+                self.drops[k]["upstream_gap"] += int(inner[j])
+        if special:
+            for i in g_vi.tolist():
+                k = sk.keys[i]
+                self.resumed_in.discard(k)
+                self.takeover_in.discard(k)
+        tab.arr[slots] = lastq
+
+    def _frame_times(self, vehicles: list[str], vmask: np.ndarray, taken: dict, now: float) -> None:
+        """Each vehicle's first and latest input sample time and when it was last heard (swap cuts, group
+        hand-overs, eviction)."""
+        t_max = np.full(len(vehicles), -np.inf)
+        for st in taken.values():
+            np.maximum.at(t_max, st.vi, st.t_s)
+        first, last, seen = self.first_in_t, self.last_in_t, self.vehicle_seen
+        for i in np.flatnonzero(vmask).tolist():
+            v = vehicles[i]
+            t = float(t_max[i])
+            if v not in first:
+                first[v] = t
+            if t > last.get(v, -np.inf):
+                last[v] = t
+            seen[v] = now
+
+    def _journal_frame(self, done: list) -> None:
+        """After the handler: each vehicle's stream is handled up to its last seq in the frame (a kill -9
+        before this line counts the frame's samples as missed at the restart)."""
+        j = self.journal
+        arr = j.array() if j is not None else None
+        if arr is None:
+            return
+        for sk, g_vi, lastq in done:
+            if sk.jslots is None or sk.jslots.shape[0] != len(sk.keys):
+                sk.jslots = np.full(len(sk.keys), -1, np.int64)
+            js = sk.jslots[g_vi]
+            missing = js < 0
+            if missing.any():
+                for i in g_vi[missing].tolist():
+                    sk.jslots[i] = j.slot_of("i" + sk.keys[i])
+                js = sk.jslots[g_vi]
+            ok = js >= 0
+            arr[js[ok]] = lastq[ok]
+
+    def _frame_per_vehicle(self, key: str, kind: str, fr: Any) -> None:
+        """A frame for a service without ``on_frame``: each vehicle's rows as if its batch had come alone."""
+        from .frames import stream_key
+
+        per: dict[int, list] = {}
+        for name, st in fr.streams.items():
+            g_vi, starts, ends = st.groups()
+            for i, a, b in zip(g_vi.tolist(), starts.tolist(), ends.tolist(), strict=True):
+                per.setdefault(i, []).append((name, st, a, b))
+        for i, parts in per.items():
+            v = fr.vehicles[i]
+            wanted = []
+            for name, st, a, b in parts:
+                sub = st.take(np.arange(a, b))
+                cols = {k: (c if isinstance(c, str) else [sub.column(k, r) for r in range(sub.n)])
+                        for k, c in sub.cols.items()}
+                c = batches.Columns(name, st.msg_type, sub.t_s.tolist(), sub.seq.tolist(), cols)
+                wanted.append((keys.parse(stream_key(kind, v, name)), c))
+            vinfo = keys.parse(wanted[0][0].key)
+            self._dispatch_streams(key, vinfo, batches.Batch(v, float(fr.t_s), fr.seq), wanted)
 
     @property
     def seq_jump_max(self) -> int:
@@ -1190,6 +1689,11 @@ class Runner:
         for v in [v for v, t in list(self.vehicle_seen.items()) if t < cutoff and v not in raised_vehicles]:
             del self.vehicle_seen[v]
             st = self.vehicle_state.pop(v, _MISSING)
+            pre = f"{keys.ROOT}/{v}/"
+            for table in (self.in_seq, self.seq):  # a frame-tracked key's slot serves another key later
+                for k in [k for k in table.slot if k.startswith(pre)]:
+                    if table is self.in_seq or not self._protected(k):
+                        table.free_slot(k)
             self.first_in_t.pop(v, None)
             self.last_in_t.pop(v, None)
             self.recovering.pop(v, None)
@@ -1206,6 +1710,7 @@ class Runner:
             if since >= cutoff or self._protected(k):
                 continue
             pub = self.publishers.pop(k, None)
+            self._row_cache.pop(k, None)
             if pub is not None and hasattr(pub, "undeclare"):
                 try:
                     pub.undeclare()
@@ -1276,6 +1781,9 @@ class Runner:
                 "in_total": sum(c.n for c in list(self.count_in.values())) + self.evicted_in,
                 "batches_in": self.batches_in,  # contract v2: in_total counts batches and their samples
                 "batches_out": self.batches_out,
+                "frames_in": self.frames_in,  # contract v3: in/out count a frame key's rows
+                "frames_out": self.frames_out,
+                "frames_missed": self.frames_missed,
                 "out_total": sum(c.n for c in list(self.count_out.values())) + self.evicted_out,
                 "rejects": self.rejects_total,
                 "drops": {k: dict(v) for k, v in _top(self.drops, _sum)},
@@ -1351,8 +1859,7 @@ class Runner:
                 self.raised = {k: m for k, m in req.get("raised", {}).items()}
             self.mode = "active"
             held, self.held = self.held, []
-            for item in held:
-                self.publish(*item)
+            self._release_held(held)
             # the cut stays until this instance's own outputs pass it (it may still lag behind the old holder)
             self.svc.log.info("took over the role: %d held outputs published", len(held))
         elif op == "release":  # old instance: the new one has taken over; publish nothing more
@@ -1361,8 +1868,7 @@ class Runner:
         elif op == "resume":  # old instance: the hand-over failed; publish what was held and carry on
             self.mode = "active"
             held, self.held = self.held, []
-            for item in held:
-                self.publish(*item)
+            self._release_held(held)
             self.cut = {}
             self.svc.log.warning("hand-over aborted: resumed with %d held outputs", len(held))
         else:
@@ -1422,6 +1928,12 @@ class Runner:
                     subs.append(bk)
         any_batch = zenoh.KeyExpr(f"{keys.ROOT}/*/clean/{keys.BATCH}")
         self.batch_in = svc.DECODE_INPUTS and any(zenoh.KeyExpr(s).intersects(any_batch) for s in subs)
+        # contract v3: the per-vehicle clean/, cal/mag and dmc streams also travel in fleet frames (ingest's
+        # output = frames, calibration's and the detector's frames); a service subscribed to them takes those
+        # frames too, filtered here to the vehicles and streams it subscribes to
+        if svc.FRAME_INPUT and svc.DECODE_INPUTS:
+            for kind in frame_kinds_for(svc.subscriptions()):
+                subs.append(keys.fleet_frames(kind))
         for kexpr in subs:
             sub = self.session.declare_subscriber(kexpr, zenoh.handlers.FifoChannel(FIFO_CAPACITY))
             self.subs.append(sub)

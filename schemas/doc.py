@@ -5,7 +5,7 @@
 
 from __future__ import annotations
 
-from . import batch, streams
+from . import batch, frame, streams
 from .messages import HEADER, MESSAGES
 
 INTRO = """# The magmesh wire contract
@@ -31,10 +31,13 @@ A subscriber outside this repository needs nothing but this page and a msgpack d
   they currently hold raised, so a late joiner learns the current state at once.
 - **Encodings.** Every put carries a Zenoh encoding naming the message type and its version:
   `application/msgpack;magmesh/{type}/v{version}` (e.g. `application/msgpack;magmesh/mag/v1`; batches
-  `application/msgpack;magmesh/batch/v2`; status replies `application/msgpack;magmesh/status/v1`).
+  `application/msgpack;magmesh/batch/v2`; fleet frames `application/msgpack;magmesh/frame/v3`; status replies
+  `application/msgpack;magmesh/status/v1`).
   `schemas.streams.json_schema(type)` gives the JSON Schema of each type.
 - **Contract version {CONTRACT}.** Version 1: one sample per message. Version 2 adds batches (below) beside the
-  single samples, which stay valid on every key.
+  single samples, which stay valid on every key. Version 3 adds fleet frames (below): the services' own hop
+  between ingest and the stages, many vehicles per message; it reserves the chunk `fleet` (no vehicle may be
+  named `fleet`). Everything outside users subscribe to per vehicle stays on the per-vehicle keys.
 
 ## Keys
 
@@ -111,6 +114,7 @@ def render() -> str:
             out.append(f"| `{f.name}` | {_kind(f)} | {'yes' if f.required else 'no'} | {f.doc}{rng} |\n")
     out.append(_limits())
     out.append("\n## Batches (contract version 2)\n\n" + batch.__doc__.split("\n\n", 1)[1].rsplit("\n\n", 1)[0].replace("``", "`") + "\n")
+    out.append("\n## Fleet frames (contract version 3)\n\n" + frame.__doc__.split("\n\n", 1)[1].rsplit("\n\n", 1)[0].replace("``", "`") + "\n")
     out.append("""
 ## Status replies
 

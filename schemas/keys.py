@@ -24,6 +24,10 @@ except ValueError:
 
 ROOT = "magmesh"
 SVC = "svc"
+#: the chunk of the fleet frames' keys: ``magmesh/fleet/{shard}/{kind}`` (contract v3, see schemas/frame.py)
+FLEET = "fleet"
+#: what a fleet frame carries (its key's last chunk)
+FRAME_KINDS = ("clean", "cal", "dmc")
 
 # vehicle ids and sensor/source names: one key chunk, no wildcards or Zenoh specials
 _ID_RE = re.compile(r"\A[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}\Z")  # \Z: "$" would let a trailing newline in
@@ -49,8 +53,9 @@ RAW_STREAMS = ("mag", "imu", "gnss", "ins", "route", "attitude")
 #: the chunk of a vehicle's batches (contract v2: many samples of its streams in one message, see schemas/batch.py)
 BATCH = "batch"
 
-#: chunks that can never be a vehicle id: ``svc`` starts the service keys, ``magmesh`` is the root
-RESERVED_VEHICLES = frozenset((SVC, ROOT))
+#: chunks that can never be a vehicle id: ``svc`` starts the service keys, ``fleet`` the fleet frames' keys
+#: (reserved since contract v3), ``magmesh`` is the root
+RESERVED_VEHICLES = frozenset((SVC, FLEET, ROOT))
 
 #: the longest key the contract allows (ROOT + vehicle + kind + two chunks of at most 64 characters each)
 MAX_KEY_LEN = 400
@@ -223,6 +228,21 @@ def everything() -> str:
     return f"{ROOT}/**"
 
 
+# ---- fleet frames (contract v3) ------------------------------------------------------------------
+
+
+def fleet_frame(shard: str, kind: str) -> str:
+    """A shard's frames of one kind: ``magmesh/fleet/{shard}/{kind}`` (kind: clean, cal or dmc)."""
+    if kind not in FRAME_KINDS:
+        raise KeyError_(f"frame kind {kind!r} is not one of {', '.join(FRAME_KINDS)}")
+    return f"{ROOT}/{FLEET}/{_part(shard, 'shard')}/{kind}"
+
+
+def fleet_frames(kind: str, shard: str = "*") -> str:
+    """Every shard's frames of one kind (a subscription)."""
+    return fleet_frame(shard, kind)
+
+
 # ---- service keys -----------------------------------------------------------------------------
 
 
@@ -257,7 +277,8 @@ class KeyInfo:
     For vehicle keys: ``vehicle``, ``kind`` (raw, clean, rejects, cal, dmc, heading, fix, track,
     alarm, truth), ``rest`` (the remaining chunks, e.g. ``("mag", "1")``).
     For service keys: ``vehicle`` is ``""``, ``kind`` is ``"svc"``, ``rest`` is
-    ``(role, instance)`` or ``(role, instance, "status")``.
+    ``(role, instance)`` or ``(role, instance, "status")``. For fleet frames: ``vehicle`` is ``""``, ``kind`` is
+    ``"fleet"``, ``rest`` is ``(shard, frame kind)``.
     """
 
     key: str
@@ -301,6 +322,11 @@ def _parse(key: str) -> KeyInfo:
         check_id(parts[2], "role")
         check_id(parts[3], "instance")
         return KeyInfo(key, "", "svc", tuple(parts[2:]))
+    if parts[1] == FLEET:
+        if len(parts) != 4 or parts[3] not in FRAME_KINDS:
+            raise KeyError_(f"fleet key {_short(key)} must be {ROOT}/{FLEET}/<shard>/<{'|'.join(FRAME_KINDS)}>")
+        check_id(parts[2], "shard")
+        return KeyInfo(key, "", FLEET, (parts[2], parts[3]))
     vehicle, kind, rest = parts[1], parts[2], tuple(parts[3:])
     check_vehicle(vehicle)
     if kind not in KINDS:
@@ -338,6 +364,9 @@ def parse_data(key: str) -> KeyInfo:
     if info.kind == SVC:
         raise KeyError_(f"key {_short(key)} is under {ROOT}/{SVC}/ (service keys), not a vehicle's data key: "
                         f"'{SVC}' is reserved and cannot name a vehicle")
+    if info.kind == FLEET:
+        raise KeyError_(f"key {_short(key)} is a fleet frame's key, not a vehicle's data key: '{FLEET}' is "
+                        "reserved and cannot name a vehicle")
     return info
 
 

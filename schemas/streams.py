@@ -29,8 +29,9 @@ import msgspec
 from . import keys, messages
 from .messages import HEADER, MAX_ARRAY, MAX_STR, MESSAGES, Field, SchemaError
 
-#: the wire contract's version: 1 = single samples; 2 adds batches (column arrays) beside them
-CONTRACT_VERSION = 2
+#: the wire contract's version: 1 = single samples; 2 adds batches (column arrays) beside them; 3 adds fleet
+#: frames (many vehicles' samples as binary columns, the services' own hop) and reserves the chunk ``fleet``
+CONTRACT_VERSION = 3
 #: Zenoh encoding prefix of every magmesh payload
 MEDIA_TYPE = "application/msgpack"
 
@@ -134,6 +135,12 @@ def _build() -> dict[str, Stream]:
     ]
     for name, tmpl, b, t, who, meaning in rows:
         out[name] = Stream(name, tmpl, b, t, who, meaning, LIMITS.get(t, ()) if name == "cal/mag" else ())
+    for kind, who, meaning in (
+            ("clean", "ingest (output = frames)", "validated samples of a shard of vehicles per window (contract v3)"),
+            ("cal", "calibration (on frames)", "compensated magnetometer samples of a shard, per input frame"),
+            ("dmc", "dmc_detector (on frames)", "the detector's verdicts of a shard, per input frame")):
+        out[f"fleet/{kind}"] = Stream(f"fleet/{kind}", f"magmesh/fleet/{{shard}}/{kind}", keys.fleet_frame, "frame",
+                                      who, meaning)
     return out
 
 
@@ -151,6 +158,8 @@ def _stream_for_key(key: str) -> Stream:
     info = keys.parse(key)
     if info.kind == keys.SVC:
         raise keys.KeyError_(f"{key[:120]!r} is a service key, not a stream")
+    if info.kind == keys.FLEET:
+        return STREAMS[f"fleet/{info.rest[1]}"]
     if info.kind in ("raw", "clean", "cal"):
         name = f"{info.kind}/{info.rest[0]}"
     elif info.kind == "fix":
@@ -174,6 +183,8 @@ def encoding_name(msg_type: str, version: int | None = None) -> str:
     """``application/msgpack;magmesh/{type}/v{version}``: what every put of this type carries."""
     if msg_type == "batch":
         v = BATCH_VERSION if version is None else version
+    elif msg_type == "frame":
+        v = FRAME_VERSION if version is None else version
     else:
         v = MESSAGES[msg_type].version if version is None else version
     return f"{MEDIA_TYPE};magmesh/{msg_type}/v{v}"
@@ -275,6 +286,10 @@ def json_schema(msg_type: str) -> dict:
         from . import batch
 
         return batch.json_schema()
+    if msg_type == "frame":
+        from . import frame
+
+        return frame.json_schema()
     sch = msgspec.json.schema(struct_for(msg_type))
     name = msg_type
     body = sch.get("$defs", {}).get(name, sch)
@@ -358,6 +373,8 @@ BATCH_CHUNK = "batch"
 BATCH_VERSION = 2
 #: streams a batch may carry, by their name inside the batch (``mag/{sensor}`` for magnetometers)
 BATCH_STREAMS = tuple(s for s in _RAW_META)
+#: version of the frame message type (contract version 3; schemas/frame.py)
+FRAME_VERSION = 3
 
 
 # ---- physical ranges, from the table --------------------------------------------------------------

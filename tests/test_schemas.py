@@ -148,7 +148,7 @@ def _fill(template: str) -> str:
     return template.format(vehicle="car-1", sensor="2", source="dmc", what="pose")
 
 
-@pytest.mark.parametrize("name", sorted(streams.STREAMS))
+@pytest.mark.parametrize("name", sorted(n for n in streams.STREAMS if not n.startswith("fleet/")))
 def test_streams_table_rows_agree_with_key_builders_and_types(name):
     st = streams.STREAMS[name]
     args = [a for a in ("car-1", "2" if "{sensor}" in st.template else None,
@@ -162,8 +162,19 @@ def test_streams_table_rows_agree_with_key_builders_and_types(name):
     assert streams.parse_encoding(st.encoding) == (st.msg_type, MESSAGES[st.msg_type].version)
 
 
+@pytest.mark.parametrize("kind", ["clean", "cal", "dmc"])
+def test_fleet_frame_rows_of_the_streams_table(kind):
+    st = streams.STREAMS[f"fleet/{kind}"]
+    key = st.builder("ingest-1", kind)
+    assert key == st.template.format(shard="ingest-1") == f"magmesh/fleet/ingest-1/{kind}"
+    assert streams.stream_for_key(key) is st and st.msg_type == "frame"
+    assert streams.encoding_for_key(key) == "application/msgpack;magmesh/frame/v3"
+    assert streams.parse_encoding(st.encoding) == ("frame", 3)
+    assert streams.json_schema("frame")["title"] == "magmesh frame v3"
+
+
 def test_every_message_type_has_a_stream_and_batch_keys_have_theirs():
-    assert {s.msg_type for s in streams.STREAMS.values()} == set(MESSAGES)
+    assert {s.msg_type for s in streams.STREAMS.values()} == set(MESSAGES) | {"frame"}
     assert streams.encoding_for_key(keys.clean_batch("car-1")) == "application/msgpack;magmesh/batch/v2"
     assert keys.parse(keys.raw_batch("car-1")).rest == ("batch",)
     assert streams.parse_encoding("application/json;magmesh/mag/v1") is None
