@@ -42,6 +42,11 @@ class DriveData:
     params1: CompassParams | None = None
     declination_rad: float = 0.0
     true_heading_rad: np.ndarray | None = None
+    # simulator truth of the disturbance itself (source statistics, not detector inputs): the change of the true
+    # field strength at each sensor, |b_k| − |b_earth| (N×2, nT), and the relative heading difference of the two
+    # true fields (N, rad; level compasses)
+    true_dm_nt: np.ndarray | None = None
+    true_dh_rad: np.ndarray | None = None
 
     @property
     def good(self) -> np.ndarray:
@@ -108,10 +113,14 @@ def simulate_drive(layout: str, seed: int, duration_s: float = 300.0,
     f = core.features_batch(d.t_mag_s, d.mag_b_nt["1"], d.mag_b_nt["2"], p1, p2, d.declination_rad, settings)
     err = np.degrees(np.abs(maths.angle_diff(f.heading_rad, d.truth.heading_rad)))
     name = f"{layout}/seed{seed}" + (f"/cal{cal_seed}" if calibration_error and cal_seed else "")
+    b1, b2 = d.truth.b_sensor_nt["1"], d.truth.b_sensor_nt["2"]
+    earth = np.linalg.norm(d.truth.b_earth_body_nt, axis=1)
+    true_dm = np.stack([np.linalg.norm(b1, axis=1) - earth, np.linalg.norm(b2, axis=1) - earth], axis=-1)
+    true_dh = maths.angle_diff(np.arctan2(b1[:, 1], b1[:, 0]), np.arctan2(b2[:, 1], b2[:, 0]))
     return DriveData(name, layout, seed, f, err, d.t_mag_s, np.asarray(d.truth.disturbed, bool),
                      np.asarray(d.truth.active, bool).any(axis=1) if d.truth.active.size else np.zeros(len(err), bool),
                      d.t_imu_s, d.gyro_rad_s, d.accel_m_s2, d.mag_b_nt["1"], p1, float(d.declination_rad),
-                     np.asarray(d.truth.heading_rad))
+                     np.asarray(d.truth.heading_rad), true_dm, np.asarray(true_dh))
 
 
 @dataclass
