@@ -136,6 +136,25 @@ def _invalid_rows(msg_type: str, cols: dict, t_s: list, n: int) -> bool:
 math_nan = float("nan")
 
 
+class _FrameRows:
+    """One vehicle's rows of a frame stream, read like a batch's columns by the per-sample fallback."""
+
+    __slots__ = ("name", "msg_type", "st", "a", "b", "t_s", "seq", "cols")
+
+    def __init__(self, name: str, st: Any, a: int, b: int):
+        self.name, self.msg_type, self.st, self.a, self.b = name, st.msg_type, st, a, b
+        self.t_s = st.t_s[a:b].tolist()
+        self.seq = st.seq[a:b].tolist()
+        self.cols = st.cols
+
+    @property
+    def n(self) -> int:
+        return self.b - self.a
+
+    def messages(self, vehicle: str) -> list[dict]:
+        return self.st.messages(vehicle, self.a, self.b)
+
+
 def frame_kinds_for(subscriptions: list[str]) -> list[str]:
     """The fleet frame kinds (clean, cal, dmc) that carry the per-vehicle streams of these subscriptions."""
     out = []
@@ -745,7 +764,7 @@ class Runner:
             v = vehicles[int(st.vi[i])]
             k = stream_key(kind, v, name)
             t = float(st.t_s[i])
-            fields = {f: st.column(f, i) for f in st.cols}
+            fields = {f: x for f in st.cols if (x := st.column(f, i)) is not fleetframe.ABSENT}
             # the row as the message it would be alone: the gate holds it, suppresses it, or lets it through
             verdict = self._gate(k, st.msg_type, v, t, fields)
             keep[i] = verdict
@@ -1526,11 +1545,7 @@ class Runner:
             v = fr.vehicles[i]
             wanted = []
             for name, st, a, b in parts:
-                sub = st.take(np.arange(a, b))
-                cols = {k: (c if isinstance(c, str) else [sub.column(k, r) for r in range(sub.n)])
-                        for k, c in sub.cols.items()}
-                c = batches.Columns(name, st.msg_type, sub.t_s.tolist(), sub.seq.tolist(), cols)
-                wanted.append((keys.parse(stream_key(kind, v, name)), c))
+                wanted.append((keys.parse(stream_key(kind, v, name)), _FrameRows(name, st, a, b)))
             vinfo = keys.parse(wanted[0][0].key)
             self._dispatch_streams(key, vinfo, batches.Batch(v, float(fr.t_s), fr.seq), wanted)
 

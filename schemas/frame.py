@@ -50,6 +50,9 @@ MAX_VEHICLES = 1 << 16
 MAX_STREAMS = 64
 _SAMPLE_TYPES = ("mag", "imu", "gnss", "ins", "route", "attitude")
 
+#: what :meth:`Stream.column` gives for an optional field a row does not carry
+ABSENT = type("Absent", (), {"__repr__": lambda self: "ABSENT", "__bool__": lambda self: False})()
+
 _dec = msgspec.msgpack.Decoder()
 _enc = msgspec.msgpack.Encoder()
 
@@ -61,6 +64,11 @@ def _layout(f) -> tuple[str, int] | None:
     if f.kind == "floats":
         return ("<f8", f.length) if f.length else None
     return _BIN.get(f.kind)
+
+
+@lru_cache(maxsize=64)
+def _fields(msg_type: str) -> dict:
+    return {f.name: f for f in MESSAGES[msg_type].fields}
 
 
 @lru_cache(maxsize=4096)
@@ -109,7 +117,8 @@ class Stream:
                 cols[k] = v
             else:
                 cols[k] = [v[i] for i in idx.tolist()]
-        return Stream(self.name, self.msg_type, self.vi[idx], self.t_s[idx], self.seq[idx], cols)
+        return Stream(self.name, self.msg_type, self.vi[idx], self.t_s[idx],
+                      None if self.seq is None else self.seq[idx], cols)
 
     def groups(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(vehicle index, start, end)`` of each vehicle's run of rows (rows are sorted by vehicle)."""
@@ -123,22 +132,31 @@ class Stream:
         return vi[starts].astype(np.int64), starts, ends
 
     def column(self, name: str, i: int) -> Any:
-        """Row ``i`` of a column as the v1 field value."""
+        """Row ``i`` of a column as the v1 field value (:data:`ABSENT` where the row lacks an optional field)."""
         v = self.cols[name]
         if isinstance(v, str):
             return v
+        f = _fields(self.msg_type).get(name)
         if isinstance(v, np.ndarray):
             x = v[i]
             if v.ndim == 2:
+                if f is not None and not f.required and np.isnan(x).all():
+                    return ABSENT
                 return x.tolist()
             if v.dtype == np.uint8:
                 return bool(x)
             x = x.item()
-            return None if isinstance(x, float) and math.isnan(x) else x
-        return v[i]
+            if isinstance(x, float) and math.isnan(x) and f is not None:
+                return None if f.nullable else ABSENT
+            return x
+        x = v[i]
+        if x is None and f is not None and not f.required and not f.nullable:
+            return ABSENT
+        return x
 
     def messages(self, vehicle: str, start: int = 0, end: int | None = None) -> list[dict]:
-        """Rows ``start:end`` (one vehicle's) as v1 message dicts of ``vehicle``."""
+        """Rows ``start:end`` (one vehicle's) as v1 message dicts of ``vehicle`` (an optional field a row lacks —
+        NaN or nil in its column — is left out of that row's message; a nullable one is nil)."""
         end = self.n if end is None else end
         mt = self.msg_type
         ver = MESSAGES[mt].version
@@ -150,22 +168,33 @@ class Stream:
                 continue
             if isinstance(v, str):
                 per.append((f.name, [v] * (end - start)))
-            elif isinstance(v, np.ndarray):
-                vals = v[start:end].tolist()
+                continue
+            if isinstance(v, np.ndarray):
+                seg = v[start:end]
+                vals = seg.tolist()
                 if v.ndim == 1 and v.dtype == np.uint8:
                     vals = [bool(x) for x in vals]
-                elif v.ndim == 1 and v.dtype.kind == "f" and f.nullable:
-                    vals = [None if x != x else x for x in vals]
-                per.append((f.name, vals))
+                elif v.dtype.kind == "f":
+                    blank = np.isnan(seg) if v.ndim == 1 else np.isnan(seg).all(axis=1)
+                    if blank.any():
+                        fill = None if f.nullable else ABSENT
+                        if f.required and not f.nullable:
+                            fill = math.nan if v.ndim == 1 else None
+                        vals = [fill if b else x for x, b in zip(vals, blank.tolist(), strict=True)]
             else:
-                per.append((f.name, list(v[start:end])))
+                vals = list(v[start:end])
+                if not f.required and not f.nullable:
+                    vals = [ABSENT if x is None else x for x in vals]
+            per.append((f.name, vals))
         ts = self.t_s[start:end].tolist()
         sq = self.seq[start:end].tolist()
         out = []
         for i in range(end - start):
             m = {"type": mt, "version": ver, "vehicle": vehicle, "t_s": ts[i], "seq": sq[i]}
             for name, vals in per:
-                m[name] = vals[i]
+                x = vals[i]
+                if x is not ABSENT:
+                    m[name] = x
             out.append(m)
         return out
 
