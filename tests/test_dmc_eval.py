@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
+import numpy as np
 import pytest
 
 from bench import eval_dmc
@@ -49,6 +50,27 @@ def _check(r: dict) -> None:
     assert [row["drive"] for row in g["per_drive"]] == u["drives"]
     thr = g["pooled"]["threshold_rp_at_equal_mp_pct"]
     assert thr is not None and g["pooled"]["rp_gained_at_equal_mp_pct"] == pytest.approx(u["rp_pct"] - thr, abs=2e-3)
+    # the conditions of the judged drives, from the simulator's truth, beside what the paper's tables imply
+    cond = r["conditions"]
+    assert set(eval_dmc.PAPER_CONDITIONS) <= set(cond) and cond["paper"] == eval_dmc.PAPER_CONDITIONS
+    assert 0.0 < cond["bad_pct"] < 100.0 and cond["field_unit_nt"] == r["field_unit_nt"]
+    # hiding from the DMC needs the strength test *and* the heading test passed: never more than from one compass
+    assert cond["dmc_hidden_bad_per_good_2000nt_8deg"] <= cond["hidden_bad_per_good_2000nt"]
+    assert cond["hidden_bad_per_good_400nt"] <= cond["hidden_bad_per_good_2000nt"]
+    # the paper's own experiment (turntable): every row, with the paper's figure beside
+    lab = r["lab"]
+    assert not set(lab["judged"]) & set(lab["train"]) and all("magnet" not in d for d in lab["judged"])
+    for key, paper in (("single_threshold", eval_dmc.PAPER_TABLE2), ("dmc_threshold", eval_dmc.PAPER_TABLE1)):
+        rows = lab["baselines"][key]
+        assert [row["name"] for row in rows] == ["paper_set1", "paper_set2", "paper_set3", "paper_set4"]
+        assert [row["paper"] for row in rows] == paper
+        rps = [row["rp_pct"] for row in rows]
+        assert rps == sorted(rps, reverse=True) and rps[0] > rps[-1]
+    for s_row, d_row in zip(lab["baselines"]["single_threshold"], lab["baselines"]["dmc_threshold"], strict=True):
+        assert d_row["rp_pct"] <= s_row["rp_pct"] + 1e-9 and d_row["mp_pct"] <= s_row["mp_pct"] + 1e-9
+    assert lab["fcm_unseen"]["paper"] == eval_dmc.PAPER_FCM_UNSEEN
+    assert [row["drive"] for row in lab["fcm_gain"]["per_drive"]] == lab["judged"]
+    assert "own experiment" in eval_dmc.format_text(r)
     c = r["fcm_committed_model_unseen"]
     assert c["rp_pct"] == pytest.approx(u["rp_pct"], abs=1e-6), "the committed model is what the recipe trains"
     text = eval_dmc.format_text(r)
@@ -70,6 +92,21 @@ def test_threshold_curve_falls_with_tighter_thresholds():
     worse = eval_dmc._gain(curve, top["rp_pct"] - 10.0, top["mp_pct"] + 0.5)
     assert better["mp_saved_at_equal_rp_pct"] == pytest.approx(worse["mp_saved_at_equal_rp_pct"] + 1.0, abs=1e-6)
     assert eval_dmc._gain(curve, 0.0, -1.0)["rp_gained_at_equal_mp_pct"] is None  # no threshold reaches MP < 0
+
+
+def test_conditions_count_hidden_bad_samples():
+    from services.dmc_detector import training as T
+
+    d = T.simulate_lab("magnet", 3, turns=6)
+    c = eval_dmc.conditions([d])
+    err, dm = d.heading_err_deg, np.abs(d.true_dm_nt).max(axis=1)
+    good = err < T.GOOD_DEG
+    assert c["bad_pct"] == pytest.approx(100.0 * (~good).mean(), abs=0.01)
+    assert c["hidden_bad_per_good_2000nt"] == pytest.approx(((~good) & (dm < 2000.0)).sum() / good.sum(), abs=1e-4)
+    # a coarser field unit widens the strength thresholds: at least as many bad samples hide
+    c100 = eval_dmc.conditions([d], field_unit_nt=100.0)
+    assert c100["hidden_bad_per_good_2000nt"] >= c["hidden_bad_per_good_2000nt"]
+    assert c100["good_strength_changed_pct"] <= c["good_strength_changed_pct"]
 
 
 def test_committed_paper_streets_model_matches_its_recipe():

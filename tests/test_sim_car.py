@@ -404,3 +404,39 @@ def test_publisher_paper_streets_profile():
     assert CarPublisherSettings(layout="paper_b", profile="paper_streets", mag_rate_hz=16.0).sim_settings(0).mag_rate_hz == 16.0
     with pytest.raises(ValueError, match="profile"):
         CarPublisherSettings(profile="mountains")
+
+
+# ---- the paper's own experiment: a turntable, a magnet or an iron cabinet ----------------------------
+
+
+def test_turntable_samples_every_10_degrees_and_quiet_turns_are_clean():
+    from sim_publishers.car import turntable
+
+    r = turntable.simulate(turntable.TurntableSettings(seed=5, run="mixed", turns=12, quiet_turn_probability=0.5))
+    step = np.degrees(np.diff(np.unwrap(r.heading_rad)))
+    assert np.allclose(step, 10.0) and len(r.t_s) == 12 * 36
+    assert set(r.source_kind) <= {"magnet", "cabinet", "none"} and "none" in set(r.source_kind)
+    quiet = r.source_kind == "none"
+    # no source: the true field is the Earth's; the measured heading errs by less than the paper's 1.2°
+    assert np.allclose(r.b_sensor_nt["1"][quiet], r.b_earth_body_nt[quiet])
+    m = r.mag_b_nt["1"][quiet]
+    err = np.degrees(np.abs(maths.angle_diff(maths.mag_heading_flu(m[:, 0], m[:, 1], r.declination_rad),
+                                             r.heading_rad[quiet])))
+    assert err.max() < 1.2
+    # a source brought near bends the heading by more than 25° at its closest (the paper: "over 25°")
+    b = r.b_sensor_nt["1"][~quiet]
+    tru = np.degrees(np.abs(maths.angle_diff(maths.mag_heading_flu(b[:, 0], b[:, 1], r.declination_rad),
+                                             r.heading_rad[~quiet])))
+    assert tru.max() > 25.0
+    # the output unit of the HMR3300: multiples of 10 nT
+    assert np.allclose(r.mag_b_nt["2"] / 10.0, np.round(r.mag_b_nt["2"] / 10.0))
+
+
+def test_turntable_is_deterministic_and_rejects_unknown_runs():
+    from sim_publishers.car import turntable
+
+    a = turntable.simulate(turntable.TurntableSettings(seed=2, turns=3))
+    b = turntable.simulate(turntable.TurntableSettings(seed=2, turns=3))
+    assert np.array_equal(a.mag_b_nt["1"], b.mag_b_nt["1"])
+    with pytest.raises(ValueError):
+        turntable.TurntableSettings(run="bus")

@@ -123,6 +123,34 @@ def simulate_drive(layout: str, seed: int, duration_s: float = 300.0,
                      np.asarray(d.truth.heading_rad), true_dm, np.asarray(true_dh))
 
 
+def lab_feature_settings(step_s: float) -> core.FeatureSettings:
+    """Features between consecutive fixed-point samples ``step_s`` apart (the paper's turntable data)."""
+    return core.FeatureSettings(smooth_window_s=0.5 * step_s, rate_window_s=step_s, max_gap_s=1.5 * step_s)
+
+
+def simulate_lab(run: str, seed: int, turns: int = 24, **overrides) -> DriveData:
+    """One run of the paper's turntable experiment (``sim_publishers.car.turntable``) as a drive.
+
+    The compasses are level, so the static compensation is the paper's 2-D one (horizontal strength, radius =
+    the horizontal Earth field); the simulator already applied its calibration errors to the samples."""
+    from sim_publishers.car.turntable import TurntableSettings, simulate
+
+    r = simulate(TurntableSettings(seed=seed, run=run, turns=turns, **overrides))
+    p = CompassParams((0.0, 0.0, 0.0), (1, 0, 0, 0, 1, 0, 0, 0, 1), r.horizontal_field_nt, "2d", "turntable")
+    step = float(r.t_s[1] - r.t_s[0])
+    f = core.features_batch(r.t_s, r.mag_b_nt["1"], r.mag_b_nt["2"], p, p, r.declination_rad,
+                            lab_feature_settings(step))
+    err = np.degrees(np.abs(maths.angle_diff(f.heading_rad, r.heading_rad)))
+    b1, b2 = r.b_sensor_nt["1"], r.b_sensor_nt["2"]
+    h0 = r.horizontal_field_nt
+    true_dm = np.stack([np.hypot(b1[:, 0], b1[:, 1]) - h0, np.hypot(b2[:, 0], b2[:, 1]) - h0], axis=-1)
+    true_dh = maths.angle_diff(np.arctan2(b1[:, 1], b1[:, 0]), np.arctan2(b2[:, 1], b2[:, 0]))
+    active = r.source_kind != "none"
+    return DriveData(f"lab_{run}/seed{seed}", f"lab_{run}", seed, f, err, r.t_s, err >= 2.0, active,
+                     true_heading_rad=r.heading_rad, true_dm_nt=true_dm, true_dh_rad=np.asarray(true_dh),
+                     declination_rad=float(r.declination_rad))
+
+
 @dataclass
 class Metrics:
     rp_pct: float
