@@ -464,3 +464,11 @@ def test_each_refusal_code_and_its_sentence():
 def test_warm_entry_point():
     assert fleet.main(["--warm"]) == 0
     assert fleet.main([]) == 2
+
+
+def test_bench_row_runs_and_both_paths_decide_alike():
+    from bench import cores_bench
+
+    r = cores_bench.ingest_rules(slots=20, per_slot=4, calls=3, repeats=1)
+    assert r["same_decisions"] is True
+    assert r["reference_us_per_sample"] > 0 and r["kernel_us_per_sample"] > 0
