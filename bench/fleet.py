@@ -30,23 +30,95 @@ def load_drive(duration_s: float = 60.0):
     return simulate(CarSimSettings(layout="urban_a", seed=5, duration_s=duration_s))
 
 
-_HEADER = ("type", "version", "vehicle", "t_s", "seq")
+def _publish_v2_windows(s, args, ids: list[str], d, opts, start_at: float) -> tuple[dict, float, int]:
+    """Contract v2 at fleet scale: per window, one batch per vehicle holding its streams' samples of that window.
+
+    Sample times are the grid ``start_at + tick × 10 ms`` (IMU every tick, magnetometers every second, GNSS every
+    20th); the batch of window ``w`` (ticks ``w·W … w·W + W − 1``) is put once the wall clock has reached its last
+    sample's time, so a sample's *raw publish* time is known to the sink from its ``t_s`` alone
+    (:func:`publish_time`). Each vehicle replays the drive from its own offset. Returns (sent per stream, wall
+    time, windows)."""
+    import msgspec
+    import zenoh
+
+    from schemas import keys, streams
+
+    enc = msgspec.msgpack.Encoder().encode
+    W = max(2, round(args.window / 0.01))
+    W += W % 2  # an even number of ticks: whole magnetometer epochs per window
+    mag1, mag2 = d.mag_b_nt["1"].tolist(), d.mag_b_nt["2"].tolist()
+    gyro, acc = d.gyro_rad_s.tolist(), d.accel_m_s2.tolist()
+    g = d.gnss
+    gn = [{"lat_deg": float(g.lat_deg[j]), "lon_deg": float(g.lon_deg[j]), "alt_m": float(g.alt_m[j]),
+           "pos_enu_m": g.pos_enu_m[j].tolist(), "vel_enu_m_s": g.vel_enu_m_s[j].tolist(),
+           "course_rad": float(g.course_rad[j]), "speed_m_s": float(g.speed_m_s[j]), "fix_type": str(g.fix_type[j]),
+           "num_sats": int(g.num_sats[j]), "pdop": float(g.pdop[j])} for j in range(len(g.t_s))]
+    n_mag, n_imu, n_g = len(mag1), len(gyro), len(gn)
+    bk = [keys.raw_batch(v).replace("/raw/", f"/{args.stream}/") for v in ids]
+    pubs = [s.declare_publisher(k, encoding=zenoh.Encoding(streams.encoding_name("batch")), **opts) for k in bk]
+    time.sleep(1.0)  # let declarations settle
+    while time.time() < start_at:
+        time.sleep(0.005)
+    sent = {"mag": 0, "imu": 0, "gnss": 0}
+    t_wall0 = time.time()
+    w = 0
+    while True:
+        tick0 = w * W
+        t_last = start_at + (tick0 + W - 1) * 0.01
+        if args.max:
+            if time.time() - t_wall0 >= args.duration:
+                break
+        else:
+            if tick0 * 0.01 >= args.duration:
+                break
+            delay = t_last - time.time()
+            if delay > 0:
+                time.sleep(delay)
+        ticks = list(range(tick0, tick0 + W))
+        t_imu = [start_at + k * 0.01 for k in ticks]
+        mticks = [k for k in ticks if k % 2 == 0]
+        t_mag = [start_at + k * 0.01 for k in mticks]
+        s_mag = [k // 2 for k in mticks]
+        gticks = [k for k in ticks if k % 20 == 0]
+        for vi in range(len(ids)):
+            o_imu = (tick0 + vi * 74) % n_imu
+            o_mag = (tick0 // 2 + vi * 37) % n_mag
+            if o_imu + W <= n_imu:
+                gy, ac = gyro[o_imu:o_imu + W], acc[o_imu:o_imu + W]
+            else:
+                ix = [(o_imu + j) % n_imu for j in range(W)]
+                gy, ac = [gyro[j] for j in ix], [acc[j] for j in ix]
+            nm = len(mticks)
+            if o_mag + nm <= n_mag:
+                m1, m2 = mag1[o_mag:o_mag + nm], mag2[o_mag:o_mag + nm]
+            else:
+                ix = [(o_mag + j) % n_mag for j in range(nm)]
+                m1, m2 = [mag1[j] for j in ix], [mag2[j] for j in ix]
+            st = {"mag/1": {"n": nm, "t_s": t_mag, "seq": s_mag, "cols": {"sensor": "1", "b_nt": m1}},
+                  "mag/2": {"n": nm, "t_s": t_mag, "seq": s_mag, "cols": {"sensor": "2", "b_nt": m2}},
+                  "imu": {"n": W, "t_s": t_imu, "seq": ticks, "cols": {"gyro_rad_s": gy, "accel_m_s2": ac}}}
+            if gticks:
+                rows = [gn[(k // 20 + vi) % n_g] for k in gticks]
+                st["gnss"] = {"n": len(gticks), "t_s": [start_at + k * 0.01 for k in gticks],
+                              "seq": [k // 20 for k in gticks],
+                              "cols": {f: [r[f] for r in rows] for f in rows[0]}}
+            pubs[vi].put(enc({"type": "batch", "version": 2, "vehicle": ids[vi], "t_s": t_last, "seq": w,
+                              "streams": st}))
+        sent["imu"] += W * len(ids)
+        sent["mag"] += 2 * len(mticks) * len(ids)
+        sent["gnss"] += len(gticks) * len(ids)
+        w += 1
+    return sent, time.time() - t_wall0, w
 
 
-def _batch(vehicle: str, seq: int, pending: dict[str, list[dict]]) -> dict:
-    """One v2 batch (schemas/batch.py) of a vehicle's pending samples, stream by stream, as columns."""
-    streams = {}
-    t_max = 0.0
-    for name, msgs in pending.items():
-        if not msgs:
-            continue
-        cols = {f: [m[f] for m in msgs] for f in msgs[0] if f not in _HEADER}
-        if "sensor" in cols:
-            cols["sensor"] = cols["sensor"][0]
-        t = [m["t_s"] for m in msgs]
-        t_max = max(t_max, t[-1])
-        streams[name] = {"n": len(msgs), "t_s": t, "seq": [m["seq"] for m in msgs], "cols": cols}
-    return {"type": "batch", "version": 2, "vehicle": vehicle, "t_s": t_max, "seq": seq, "streams": streams}
+def publish_time(t_s, start_at: float, window_s: float):
+    """When the v2 fleet put the batch holding a sample of time ``t_s`` (arrays welcome): its window's last tick."""
+    import numpy as np
+
+    W = max(2, round(window_s / 0.01))
+    W += W % 2
+    tick = np.rint((np.asarray(t_s, float) - start_at) / 0.01)
+    return start_at + (np.floor(tick / W) * W + W - 1) * 0.01
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -65,33 +137,32 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--wire", choices=("v1", "v2"), default="v1", help="single samples (v1) or batches (v2)")
     p.add_argument("--window", type=float, default=0.02, help="v2: seconds of samples per vehicle batch")
     args = p.parse_args(argv)
-    import msgspec
-
     from schemas import streams
 
     v2 = args.wire == "v2"
-    window_ticks = max(1, round(args.window / 0.01))
-    enc = msgspec.msgpack.Encoder().encode
-
     d = load_drive()
     ids = vehicle_ids(args.vehicles)
+    opts = dict(congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
+    if v2:
+        start_at = args.start_at or time.time() + 1.5
+        with zenoh.open(zconf.config_from_args(args)) as s:
+            sent, wall, windows = _publish_v2_windows(s, args, ids, d, opts, start_at)
+        total = sum(sent.values())
+        json.dump({"sent": sent, "total": total, "wall_s": wall, "rate": total / wall,
+                   "offered_rate": args.vehicles * 205, "windows": windows, "start_at": start_at}, sys.stdout)
+        print()
+        return 0
     n_mag = len(d.t_mag_s)
     mag1, mag2 = d.mag_b_nt["1"].tolist(), d.mag_b_nt["2"].tolist()
     gyro, acc = d.gyro_rad_s.tolist(), d.accel_m_s2.tolist()
     g = d.gnss
     pack = msgpack.Packer(use_bin_type=True).pack
     with zenoh.open(zconf.config_from_args(args)) as s:
-        opts = dict(congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
         pubs = []
-        bpubs = []
         for v in ids:
             kk = (keys.raw_mag(v, "1"), keys.raw_mag(v, "2"), keys.raw_imu(v), keys.raw_gnss(v))
             if args.stream != "raw":
                 kk = tuple(k.replace("/raw/", f"/{args.stream}/") for k in kk)
-            if v2:
-                bk = keys.raw_batch(v).replace("/raw/", f"/{args.stream}/")
-                bpubs.append(s.declare_publisher(bk, encoding=zenoh.Encoding(streams.encoding_name("batch")), **opts))
-                continue
             pubs.append(tuple(s.declare_publisher(k, encoding=zenoh.Encoding(streams.encoding_name(
                 "mag" if "/mag/" in k else k.rsplit("/", 1)[1])), **opts) for k in kk))
         time.sleep(1.0)  # let declarations settle
@@ -99,8 +170,6 @@ def main(argv: list[str] | None = None) -> int:
             time.sleep(0.01)
         sent = {"mag": 0, "imu": 0, "gnss": 0}
         seq = [[0, 0, 0, 0] for _ in ids]
-        pend = [{"mag/1": [], "mag/2": [], "imu": [], "gnss": []} for _ in ids]
-        bseq = [0] * len(ids)
         t0 = time.time()
         tick = 0  # 100 Hz ticks
         offered_period = 0.01
@@ -117,52 +186,30 @@ def main(argv: list[str] | None = None) -> int:
                 k = (tick // 2 + vi * 37) % n_mag
                 sq = seq[vi]
                 ki = (tick + vi * 74) % len(gyro)
-                out = pend[vi] if v2 else None
-                imu = {"type": "imu", "version": 1, "vehicle": v, "t_s": t_s, "seq": sq[2],
-                       "gyro_rad_s": gyro[ki], "accel_m_s2": acc[ki]}
-                if v2:
-                    out["imu"].append(imu)
-                else:
-                    pubs[vi][2].put(pack(imu))
+                pubs[vi][2].put(pack({"type": "imu", "version": 1, "vehicle": v, "t_s": t_s, "seq": sq[2],
+                                      "gyro_rad_s": gyro[ki], "accel_m_s2": acc[ki]}))
                 sq[2] += 1
                 sent["imu"] += 1
                 if tick % 2 == 0:
-                    m1 = {"type": "mag", "version": 1, "vehicle": v, "t_s": t_s, "seq": sq[0], "sensor": "1",
-                          "b_nt": mag1[k]}
-                    m2 = {"type": "mag", "version": 1, "vehicle": v, "t_s": t_s, "seq": sq[1], "sensor": "2",
-                          "b_nt": mag2[k]}
-                    if v2:
-                        out["mag/1"].append(m1)
-                        out["mag/2"].append(m2)
-                    else:
-                        pubs[vi][0].put(pack(m1))
-                        pubs[vi][1].put(pack(m2))
+                    pubs[vi][0].put(pack({"type": "mag", "version": 1, "vehicle": v, "t_s": t_s, "seq": sq[0],
+                                          "sensor": "1", "b_nt": mag1[k]}))
+                    pubs[vi][1].put(pack({"type": "mag", "version": 1, "vehicle": v, "t_s": t_s, "seq": sq[1],
+                                          "sensor": "2", "b_nt": mag2[k]}))
                     sq[0] += 1
                     sq[1] += 1
                     sent["mag"] += 2
                 if tick % 20 == 0:
                     j = (tick // 20 + vi) % len(g.t_s)
-                    gm = {"type": "gnss", "version": 1, "vehicle": v, "t_s": t_s, "seq": sq[3],
-                          "lat_deg": float(g.lat_deg[j]), "lon_deg": float(g.lon_deg[j]),
-                          "alt_m": float(g.alt_m[j]), "pos_enu_m": g.pos_enu_m[j].tolist(),
-                          "vel_enu_m_s": g.vel_enu_m_s[j].tolist(), "course_rad": float(g.course_rad[j]),
-                          "speed_m_s": float(g.speed_m_s[j]), "fix_type": str(g.fix_type[j]),
-                          "num_sats": int(g.num_sats[j]), "pdop": float(g.pdop[j])}
-                    if v2:
-                        out["gnss"].append(gm)
-                    else:
-                        pubs[vi][3].put(pack(gm))
+                    pubs[vi][3].put(pack({"type": "gnss", "version": 1, "vehicle": v, "t_s": t_s, "seq": sq[3],
+                                          "lat_deg": float(g.lat_deg[j]), "lon_deg": float(g.lon_deg[j]),
+                                          "alt_m": float(g.alt_m[j]), "pos_enu_m": g.pos_enu_m[j].tolist(),
+                                          "vel_enu_m_s": g.vel_enu_m_s[j].tolist(),
+                                          "course_rad": float(g.course_rad[j]), "speed_m_s": float(g.speed_m_s[j]),
+                                          "fix_type": str(g.fix_type[j]), "num_sats": int(g.num_sats[j]),
+                                          "pdop": float(g.pdop[j])}))
                     sq[3] += 1
                     sent["gnss"] += 1
-                if v2 and (tick + 1) % window_ticks == 0:
-                    bpubs[vi].put(enc(_batch(v, bseq[vi], out)))
-                    bseq[vi] += 1
-                    pend[vi] = {"mag/1": [], "mag/2": [], "imu": [], "gnss": []}
             tick += 1
-        if v2:  # the last partial window
-            for vi, v in enumerate(ids):
-                if any(pend[vi].values()):
-                    bpubs[vi].put(enc(_batch(v, bseq[vi], pend[vi])))
         wall = time.time() - t0
     total = sum(sent.values())
     offered = args.vehicles * (100 + 100 + 5)

@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 
 import msgpack
+import msgspec
 import numpy as np
 
 from magmesh import paths, zconf
@@ -82,25 +83,31 @@ def _manifest(n: int, tmp: Path) -> Path:
     return path
 
 
+class _Stamp(msgspec.Struct):
+    t_s: float
+
+
 class Sink:
-    """Counts outputs and their latency (receive wall time − t_s) in its own thread. ``batch_stream``: the
-    outputs are batches, and the samples of that stream inside them are what is counted."""
+    """Counts outputs and their times in its own thread: each output's sample time ``t_s`` and receive wall time.
+    ``batch_stream``: the outputs are batches, and the samples of that stream inside them are what is counted."""
 
     def __init__(self, session, keyexpr: str, latency: bool, batch_stream: str | None = None):
         import zenoh
 
-        self.sub = session.declare_subscriber(keyexpr, zenoh.handlers.FifoChannel(100_000))
+        self.sub = session.declare_subscriber(keyexpr, zenoh.handlers.FifoChannel(1_000_000))
         self.n = 0
-        self.lat: list[float] = []
+        self.t_sample: list[float] = []
+        self.t_recv: list[float] = []
         self.t_last = 0.0
         self.latency = latency
         self.batch_stream = batch_stream
-        self.q: queue.Queue = queue.Queue()
         threading.Thread(target=self._run, daemon=True).start()
 
     def _run(self) -> None:
         unpack = msgpack.unpackb
+        stamp = msgspec.msgpack.Decoder(_Stamp).decode
         bs = self.batch_stream
+        ts, tr = self.t_sample, self.t_recv
         while True:
             try:
                 s = self.sub.recv()
@@ -114,11 +121,27 @@ class Sink:
                     continue
                 self.n += st["n"]
                 if self.latency:
-                    self.lat.extend(now - x for x in st["t_s"])
+                    ts.extend(st["t_s"])
+                    tr.extend([now] * st["n"])
                 continue
             self.n += 1
             if self.latency:
-                self.lat.append(now - unpack(s.payload.to_bytes())["t_s"])
+                ts.append(stamp(s.payload.to_bytes()).t_s)
+                tr.append(now)
+
+    def latencies_ms(self, start_at: float | None, window_s: float | None) -> tuple:
+        """(from raw publish, from sample time) in ms: the v2 fleet puts a window's batch at its last sample's
+        time (bench/fleet.py publish_time); v1 samples are put when taken, so both are the same there."""
+        if not self.t_sample:
+            return None, None
+        ts = np.asarray(self.t_sample, float)
+        tr = np.asarray(self.t_recv[:len(ts)], float)
+        age = (tr - ts) * 1000
+        if start_at is None:
+            return age, age
+        from .fleet import publish_time
+
+        return (tr - publish_time(ts, start_at, window_s)) * 1000, age
 
 
 def _spawn(args: list[str], port: int, log: Path) -> subprocess.Popen:
@@ -158,8 +181,9 @@ def _status(session, role: str, inst: str) -> dict:
 
 
 def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple[str, ...], tmp: Path,
-             wire: str = "v2", window_s: float = 0.02) -> dict:
-    """One run: ``kind`` is "pipeline", "limit" or "ingest" (ingest alone, clean batches out)."""
+             wire: str = "v2", window_s: float = 0.05, frame_s: float = 0.02) -> dict:
+    """One run: ``kind`` is "pipeline", "limit" or "ingest" (ingest alone, clean batches out). ``window_s``: each
+    v2 vehicle's batch window; ``frame_s``: ingest's frame window (the pipeline with v2 runs on fleet frames)."""
     import zenoh
 
     port = _free_port()
@@ -169,8 +193,10 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
     tokens = []
     batch_stream = None
     ingest_args = ["-m", "services.ingest", "--instance", "b-ingest"]
-    if wire == "v2" or kind == "ingest":
-        ingest_args += ["--set", "output=batches", "--set", f"batch_window_s={window_s}"]
+    if kind == "ingest":
+        ingest_args += ["--set", "output=batches", "--set", f"batch_window_s={frame_s}"]
+    elif wire == "v2":
+        ingest_args += ["--set", "output=frames", "--set", f"batch_window_s={frame_s}"]
     if kind == "ingest":
         procs["ingest"] = _spawn(ingest_args, port, tmp / "ingest.log")
         tokens.append(keys.svc_token("ingest", "b-ingest"))
@@ -204,7 +230,7 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
             raise RuntimeError(f"{kind}: services did not come up (logs in {tmp})")
         sink = Sink(router, sink_key, latency=not max_mode, batch_stream=batch_stream)
         time.sleep(0.5)
-        start_at = time.time() + 2.0
+        start_at = time.time() + 2.0 + (n / 500)  # the fleet declares a publisher per vehicle first
         cpu0 = {}
         fleet_args = ["-m", "bench.fleet", "--vehicles", str(n), "--duration", str(duration_s), "--start-at",
                       str(start_at), "--wire", "v1" if kind == "ingest" else wire, "--window", str(window_s)] + (
@@ -249,7 +275,10 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
             st = statuses["ingest"]  # samples received: in_total counts batches besides their samples
             ing_in = st.get("in_total", 0) - st.get("batches_in", 0)
             lost += max(0, fl["total"] - ing_in)
-        lat = np.array(sink.lat) * 1000 if sink.lat else None  # latency only means something when paced
+        # latency only means something when paced: from the batch's publication (the goal's measure) and from
+        # the sample's own time (which adds the vehicle's batching window)
+        v2_fleet = wire == "v2" and kind != "ingest"
+        lat, age = sink.latencies_ms(fl.get("start_at") if v2_fleet else None, window_s) if not max_mode else (None, None)
         samples_done = fl["total"] * min(1.0, sink.n / max(expected, 1))
         return {
             "kind": kind, "vehicles": n, "max_mode": max_mode, "duration_s": duration_s, "wire": wire,
@@ -259,6 +288,9 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
             "outputs": sink.n, "expected_outputs": expected, "drained": drained, "lost": int(lost), "drops": drops,
             "latency_ms_p50": round(float(np.percentile(lat, 50)), 2) if lat is not None else None,
             "latency_ms_p99": round(float(np.percentile(lat, 99)), 2) if lat is not None else None,
+            "age_ms_p99": round(float(np.percentile(age, 99)), 2) if age is not None else None,
+            "vehicle_window_s": window_s if v2_fleet else None,
+            "frame_window_s": frame_s if (kind == "pipeline" and wire == "v2") else None,
             "cpu_pct": {k: round(100 * (cpu1[k] - cpu0[k]) / wall, 1) for k in procs}
                        | {"fleet": round(100 * (cpu_fleet - cpu0["fleet"]) / (duration_s * 0.8), 1)},
             "rss_mb": {k: round(v, 1) for k, v in rss.items()},
@@ -268,10 +300,10 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         router.close()
 
 
-def _median_case(kind, n, duration_s, max_mode, stages, repeat, tmp, wire="v2", window_s=0.02) -> dict:
-    runs = [run_case(kind, n, duration_s, max_mode, stages, tmp, wire, window_s) for _ in range(repeat)]
+def _median_case(kind, n, duration_s, max_mode, stages, repeat, tmp, wire="v2", window_s=0.05, frame_s=0.02) -> dict:
+    runs = [run_case(kind, n, duration_s, max_mode, stages, tmp, wire, window_s, frame_s) for _ in range(repeat)]
     out = dict(runs[0])
-    for k in ("sustained_samples_s", "published_samples_s", "latency_ms_p50", "latency_ms_p99"):
+    for k in ("sustained_samples_s", "published_samples_s", "latency_ms_p50", "latency_ms_p99", "age_ms_p99"):
         vals = [r[k] for r in runs if r[k] is not None]
         out[k] = round(statistics.median(vals), 2) if vals else None
     out["lost"] = max(r["lost"] for r in runs)
@@ -296,21 +328,21 @@ def _sustained(r: dict, p99_ms: float) -> bool:
 
 
 def bench(vehicles: list[int], duration_s: float = 8.0, repeat: int = 1, stages: tuple[str, ...] | None = None,
-          limit_vehicles: int | None = None, progress=None, wire: str = "v2", window_s: float = 0.02,
-          p99_ms: float = 100.0, v1_ingest: bool = True) -> dict:
+          limit_vehicles: int | None = None, progress=None, wire: str = "v2", window_s: float = 0.05,
+          p99_ms: float = 100.0, v1_ingest: bool = True, frame_s: float = 0.02) -> dict:
     stages = stages or available_stages()
     tmp = Path(tempfile.mkdtemp(prefix="magmesh-bench-"))
     say = progress or (lambda s: None)
     # throughput at saturation: the same load, pipeline vs no-processing limit, same run
     n_sat = limit_vehicles or max(10, min(vehicles))
     say(f"saturation: pipeline, {n_sat} vehicles, as fast as possible ({wire})")
-    pipe_max = _median_case("pipeline", n_sat, duration_s, True, stages, repeat, tmp, wire, window_s)
+    pipe_max = _median_case("pipeline", n_sat, duration_s, True, stages, repeat, tmp, wire, window_s, frame_s)
     say(f"saturation: limit (same hops, no processing), {n_sat} vehicles ({wire})")
-    lim_max = _median_case("limit", n_sat, duration_s, True, stages, repeat, tmp, wire, window_s)
+    lim_max = _median_case("limit", n_sat, duration_s, True, stages, repeat, tmp, wire, window_s, frame_s)
     table = []
     for n in vehicles:
         say(f"paced at sensor rates: pipeline, {n} vehicles ({wire})")
-        r = _median_case("pipeline", n, duration_s, False, stages, repeat, tmp, wire, window_s)
+        r = _median_case("pipeline", n, duration_s, False, stages, repeat, tmp, wire, window_s, frame_s)
         r["sustained"] = _sustained(r, p99_ms)
         table.append(r)
     ok = [r["vehicles"] for r in table if r["sustained"]]
@@ -319,7 +351,7 @@ def bench(vehicles: list[int], duration_s: float = 8.0, repeat: int = 1, stages:
     if v1_ingest:
         for n in vehicles:  # one ingest process under v1 single-sample vehicles, until it no longer keeps up
             say(f"v1 single-sample vehicles through one ingest: {n}")
-            r = _median_case("ingest", n, duration_s, False, ("ingest",), repeat, tmp, "v1", window_s)
+            r = _median_case("ingest", n, duration_s, False, ("ingest",), repeat, tmp, "v1", window_s, frame_s)
             r["sustained"] = _sustained(r, p99_ms)
             ingest_rows.append(r)
             if not r["sustained"]:
@@ -329,6 +361,7 @@ def bench(vehicles: list[int], duration_s: float = 8.0, repeat: int = 1, stages:
         "stages": list(stages),
         "wire": wire,
         "window_s": window_s,
+        "frame_window_s": frame_s,
         "p99_goal_ms": p99_ms,
         "saturation": {"pipeline": pipe_max, "limit": lim_max},
         "ratio_to_limit": round(ratio, 3),

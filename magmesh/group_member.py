@@ -315,6 +315,7 @@ class GroupMember:
         for k in [k for k in rt.alarm_published if k.startswith(pre)]:
             del rt.alarm_published[k]
         rt.alarm_published.update({k: s for k, s in alarms.items() if k.startswith(pre)})
+        rt.alarm_adopted += 1
         with rt.lock:
             for k in [k for k in rt.raised if k.startswith(pre)]:
                 del rt.raised[k]

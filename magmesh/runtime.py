@@ -270,10 +270,12 @@ class Service:
         per-vehicle key); returns the rows sent."""
         return self._runtime.publish_frame(kind, vehicles, streams_)
 
-    def publish_rows(self, msg_type: str, keys_: list[str], vehicles: list[str], t_s: list, cols: dict) -> int:
-        """Publish one v1 message per row on its per-vehicle key (``cols``: field → list of n values); the fast
-        path of many outputs at once (a frame's epochs). Returns the messages sent."""
-        return self._runtime.publish_rows(msg_type, keys_, vehicles, t_s, cols)
+    def publish_rows(self, msg_type: str, keys_: list[str], vehicles: list[str], t_s: Any, cols: dict,
+                     mirror: str | None = None) -> list[int]:
+        """Publish one v1 message per row on its per-vehicle key (``cols``: field → n values, or one string); the
+        fast path of many outputs at once (a frame's epochs). ``mirror``: the rows sent also go out as one fleet
+        frame of that kind, with the same seqs. Returns each row's seq (-1: held back or suppressed)."""
+        return self._runtime.publish_rows(msg_type, keys_, vehicles, t_s, cols, mirror)
 
     @property
     def shard(self) -> str:
@@ -512,6 +514,7 @@ class Runner:
         self.held: list[tuple[str, str, str, float, dict]] = []
         self.passed_cut: set[str] = set()
         self.alarm_published: dict[str, str] = {}  # alarm key -> last state published ("raised"/"cleared")
+        self.alarm_adopted = 0  # bumped whenever alarm states come from elsewhere (restart, swap, hand-over)
         self.suppressed = 0
         self.in_seq: SeqTable = SeqTable()  # input key -> last seq handled (frames track many keys at once)
         self.params_sent: dict[str, list] = {}  # cal/params key -> [param_id, seq, t_s] last published
@@ -900,6 +903,11 @@ class Runner:
             return self.publish(key, msg["type"], msg["vehicle"], msg["t_s"], fields)
         return self._send(key, msg["type"], msg["vehicle"], msg["t_s"], fields, trusted=True)
 
+    def raised_alarm(self, key: str) -> dict:
+        """The raised alarm held on ``key`` (its last "raised" message; {} when none is held)."""
+        with self.lock:
+            return dict(self.raised.get(key) or {})
+
     def publish_alarm(self, key: str, vehicle: str, t_s: float, fields: dict) -> dict | None:
         return self.publish(key, "alarm", vehicle, t_s, fields)
 
@@ -941,6 +949,7 @@ class Runner:
         except (OSError, ValueError):
             return
         self.alarm_published = {k: v for k, v in data.get("published", {}).items()}
+        self.alarm_adopted += 1
         with self.lock:
             self.raised = dict(data.get("raised", {}))
         for k, v in data.get("seqs", {}).items():
@@ -1870,6 +1879,7 @@ class Runner:
             for k, v in req.get("seqs", {}).items():
                 self.seq[k] = max(int(v), self.seq.get(k, -1))
             self.alarm_published = dict(req.get("alarms", {}))
+            self.alarm_adopted += 1
             with self.lock:
                 self.raised = {k: m for k, m in req.get("raised", {}).items()}
             self.mode = "active"

@@ -150,6 +150,11 @@ class _FakeRuntime:
         self.out = []
         self.drops = {}
         self.seq = {}
+        self.mode = "active"
+        self.alarm_published = {}
+        self.raised = {}
+        self.alarm_adopted = 0
+        self.vehicle_state = {}
 
     def publish(self, key, msg_type, vehicle, t_s, fields):
         seq = self.seq.get(key, -1) + 1
@@ -157,6 +162,15 @@ class _FakeRuntime:
         msg = messages.validate(messages.make(msg_type, vehicle, t_s, seq, **fields), key, msg_type)
         self.out.append((key, msg))
         return msg
+
+    def publish_rows(self, msg_type, keys_, vehicles, t_s, cols, mirror=None):
+        t_s = list(t_s)
+        return [self.publish(k, msg_type, v, float(t_s[i]),
+                             {f: (c if isinstance(c, str) else c[i]) for f, c in cols.items()})["seq"]
+                for i, (k, v) in enumerate(zip(keys_, vehicles, strict=True))]
+
+    def raised_alarm(self, key):
+        return dict(self.raised.get(key) or {})
 
     def publish_alarm(self, key, vehicle, t_s, fields):
         return self.publish(key, "alarm", vehicle, t_s, fields)

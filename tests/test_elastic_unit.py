@@ -242,6 +242,7 @@ def test_a_restarted_member_taking_back_a_vehicle_nobody_took_counts_the_gap_fro
     assert "car-1" not in rt.first_in_t, "the vehicle's times start again"
     # a dead member that handled a key later than this run did: that key's gap is the takeover's
     rt.seq, rt.drops, rt.alarm_published, rt.raised, rt.journal = {}, defaultdict(dict), {}, {}, None
+    rt.alarm_adopted = 0
     rt.lock = __import__("threading").Lock()
     rt._persist_alarms = lambda: None
     g.owned.clear()

@@ -21,7 +21,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--wire", choices=("v1", "v2"), default="v2",
                    help="v2 (default): each vehicle publishes one batch per window and ingest emits clean batches; "
                         "v1: every sample alone on its key, end to end")
-    m.add_argument("--window", type=float, default=0.02, help="v2: seconds of samples per batch (default 0.02)")
+    m.add_argument("--window", type=float, default=0.05,
+                   help="v2: seconds of samples per vehicle batch (default 0.05)")
+    m.add_argument("--frame-window", type=float, default=0.02,
+                   help="v2: ingest's fleet frame window, s (default 0.02)")
     m.add_argument("--p99-ms", type=float, default=100.0,
                    help="latency goal a sustained row must meet, raw publish → dmc out p99 (default 100 ms)")
     m.add_argument("--no-v1-ingest", action="store_true",
@@ -49,7 +52,7 @@ def run_mesh(args: argparse.Namespace) -> int:
     stages = tuple(s.strip() for s in args.stages.split(",")) if args.stages else None
     res = bench(vehicles, args.duration, args.repeat, stages, args.saturation_vehicles,
                 progress=lambda s: print(s, file=sys.stderr, flush=True), wire=args.wire, window_s=args.window,
-                p99_ms=args.p99_ms, v1_ingest=not args.no_v1_ingest)
+                frame_s=args.frame_window, p99_ms=args.p99_ms, v1_ingest=not args.no_v1_ingest)
     if args.json:
         json.dump(res, sys.stdout)
         print()

@@ -11,11 +11,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from magmesh import runtime
 from schemas import keys
 from services.physical import refuse_unphysical
 
-from . import core, fcm, quasistatic
+from . import core, fcm, fleet, quasistatic
 from .core import HysteresisSettings
 from .service import DmcDetectorService, Settings, ThresholdDmcDetector, VehicleState
 
@@ -57,11 +59,12 @@ class FcmDmcDetector(DmcDetectorService):
         self.log.info("FCM model %s: %s features, %d centres, trained on %s", path, self.model.feature_set,
                       len(self.model.centres), ", ".join(self.model.training.get("drives", [])) or "?")
 
-    def make_detector(self, vehicle: str, dh_ref_rad: float):
+    def make_fleet(self):
         if not hasattr(self, "model"):
             self.on_start()
         s = self.settings
-        return fcm.FcmDetector(self.model, fcm.FcmDetectorSettings(s.hysteresis(), s.kc_min or None, dh_ref_rad))
+        return fleet.FleetFcmDetector(self.model, fcm.FcmDetectorSettings(s.hysteresis(), s.kc_min or None, 0.0),
+                                      capacity=64)
 
     def status_extra(self) -> dict:
         out = super().status_extra()
@@ -88,10 +91,10 @@ class SingleDmcDetector(DmcDetectorService):
         p, a = self.vehicle_pattern, self.settings.sensor_a
         return [keys.clean_mag(p, a), keys.cal_params(p, a)]
 
-    def make_detector(self, vehicle: str, dh_ref_rad: float):
+    def make_fleet(self):
         s = self.settings
-        return core.SingleCompassDetector(core.ThresholdDetectorSettings(
-            s.thresholds(), s.feature_settings(), s.hysteresis()))
+        return fleet.FleetSingleDetector(core.ThresholdDetectorSettings(
+            s.thresholds(), s.feature_settings(), s.hysteresis()), capacity=64)
 
     def on_message(self, info, msg: dict, state: VehicleState) -> None:
         if refuse_unphysical(self, info, msg):
@@ -102,11 +105,17 @@ class SingleDmcDetector(DmcDetectorService):
         if info.kind == "cal":
             self._on_params(info, msg, state)
             return
-        if not self._have_params(info, state):
-            return
-        p = state.params[self.settings.sensor_a]
-        d = state.detector.update(msg["t_s"], msg["b_nt"], msg["b_nt"], p, p, state.declination_rad)
-        self._publish(info.vehicle, state, d, self._param_source(state))
+        b = np.asarray(msg["b_nt"], float)
+        self._on_epoch(info, state, msg["t_s"], b, b)
+
+    def _frame_epochs(self, fr):
+        """One compass: every sample of it is an epoch."""
+        sa = fr.streams.get(f"mag/{self.settings.sensor_a}")
+        if sa is None:
+            return None
+        slot = self._frame_slots(fr, [sa])[sa.vi]
+        b = np.ascontiguousarray(sa.cols["b_nt"], float)
+        return fleet.Epochs(slot, sa.t_s, sa.t_s, b, b)
 
 
 # ---- quasistatic --------------------------------------------------------------------------------
@@ -159,11 +168,16 @@ class QuasiStaticDmcDetector(DmcDetectorService):
         p, a = self.vehicle_pattern, self.settings.sensor
         return [keys.clean_mag(p, a), keys.clean_imu(p), keys.cal_params(p, a)]
 
+    on_frame = None  # per vehicle only: the runtime hands each vehicle's frame rows to on_message
+
     def new_vehicle(self, vehicle: str) -> VehicleState:
         cfg = self.vehicles_config.get(vehicle, {}) or {}
         st = VehicleState(None, self.make_detector(vehicle, 0.0), declination_rad=float(cfg.get("declination_rad", 0.0)))
         self._load_manifest_params(vehicle, cfg, st)
         return st
+
+    def make_fleet(self):
+        return None
 
     def make_detector(self, vehicle: str, dh_ref_rad: float):
         return quasistatic.QuasiStaticDetector(self.settings.core())

@@ -29,17 +29,20 @@ from .core import IngestSettings, Rejection, StreamState, accept, check_order, c
 #: a stream with at most this many samples in a batch is checked sample by sample (numpy's per-call cost
 #: outweighs its speed on a few samples); a longer one on whole columns
 SMALL = 32
+#: refused seqs a stream remembers since its last accepted sample (as ``Ingest.on_message``)
+REFUSED_SEQS_MAX = 1024
 
 
 @dataclass(frozen=True)
 class IngestServiceSettings(IngestSettings):
     output: str = "singles"  # singles: one clean/ message per sample (v1) | batches: clean/batch per vehicle (v2)
-    batch_window_s: float = 0.02  # longest wall-clock wait of an accepted sample before its clean batch goes out
+    #                          | frames: one fleet frame of every vehicle per window (v3, magmesh/fleet/{instance}/clean)
+    batch_window_s: float = 0.02  # longest wall-clock wait of an accepted sample before its batch or frame goes out
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.output not in ("singles", "batches"):
-            raise ValueError(f"output must be 'singles' or 'batches', got {self.output!r}")
+        if self.output not in ("singles", "batches", "frames"):
+            raise ValueError(f"output must be 'singles', 'batches' or 'frames', got {self.output!r}")
         if not 0 < self.batch_window_s <= 5.0:
             raise ValueError(f"batch_window_s must be in (0, 5] s, got {self.batch_window_s!r}")
 
@@ -80,6 +83,9 @@ class BatchingIngest:
         self._rt.batches_in += 1
         b = self._rt.decode_batch(key, info, payload, check=True)
         if b is None:
+            return
+        if self.frame_output:  # decided with the whole window (framing.py)
+            self.frame_batch(info.vehicle, b)
             return
         now = time.monotonic()
         for name, c in b.streams.items():
@@ -137,7 +143,17 @@ class BatchingIngest:
             if k > 1:
                 self.count_drop(skey, f"rejected:{code}", k - 1)
         keep = ok & ~dup & ~back
+        # refused seqs, as on the per-sample path: delivered and counted as rejected, so no gap of the stream. By
+        # segment: those received before the j-th accepted sample (j = 0 starts from the stream's own set)
+        segments: dict[int, set] = {0: set(st.refused_seqs)} if st.refused_seqs else {}
+        if not keep.all():
+            all_seq, before = c.array("seq"), np.cumsum(keep) - keep
+            for r in np.flatnonzero(~keep).tolist():
+                seg = segments.setdefault(int(before[r]), set())
+                if len(seg) < REFUSED_SEQS_MAX:
+                    seg.add(int(all_seq[r]))
         if not keep.any():
+            st.refused_seqs = segments.get(0, set())
             return
         acc = c if keep.all() else c.take(keep)
         seq = acc.array("seq")
@@ -146,9 +162,17 @@ class BatchingIngest:
             gaps = (seq[-len(prev):] - prev - 1) if len(prev) else np.zeros(0, np.int64)
             big = (gaps > s.seq_jump_max) | (gaps < -1)
             st.seq_rebases += int(big.sum())
-            st.upstream_gaps += int(gaps[(gaps > 0) & ~big].sum())
+            counted = (gaps > 0) & ~big
+            lost = int(gaps[counted].sum())
+            off = 0 if st.last_seq is not None else 1  # gaps[j - off]: the gap before the j-th accepted sample
+            for j, seg in segments.items():
+                if 0 <= j - off and j < seq.shape[0] and counted[j - off]:
+                    lo, hi = int(prev[j - off]), int(seq[j])
+                    lost -= sum(1 for q in seg if lo < q < hi)
+            st.upstream_gaps += lost
             st.last_seq = None  # accept() below counts nothing more for the last sample
         accept({"seq": int(seq[-1]), "t_s": float(acc.t_s[-1])}, st, now, s)
+        st.refused_seqs = segments.get(seq.shape[0], set())  # refused after the last accepted sample
         st.accepted += acc.n - 1
         self.pend(vehicle, name, acc)
 
@@ -176,6 +200,8 @@ class BatchingIngest:
                 if info is None:
                     info = keys.parse(skey)
                 if not self.time_refusal(info, m, st, r):
+                    if len(st.refused_seqs) < REFUSED_SEQS_MAX:
+                        st.refused_seqs.add(int(m["seq"]))
                     continue
             accept(m, st, now, s)
             keep.append(i)
@@ -191,6 +217,8 @@ class BatchingIngest:
                 check_order(m, st, self.settings, skey, now)
             except Rejection as r:
                 if not self.time_refusal(info, m, st, r):
+                    if len(st.refused_seqs) < REFUSED_SEQS_MAX:
+                        st.refused_seqs.add(int(m["seq"]))
                     continue
             accept(m, st, now, self.settings)
             self.emit(info, m)
@@ -234,4 +262,4 @@ class BatchingIngest:
     @property
     def tick_override_s(self) -> float | None:
         """The runtime's tick runs the window's flush at half the window."""
-        return self.settings.batch_window_s / 2 if self.batch_output else None
+        return self.settings.batch_window_s / 2 if (self.batch_output or self.frame_output) else None

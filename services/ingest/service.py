@@ -22,13 +22,15 @@ from .core import (
     note_refusal,
     rebase,
 )
+from .framing import FramingIngest
 
 
-class Ingest(BatchingIngest, Service):
+class Ingest(FramingIngest, BatchingIngest, Service):
     role = "ingest"
     impl = "ingest"
     Settings = IngestServiceSettings
     RAW_BATCHES = True  # raw/batch (contract v2): validated here on whole columns
+    FRAME_INPUT = False
     CONSUMES = ("raw/mag/{sensor}", "raw/imu", "raw/gnss", "raw/ins", "raw/route", "raw/attitude")
     PRODUCES = ("clean/mag/{sensor}", "clean/imu", "clean/gnss", "clean/ins", "clean/route", "clean/attitude",
                 "rejects")
@@ -44,6 +46,9 @@ class Ingest(BatchingIngest, Service):
         # matching the key) and reported anything that failed on rejects; here: physics, time order, duplicates
         if info.rest[0] == keys.BATCH:  # contract v2: many samples, validated on whole columns
             self.on_batch_input(info, msg, state)
+            return
+        if self.frame_output:  # decided with the whole window (framing.py)
+            self.frame_single(info, msg)
             return
         key = info.key
         st = state.streams.get(key)
@@ -62,7 +67,14 @@ class Ingest(BatchingIngest, Service):
         self.emit(info, msg)
 
     def on_tick(self) -> None:
+        if self.frame_output:
+            self.frame_flush()
+            return
         self.flush()
+
+    def on_stop(self) -> None:
+        if self.frame_output:
+            self.frame_flush(force=True)
 
     def time_refusal(self, info, msg: dict, st: StreamState, r: Rejection) -> bool:
         """A refused sample: reported (False), or (True) the one that re-bases a clock that really jumped."""
@@ -85,15 +97,20 @@ class Ingest(BatchingIngest, Service):
         vs = self.vehicle_states.get(vehicle)
         if vs is not None:
             vs.streams.pop(key, None)
+        self.frame_evict_key(key)
+
+    def evict_vehicle(self, vehicle: str, state) -> None:
+        self.frame_evict_vehicle(vehicle)
 
     def status_extra(self) -> dict:
         gaps, seq_rebases, clock_rebases = {}, 0, 0
-        for vs in list(self.vehicle_states.values()):
-            for k, st in list((vs.streams if vs else {}).items()):
-                if st.upstream_gaps:
-                    gaps[k] = st.upstream_gaps
-                seq_rebases += st.seq_rebases
-                clock_rebases += st.clock_rebases
+        per_key = [(k, st.upstream_gaps, st.seq_rebases, st.clock_rebases)
+                   for vs in list(self.vehicle_states.values()) for k, st in list((vs.streams if vs else {}).items())]
+        for k, g, sr, cr in per_key + self.frame_streams():
+            if g:
+                gaps[k] = g
+            seq_rebases += sr
+            clock_rebases += cr
         top = dict(sorted(gaps.items(), key=lambda kv: -kv[1])[:50])  # bounded: the largest 50
         return {"upstream_gaps": top, "upstream_gap_keys": len(gaps), "seq_rebases": seq_rebases,
                 "clock_rebases": clock_rebases}

@@ -1,0 +1,133 @@
+"""Ingest on fleet frames (output = frames, contract v3), in process: the same decisions as the per-sample path,
+one frame per window, rejects reported and counted."""
+
+import math
+
+import msgpack
+import numpy as np
+import pytest
+
+from magmesh.runtime import Runner
+from schemas import batch, frame, keys, messages
+from services.ingest.batching import IngestServiceSettings
+from services.ingest.service import Ingest
+
+
+class _Pub:
+    def __init__(self, out, key):
+        self.out, self.key = out, key
+
+    def put(self, payload):
+        self.out.append((self.key, bytes(payload)))
+
+
+class _Session:
+    def __init__(self):
+        self.out = []
+
+    def declare_publisher(self, key, **kw):
+        assert "encoding" in kw
+        return _Pub(self.out, key)
+
+
+def _ingest(tmp_path, monkeypatch, name, **settings):
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path / name))
+    sess = _Session()
+    return Runner(Ingest(IngestServiceSettings(**settings), instance="ing-t"), sess), sess
+
+
+def _inputs(seed: int):
+    """A shuffled mix of v1 singles and v2 batches of three vehicles, with bad samples of every kind."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for vi, v in enumerate(["car-1", "car-2", "bus-7"]):
+        t = 10.0 + vi + np.cumsum(rng.choice([0.02, 0.02, 0.02, 0.0, -0.05, 0.02], 40))
+        b = np.array([2e4, 1e3, -4e4]) + rng.normal(0, 50, (40, 3))
+        b[rng.integers(0, 40, 2)] = [5e6, 0.0, 0.0]  # beyond any magnetometer
+        t[rng.integers(5, 40)] += 7200.0  # an hour ahead
+        g = rng.normal(0, 0.1, (40, 3))
+        g[rng.integers(0, 40)] = [99.0, 0, 0]
+        imu_t = 10.0 + vi + np.arange(40) * 0.01
+        i = 0
+        bseq = 0
+        while i < 40:
+            k = int(rng.integers(1, 6))
+            if rng.random() < 0.5:  # singles
+                for j in range(i, min(i + k, 40)):
+                    out.append((keys.raw_mag(v, "1"), messages.encode(messages.make(
+                        "mag", v, float(t[j]), j, sensor="1", b_nt=b[j].tolist()), check=False)))
+                    out.append((keys.raw_imu(v), messages.encode(messages.make(
+                        "imu", v, float(imu_t[j]), j, gyro_rad_s=g[j].tolist(), accel_m_s2=[0.0, 0.0, 9.8]),
+                        check=False)))
+            else:
+                sl = slice(i, min(i + k, 40))
+                out.append((keys.raw_batch(v), batch.encode(v, bseq, {
+                    "mag/1": {"t_s": t[sl], "seq": np.arange(40)[sl], "cols": {"sensor": "1", "b_nt": b[sl]}},
+                    "imu": {"t_s": imu_t[sl], "seq": np.arange(40)[sl],
+                            "cols": {"gyro_rad_s": g[sl], "accel_m_s2": np.tile([0.0, 0.0, 9.8], (sl.stop - i, 1))}}})))
+                bseq += 1
+            i += k
+    order = rng.permutation(len(out))
+    # keep each vehicle's inputs in their own order (interleave vehicles only)
+    by_v: dict[str, list] = {}
+    for k, p in out:
+        by_v.setdefault(k.split("/")[1], []).append((k, p))
+    mixed, ptr = [], {v: 0 for v in by_v}
+    for o in order:
+        v = list(by_v)[o % len(by_v)]
+        if ptr[v] < len(by_v[v]):
+            mixed.append(by_v[v][ptr[v]])
+            ptr[v] += 1
+    for v, lst in by_v.items():
+        mixed.extend(lst[ptr[v]:])
+    return mixed
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_frames_carry_what_singles_carry(tmp_path, monkeypatch, seed):
+    inputs = _inputs(seed)
+    r1, s1 = _ingest(tmp_path, monkeypatch, "singles")
+    r2, s2 = _ingest(tmp_path, monkeypatch, "frames", output="frames", batch_window_s=0.05)
+    for k, p in inputs:
+        r1.handle_sample(k, p)
+        r2.handle_sample(k, p)
+    r2.svc.frame_flush(force=True)
+    singles = [(k, msgpack.unpackb(p)) for k, p in s1.out if "/clean/" in k]
+    frames = [frame.decode(p) for k, p in s2.out if k == keys.fleet_frame("ing-t", "clean")]
+    assert len(frames) == 1 and frames[0].seq == 0
+    f = frames[0]
+    got = []
+    for name, st in f.streams.items():
+        for i in range(st.n):
+            v = f.vehicles[int(st.vi[i])]
+            key = keys.clean_mag(v, "1") if name == "mag/1" else keys.clean_imu(v)
+            m = st.messages(v, i, i + 1)[0]
+            got.append((key, m["t_s"], m["seq"], m.get("b_nt") or m.get("gyro_rad_s")))
+    want = [(k, m["t_s"], m["seq"], m.get("b_nt") or m.get("gyro_rad_s")) for k, m in singles]
+    assert sorted(got) == sorted(want) and len(want) > 100
+    # the same refusals, by key and code, counted per sample
+    def refused(r):
+        return {(k, c): n for k, d in r.drops.items() for c, n in d.items() if c.startswith("rejected:")}
+    assert refused(r2) == refused(r1) and sum(refused(r1).values()) >= 6
+    rej = [msgpack.unpackb(p) for k, p in s2.out if k.endswith("/rejects")]
+    assert {m["code"] for m in rej} >= {"range", "time_order"}
+    assert all(messages.validate(m) for m in rej)
+
+
+def test_frame_rows_sorted_by_vehicle_and_numbered_per_key(tmp_path, monkeypatch):
+    r, s = _ingest(tmp_path, monkeypatch, "f", output="frames")
+    for i in range(3):
+        for v in ("car-2", "car-1"):
+            r.handle_sample(keys.raw_mag(v, "1"), messages.encode(messages.make(
+                "mag", v, 1.0 + 0.02 * i, 100 + i, sensor="1", b_nt=[2e4, 0.0, -4e4], temp_c=20.0 + i)))
+    r.handle_sample(keys.raw_mag("car-1", "1"), messages.encode(messages.make(
+        "mag", "car-1", 1.5, 103, sensor="1", b_nt=[2e4, 0.0, -4e4])))  # no temperature on this one
+    r.svc.frame_flush(force=True)
+    (f,) = [frame.decode(p) for k, p in s.out]
+    st = f.streams["mag/1"]
+    assert f.vehicles == ["car-2", "car-1"] and st.vi.tolist() == [0, 0, 0, 1, 1, 1, 1]
+    assert st.seq.tolist() == [0, 1, 2, 0, 1, 2, 3]  # ingest's own numbering per clean key
+    msgs = st.messages("car-1", 3, 7)
+    assert [m.get("temp_c") for m in msgs] == [20.0, 21.0, 22.0, None] and "temp_c" not in msgs[3]
+    assert math.isnan(st.cols["temp_c"][6])
+    assert r.tick_period() == pytest.approx(0.01)
