@@ -472,3 +472,63 @@ def test_bench_row_runs_and_both_paths_decide_alike():
     r = cores_bench.ingest_rules(slots=20, per_slot=4, calls=3, repeats=1)
     assert r["same_decisions"] is True
     assert r["reference_us_per_sample"] > 0 and r["kernel_us_per_sample"] > 0
+
+
+# ---- v2 batches: a refused sample's seq is no gap of its stream, as on the v1 path -----------------------------
+
+
+class _Pub:
+    def put(self, payload, **kw):
+        pass
+
+
+class _Session:
+    def declare_publisher(self, key, **kw):
+        return _Pub()
+
+
+@pytest.mark.parametrize("n,jump", [(10, False), (100, False), (100, True)])  # _small, columns, _per_sample
+def test_v2_batches_count_refused_seqs_as_the_v1_path_does(tmp_path, monkeypatch, n, jump):
+    """Ingest's batch paths leave the seq accounting of the v1 path: a refused sample is counted as rejected,
+    not also as an upstream gap (the batch paths used to skip remembering refused seqs)."""
+    from magmesh.runtime import Runner
+    from schemas import batch, messages
+    from services.ingest.batching import IngestServiceSettings
+
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
+    key = keys.raw_imu("car-1")
+    g, a = [0.01, 0.0, 0.0], [0.0, 0.1, 9.8]
+
+    def rows(t0: float, s0: int) -> list[tuple[float, int, list]]:
+        out = []
+        for i in range(n):
+            t, gyro = t0 + 0.01 * i, g
+            if i == n // 3:
+                gyro = [100.0, 0.0, 0.0]  # out of range
+            if i == n // 2:
+                t = out[-1][0]  # the previous t_s again
+            if i == n // 2 + 2:
+                t = out[-1][0] - 0.005  # backwards
+            if jump and i == n // 4:
+                t += 5000.0  # beyond max_time_jump_s: the per-sample path
+            if i >= n - 2:
+                gyro = [0.0, 0.0, 100.0]  # the last two refused: their seqs carried to the next batch
+            out.append((t, s0 + i + (3 if i > n // 2 else 0), gyro))  # three seqs really missing
+        return out
+
+    parts = [rows(1.0, 100), [(1.0 + 0.01 * n - 0.02, 100 + n + 3, g)], rows(1.0 + 0.01 * n, 100 + n + 4)]
+    r1 = Runner(Ingest(IngestServiceSettings(), instance="ing-v1"), _Session())
+    r2 = Runner(Ingest(IngestServiceSettings(), instance="ing-v2"), _Session())
+    for p, part in enumerate(parts):
+        for t, q, gyro in part:
+            r1.handle_sample(key, messages.encode(make("imu", "car-1", t, q, gyro_rad_s=gyro, accel_m_s2=a)))
+        if len(part) == 1:  # a single between the batches, on both
+            r2.handle_sample(key, messages.encode(make("imu", "car-1", *part[0][:2], gyro_rad_s=g, accel_m_s2=a)))
+        else:
+            r2.handle_sample(keys.raw_batch("car-1"), batch.encode("car-1", p, {"imu": {
+                "t_s": np.array([x[0] for x in part]), "seq": np.array([x[1] for x in part]),
+                "cols": {"gyro_rad_s": np.array([x[2] for x in part]), "accel_m_s2": np.tile(a, (len(part), 1))}}}))
+        s1, s2 = r1.vehicle_state["car-1"].streams[key], r2.vehicle_state["car-1"].streams[key]
+        seq_fields = ("accepted", "last_seq", "upstream_gaps", "seq_rebases", "refused_seqs", "last_t_s")
+        assert [getattr(s2, f) for f in seq_fields] == [getattr(s1, f) for f in seq_fields], (p, s1, s2)
+    assert s1.upstream_gaps == 6 and s1.accepted > 0  # the real gaps only (3 in each batch)
