@@ -36,12 +36,13 @@ REFUSED_SEQS_MAX = 1024
 @dataclass(frozen=True)
 class IngestServiceSettings(IngestSettings):
     output: str = "singles"  # singles: one clean/ message per sample (v1) | batches: clean/batch per vehicle (v2)
-    batch_window_s: float = 0.02  # longest wall-clock wait of an accepted sample before its clean batch goes out
+    #                          | frames: one fleet frame of every vehicle per window (v3, magmesh/fleet/{instance}/clean)
+    batch_window_s: float = 0.02  # longest wall-clock wait of an accepted sample before its batch or frame goes out
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.output not in ("singles", "batches"):
-            raise ValueError(f"output must be 'singles' or 'batches', got {self.output!r}")
+        if self.output not in ("singles", "batches", "frames"):
+            raise ValueError(f"output must be 'singles', 'batches' or 'frames', got {self.output!r}")
         if not 0 < self.batch_window_s <= 5.0:
             raise ValueError(f"batch_window_s must be in (0, 5] s, got {self.batch_window_s!r}")
 
@@ -82,6 +83,9 @@ class BatchingIngest:
         self._rt.batches_in += 1
         b = self._rt.decode_batch(key, info, payload, check=True)
         if b is None:
+            return
+        if self.frame_output:  # decided with the whole window (framing.py)
+            self.frame_batch(info.vehicle, b)
             return
         now = time.monotonic()
         for name, c in b.streams.items():
@@ -258,4 +262,4 @@ class BatchingIngest:
     @property
     def tick_override_s(self) -> float | None:
         """The runtime's tick runs the window's flush at half the window."""
-        return self.settings.batch_window_s / 2 if self.batch_output else None
+        return self.settings.batch_window_s / 2 if (self.batch_output or self.frame_output) else None
