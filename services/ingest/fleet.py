@@ -533,13 +533,18 @@ def reference_step(msg: dict, st: StreamState, settings: IngestSettings, where: 
 def warm() -> dict:
     """Compile (or load from the on-disk cache) the kernel; what it took."""
     t0 = time.perf_counter()
+    import numba  # noqa: F401 - timed apart: part of any first call, not of the kernel
+
+    t1 = time.perf_counter()
     k = _kernel()
     fs = FleetStreams(IngestSettings(), capacity=2)
     a = fs.add()
     fs.decide(np.array([a, a], np.int32), np.zeros(2, np.int8), np.array([0.0, 0.01]), np.array([0, 1]),
               np.ones(2, bool), np.array([0.0, 0.01]))
     s = k.stats
-    return {"first_call_s": round(time.perf_counter() - t0, 3), "cache_hits": sum(s.cache_hits.values()),
+    t2 = time.perf_counter()
+    return {"first_call_s": round(t2 - t0, 3), "numba_import_s": round(t1 - t0, 3),
+            "compile_or_load_s": round(t2 - t1, 3), "cache_hits": sum(s.cache_hits.values()),
             "cache_misses": sum(s.cache_misses.values()), "cache_dir": str(getattr(s, "cache_path", ""))}
 
 
@@ -556,7 +561,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     r = warm()
     how = "loaded from the cache" if r["cache_hits"] and not r["cache_misses"] else "compiled and cached"
-    print(f"ingest fleet kernel {how} in {r['first_call_s']:.2f} s ({r['cache_dir']})")
+    print(f"ingest fleet kernel {how} in {r['first_call_s']:.2f} s (importing numba {r['numba_import_s']:.2f} s, "
+          f"the kernel {r['compile_or_load_s']:.2f} s; {r['cache_dir']})")
     return 0
 
 
