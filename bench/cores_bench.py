@@ -6,6 +6,9 @@
   batches (a batch per vehicle per 20 ms), each sample decoded, validated and republished;
 - ingest rules, per sample: ingest's time and sequence rules (ranges, order, stream clocks, seq gaps) on a fleet
   window of 500 streams x 4 samples, the per-sample Python path against one compiled call per window;
+- DMC detector, per epoch: the per-vehicle reference detectors (threshold, fcm, single; one ``update`` per epoch)
+  against the fleet kernel stepping 1, 50 and 500 vehicles x 2 epochs per call (CPU µs per epoch), the numpy
+  alternative for the stateless part, and the two compasses' pairing (TimeAligner per sample vs one call per frame);
 - calibration fit: LS and ARLS on 10,000 samples (3-D, 20 % gross errors) vs ``scipy.optimize.least_squares``
   fitting the same ellipsoid geometrically;
 - FCM on 10,000 × 2 samples vs scikit-fuzzy's ``cmeans`` (same start);
@@ -207,6 +210,143 @@ def ingest_rules(slots: int = 500, per_slot: int = 4, calls: int = 50, repeats: 
             "kernel_first_call_s": first["first_call_s"], "kernel_from_cache": bool(first["cache_hits"])}
 
 
+def dmc_detector(vehicles: tuple[int, ...] = (1, 50, 500), epochs_per_call: int = 2, epochs: int = 40_000,
+                 repeats: int = 5, ref_epochs: int = 1500) -> dict:
+    """DMC detector, per epoch: the per-vehicle reference (``ThresholdDetector.update``, ``FcmDetector``,
+    ``SingleCompassDetector``: one call per epoch, what the service runs) against one
+    :meth:`services.dmc_detector.fleet.FleetDetector.step` per frame of ``vehicles`` × ``epochs_per_call``
+    epochs (rows sorted by vehicle then time, windows full), CPU µs per epoch, medians of ``repeats`` runs of
+    about ``epochs`` epochs each. Beside it: the stateless part (compensation, strengths, headings, Δh) done in
+    numpy over the frame instead (timed alone, the design the kernel was measured against), the pairing
+    (one TimeAligner per vehicle fed sample by sample against :func:`fleet.pair_frame` per frame), whether
+    the fleet's decisions equal the reference's on the timed drive, and the kernels' first call."""
+    import math
+
+    from magmesh.align import TimeAligner
+    from services.dmc_detector import core, fcm
+    from services.dmc_detector import fleet as dfleet
+    from sim_publishers.car.core import CarSimSettings, simulate
+
+    first = dfleet.warm()  # compile (or load from numba's disk cache) before timing; reported
+    d = simulate(CarSimSettings(layout="urban_a", seed=5, duration_s=40.0))
+    radius = float(np.linalg.norm(d.earth_field_enu_nt))
+    pa, pb = (core.CompassParams(tuple(d.true_params[s].offset_nt), tuple(d.true_params[s].matrix.ravel()), radius)
+              for s in ("1", "2"))
+    decl = float(d.declination_rad)
+    ba, bb, n_drive = d.mag_b_nt["1"], d.mag_b_nt["2"], len(d.t_mag_s)
+    model = fcm.FcmModel.load()
+    impls = {
+        "threshold": (core.ThresholdDetector, lambda cap: dfleet.FleetDetector(core.ThresholdDetectorSettings(), cap)),
+        "fcm": (lambda: fcm.FcmDetector(model), lambda cap: dfleet.FleetFcmDetector(model, None, cap)),
+        "single": (core.SingleCompassDetector,
+                   lambda cap: dfleet.FleetSingleDetector(core.ThresholdDetectorSettings(), cap)),
+    }
+
+    def cpu(fn) -> float:
+        t0 = time.process_time()
+        fn()
+        return time.process_time() - t0
+
+    def prepass(params, slot, t, b_a, b_b):
+        """Compensation, strengths, headings and Δh of a frame in numpy (each row with its slot's parameters)."""
+        p = params[slot]
+        hd = []
+        for base, b in ((dfleet.P_A, b_a), (dfleet.P_B, b_b)):
+            v = b - p[:, base + dfleet.P_OFF:base + dfleet.P_OFF + 3]
+            h = np.einsum("nij,nj->ni", p[:, base + dfleet.P_MAT:base + dfleet.P_MAT + 9].reshape(-1, 3, 3), v)
+            strength = np.where(p[:, base + dfleet.P_2D] != 0, np.hypot(h[:, 0], h[:, 1]), np.sqrt((h * h).sum(1)))
+            _dm = strength - p[:, base + dfleet.P_R]
+            hd.append((np.arctan2(h[:, 1], h[:, 0]) + p[:, dfleet.P_DECL]) % (2 * math.pi))
+        return (hd[0] - (hd[1] + p[:, dfleet.P_DHREF]) + math.pi) % (2 * math.pi) - math.pi
+
+    out: dict = {"epochs_per_call_per_vehicle": epochs_per_call, "reference_us_per_epoch": {},
+                 "fleet_us_per_epoch": {}, "speedup": {}, "same_decisions": {},
+                 "numpy_stateless_part_alone_us_per_epoch": {}}
+    t_ref = 100.0 + np.arange(ref_epochs) * 0.02
+    for name, (make_ref, make_fleet) in impls.items():
+        per = []
+        for _ in range(repeats):
+            ref = make_ref()
+            decs = []
+            per.append(cpu(lambda ref=ref, decs=decs: decs.extend(
+                ref.update(float(t_ref[i]), ba[i], bb[i], pa, pb, decl) for i in range(ref_epochs))) / ref_epochs)
+        out["reference_us_per_epoch"][name] = round(statistics.median(per) * 1e6, 2)
+        det = make_fleet(1)  # the same epochs through the fleet detector, one frame of epochs_per_call at a time
+        s0 = det.add()
+        det.set_params(s0, pa, pb, decl)
+        got = []
+        for k in range(0, ref_epochs, epochs_per_call):
+            sl = slice(k, min(k + epochs_per_call, ref_epochs))
+            o = det.step(np.full(sl.stop - k, s0), t_ref[sl], ba[sl], bb[sl])
+            got += [(bool(v), int(c)) for v, c in zip(o.valid, o.transition, strict=True)]
+        codes = {None: 0, "raised": 1, "cleared": 2}
+        out["same_decisions"][name] = got == [(dd.valid, codes[dd.transition]) for dd in decs]
+        out["fleet_us_per_epoch"][name] = {}
+        for n_v in vehicles:
+            rows = n_v * epochs_per_call
+            calls = max(10, epochs // rows)
+            warm_calls = int(math.ceil(1.0 / (0.02 * epochs_per_call)))  # 1 s of input first: the windows fill
+            slot = np.repeat(np.arange(n_v, dtype=np.int32), epochs_per_call)
+            frames = []
+            for k in range(warm_calls + calls):
+                j = k * epochs_per_call + np.tile(np.arange(epochs_per_call), n_v)
+                idx = (37 * slot + j) % n_drive
+                frames.append((slot, 100.0 + 0.02 * j, np.ascontiguousarray(ba[idx]), np.ascontiguousarray(bb[idx])))
+            per = []
+            for _ in range(repeats):
+                det = make_fleet(n_v)
+                for _v in range(n_v):
+                    det.set_params(det.add(), pa, pb, decl)
+                for f in frames[:warm_calls]:
+                    det.step(*f)
+                timed = frames[warm_calls:]
+                per.append(cpu(lambda det=det, timed=timed: [det.step(*f) for f in timed]) / (calls * rows))
+            out["fleet_us_per_epoch"][name][str(n_v)] = round(statistics.median(per) * 1e6, 3)
+            if name == "threshold":  # the alternative design: the stateless part in numpy, timed alone
+                per = [cpu(lambda det=det, timed=timed: [prepass(det._params, *f) for f in timed]) / (calls * rows)
+                       for _ in range(repeats)]
+                out["numpy_stateless_part_alone_us_per_epoch"][str(n_v)] = round(statistics.median(per) * 1e6, 3)
+        out["speedup"][name] = {k: round(out["reference_us_per_epoch"][name] / v, 1)
+                                for k, v in out["fleet_us_per_epoch"][name].items()}
+    # pairing: a frame's two compass streams (epochs_per_call samples each per vehicle, jitter within tolerance)
+    out["pairing_us_per_epoch"] = {"time_aligner": None, "pair_frame": {}}
+    rng = np.random.default_rng(3)
+    for n_v in vehicles:
+        calls = max(10, epochs // (n_v * epochs_per_call))
+        slot = np.repeat(np.arange(n_v, dtype=np.int32), epochs_per_call)
+        fr = []
+        for k in range(calls):
+            t = 100.0 + 0.02 * (k * epochs_per_call + np.tile(np.arange(epochs_per_call), n_v))
+            fr.append((slot, t, ba[: len(t)], slot, t + rng.uniform(-0.002, 0.002, len(t)), bb[: len(t)], float(k)))
+        per = []
+        for _ in range(repeats):
+            w = dfleet.Samples.empty()
+
+            def run(w=w, fr=fr):
+                for f in fr:
+                    _, w, _ = dfleet.pair_frame(w, *f[:6], now=f[6])
+
+            per.append(cpu(run) / (calls * n_v * epochs_per_call))
+        out["pairing_us_per_epoch"]["pair_frame"][str(n_v)] = round(statistics.median(per) * 1e6, 3)
+        if n_v == max(vehicles):  # the reference: one aligner per vehicle, every sample pushed (a, then b)
+            per = []
+            ref_fr = fr[: max(2, calls // 5)]
+            for _ in range(repeats):
+                al = [TimeAligner(("1", "2"), 0.005) for _ in range(n_v)]
+
+                def run_ref(al=al, fr=ref_fr):
+                    for f in fr:
+                        sl, ta, tb = f[0].tolist(), f[1].tolist(), f[4].tolist()
+                        for i, v in enumerate(sl):
+                            al[v].push("1", ta[i], f[2][i], now=f[6])
+                            al[v].push("2", tb[i], f[5][i], now=f[6])
+
+                per.append(cpu(run_ref) / (len(ref_fr) * n_v * epochs_per_call))
+            out["pairing_us_per_epoch"]["time_aligner"] = round(statistics.median(per) * 1e6, 3)
+    out["kernels_first_call_s"] = {k: round(v, 3) for k, v in first.items() if k.endswith("_s")}
+    return out
+
+
 def calibration_fit(repeats: int = 5) -> dict:
     from scipy.optimize import least_squares
 
@@ -265,6 +405,7 @@ def run_all(progress=None) -> dict:
     out = {}
     for name, fn in (("ingest_validation", ingest_validation), ("ingest_wire", ingest_wire),
                      ("ingest_rules_per_sample", ingest_rules),
+                     ("dmc_detector_per_epoch", dmc_detector),
                      ("calibration_fit", calibration_fit), ("fcm", fcm),
                      ("ekf_update", ekf_update), ("hausdorff_match", hausdorff)):
         say(f"cores: {name}")

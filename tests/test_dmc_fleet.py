@@ -540,3 +540,12 @@ def test_warm_entry_point_compiles_every_kernel_once():
     res = json.loads(r.stdout.strip().splitlines()[-1])
     assert res["signatures"] == {"step": 1, "pair": 1}
     assert res["step_s"] > 0 and res["pair_s"] > 0
+
+
+def test_bench_row_runs_and_the_timed_decisions_agree():
+    from bench import cores_bench
+
+    r = cores_bench.dmc_detector(vehicles=(1, 3), epochs=60, repeats=1, ref_epochs=80)
+    assert r["same_decisions"] == {"threshold": True, "fcm": True, "single": True}
+    assert set(r["fleet_us_per_epoch"]["fcm"]) == {"1", "3"} and r["reference_us_per_epoch"]["single"] > 0
+    assert r["pairing_us_per_epoch"]["time_aligner"] > 0 and r["pairing_us_per_epoch"]["pair_frame"]["3"] > 0

@@ -342,94 +342,125 @@ def _step_kernel(slot, t_in, b_a, b_b, start, cfg, centres, usable, params, seg_
     return n
 
 
-def _pair_kernel(uniq, pa_lo, pa_hi, pb_lo, pb_hi, fa_lo, fa_hi, fb_lo, fb_hi, ta, arr_a, tb, arr_b, n_pa, n_pb,
-                 now, tol, max_wait, max_pending, ep_a, ep_b, g_stream, g_idx, g_reason, keep_a, keep_b):
-    """TimeAligner's two-stream join, slot by slot. Stream s's samples are one array per stream: the waiting
-    ones first (``[0, n_ps)``), then the frame's; a slot's queue is its waiting range followed by its frame range.
-    The frame's samples are pushed in time order (stream a first at equal times). Fills the epochs (indices
-    into the two arrays), the given-up samples in the order TimeAligner returns them, and marks what still
-    waits; returns (epochs, given up)."""
+def _pair_kernel(w_slot, w_stream, w_t, w_b, w_arr, a_slot, a_t, a_b, b_slot, b_t, b_b, now, tol, max_wait,
+                 max_pending, ep_slot, ep_t, ep_tb, ep_ba, ep_bb, g_slot, g_stream, g_t, g_b, g_reason, s_slot,
+                 s_stream, s_t, s_b, s_arr):
+    """TimeAligner's two-stream join, slot by slot, over the waiting samples (sorted by slot, then stream, then
+    queue order) and a frame's two streams (each sorted by slot, each slot's rows in time order). A slot's queue
+    of stream s is its waiting samples of s followed by its frame rows of s; the frame's rows are pushed in time
+    order, stream a first at equal times, all arriving at ``now``. Writes the epochs, the samples given up (in
+    the order TimeAligner returns them) and those still waiting (sorted as the input); returns their counts."""
+    nw = w_t.shape[0]
+    na = a_t.shape[0]
+    nb = b_t.shape[0]
+    lim = now - max_wait
     n_ep = 0
     n_g = 0
-    lim = now - max_wait
-    for u in range(uniq.shape[0]):
-        npa = pa_hi[u] - pa_lo[u]
-        npb = pb_hi[u] - pb_lo[u]
-        nfa = fa_hi[u] - fa_lo[u]
-        nfb = fb_hi[u] - fb_lo[u]
-        # queue positions: [0, np) waiting, [np, np + nf) this frame
+    n_s = 0
+    iw = 0
+    ia = 0
+    ib = 0
+    big = np.iinfo(np.int64).max
+    while iw < nw or ia < na or ib < nb:
+        u = big
+        if iw < nw:
+            u = w_slot[iw]
+        if ia < na and a_slot[ia] < u:
+            u = a_slot[ia]
+        if ib < nb and b_slot[ib] < u:
+            u = b_slot[ib]
+        wa_lo = iw
+        while iw < nw and w_slot[iw] == u and w_stream[iw] == 0:
+            iw += 1
+        wb_lo = iw
+        while iw < nw and w_slot[iw] == u:
+            iw += 1
+        npa = wb_lo - wa_lo
+        npb = iw - wb_lo
+        fa_lo = ia
+        while ia < na and a_slot[ia] == u:
+            ia += 1
+        fb_lo = ib
+        while ib < nb and b_slot[ib] == u:
+            ib += 1
+        ea_end = npa + ia - fa_lo  # queue positions: [0, np) waiting, then this frame's rows
+        eb_end = npb + ib - fb_lo
         ha = 0
         hb = 0
         ea = npa
         eb = npb
-        while ea < npa + nfa or eb < npb + nfb:
-            if ea < npa + nfa and (eb >= npb + nfb or ta[n_pa + fa_lo[u] + ea - npa] <= tb[n_pb + fb_lo[u] + eb - npb]):
+        while ea < ea_end or eb < eb_end:
+            # ---- push the next sample (time order, stream a first at equal times); overflow drops the oldest
+            if ea < ea_end and (eb >= eb_end or a_t[fa_lo + ea - npa] <= b_t[fb_lo + eb - npb]):
                 ea += 1
-                if ea - ha > max_pending:
-                    g_stream[n_g] = 0
-                    g_idx[n_g] = pa_lo[u] + ha if ha < npa else n_pa + fa_lo[u] + ha - npa
-                    g_reason[n_g] = 2
-                    n_g += 1
-                    ha += 1
+                st = 0 if ea - ha > max_pending else -1
             else:
                 eb += 1
-                if eb - hb > max_pending:
-                    g_stream[n_g] = 1
-                    g_idx[n_g] = pb_lo[u] + hb if hb < npb else n_pb + fb_lo[u] + hb - npb
-                    g_reason[n_g] = 2
-                    n_g += 1
-                    hb += 1
-            # join while both streams wait
-            while ha < ea and hb < eb:
-                ia = pa_lo[u] + ha if ha < npa else n_pa + fa_lo[u] + ha - npa
-                ib = pb_lo[u] + hb if hb < npb else n_pb + fb_lo[u] + hb - npb
-                t0 = ta[ia]
-                t1 = tb[ib]
-                hi = t1 if t1 > t0 else t0
-                lo = t1 if t1 < t0 else t0
-                if hi - lo <= tol:
-                    ep_a[n_ep] = ia
-                    ep_b[n_ep] = ib
-                    n_ep += 1
+                st = 1 if eb - hb > max_pending else -1
+            reason = 2
+            # ---- then join while both streams wait, give up heads passed; then expire (TimeAligner.push)
+            while True:
+                if st < 0:
+                    if ha < ea and hb < eb:
+                        t0 = w_t[wa_lo + ha] if ha < npa else a_t[fa_lo + ha - npa]
+                        t1 = w_t[wb_lo + hb] if hb < npb else b_t[fb_lo + hb - npb]
+                        hi = t1 if t1 > t0 else t0
+                        lo = t1 if t1 < t0 else t0
+                        if hi - lo <= tol:
+                            ep_slot[n_ep] = u
+                            ep_t[n_ep] = t0
+                            ep_tb[n_ep] = t1
+                            for c in range(3):
+                                ep_ba[n_ep, c] = w_b[wa_lo + ha, c] if ha < npa else a_b[fa_lo + ha - npa, c]
+                                ep_bb[n_ep, c] = w_b[wb_lo + hb, c] if hb < npb else b_b[fb_lo + hb - npb, c]
+                            n_ep += 1
+                            ha += 1
+                            hb += 1
+                            continue
+                        reason = 0
+                        st = 0 if t0 < hi - tol else 1  # the older head can never be joined
+                    else:
+                        reason = 1
+                        if ha < ea and not ((w_arr[wa_lo + ha] if ha < npa else now) > lim):
+                            st = 0
+                        elif hb < eb and not ((w_arr[wb_lo + hb] if hb < npb else now) > lim):
+                            st = 1
+                        else:
+                            break
+                # give up the head of stream st for `reason`
+                g_slot[n_g] = u
+                g_stream[n_g] = st
+                g_reason[n_g] = reason
+                if st == 0:
+                    g_t[n_g] = w_t[wa_lo + ha] if ha < npa else a_t[fa_lo + ha - npa]
+                    for c in range(3):
+                        g_b[n_g, c] = w_b[wa_lo + ha, c] if ha < npa else a_b[fa_lo + ha - npa, c]
                     ha += 1
+                else:
+                    g_t[n_g] = w_t[wb_lo + hb] if hb < npb else b_t[fb_lo + hb - npb]
+                    for c in range(3):
+                        g_b[n_g, c] = w_b[wb_lo + hb, c] if hb < npb else b_b[fb_lo + hb - npb, c]
                     hb += 1
-                    continue
-                if t0 < hi - tol:
-                    g_stream[n_g] = 0
-                    g_idx[n_g] = ia
-                    g_reason[n_g] = 0
-                    n_g += 1
-                    ha += 1
-                if t1 < hi - tol:
-                    g_stream[n_g] = 1
-                    g_idx[n_g] = ib
-                    g_reason[n_g] = 0
-                    n_g += 1
-                    hb += 1
-            # waited max_wait_s of wall-clock time
-            while ha < ea:
-                ia = pa_lo[u] + ha if ha < npa else n_pa + fa_lo[u] + ha - npa
-                if not arr_a[ia] <= lim:
-                    break
-                g_stream[n_g] = 0
-                g_idx[n_g] = ia
-                g_reason[n_g] = 1
                 n_g += 1
-                ha += 1
-            while hb < eb:
-                ib = pb_lo[u] + hb if hb < npb else n_pb + fb_lo[u] + hb - npb
-                if not arr_b[ib] <= lim:
-                    break
-                g_stream[n_g] = 1
-                g_idx[n_g] = ib
-                g_reason[n_g] = 1
-                n_g += 1
-                hb += 1
+                st = -1
+        # ---- what still waits
         for q in range(ha, ea):
-            keep_a[pa_lo[u] + q if q < npa else n_pa + fa_lo[u] + q - npa] = True
+            s_slot[n_s] = u
+            s_stream[n_s] = 0
+            s_t[n_s] = w_t[wa_lo + q] if q < npa else a_t[fa_lo + q - npa]
+            s_arr[n_s] = w_arr[wa_lo + q] if q < npa else now
+            for c in range(3):
+                s_b[n_s, c] = w_b[wa_lo + q, c] if q < npa else a_b[fa_lo + q - npa, c]
+            n_s += 1
         for q in range(hb, eb):
-            keep_b[pb_lo[u] + q if q < npb else n_pb + fb_lo[u] + q - npb] = True
-    return n_ep, n_g
+            s_slot[n_s] = u
+            s_stream[n_s] = 1
+            s_t[n_s] = w_t[wb_lo + q] if q < npb else b_t[fb_lo + q - npb]
+            s_arr[n_s] = w_arr[wb_lo + q] if q < npb else now
+            for c in range(3):
+                s_b[n_s, c] = w_b[wb_lo + q, c] if q < npb else b_b[fb_lo + q - npb, c]
+            n_s += 1
+    return n_ep, n_g, n_s
 
 
 class _Kernels:
@@ -878,63 +909,31 @@ def pair_frame(waiting: Samples, slot_a, t_a, b_a_nt, slot_b, t_b, b_b_nt, now: 
             sl, t, b = sl[o], t[o], b[o]
         frame.append((sl, t, b))
     (fa_slot, fa_t, fa_b), (fb_slot, fb_t, fb_b) = frame
-    in_a = waiting.stream == 0
-    wa, wb = waiting.take(in_a), waiting.take(~in_a)
-    oa, ob = _by_slot(wa.slot), _by_slot(wb.slot)  # waiting samples not sorted by slot: sorted, queues kept
-    wa = wa if oa is None else wa.take(oa)
-    wb = wb if ob is None else wb.take(ob)
-    uniq = np.unique(np.concatenate([wa.slot, wb.slot, fa_slot, fb_slot])).astype(np.int32)
-
-    def ranges(sl):
-        return (np.searchsorted(sl, uniq, "left").astype(np.int64), np.searchsorted(sl, uniq, "right").astype(np.int64))
-
-    pa_lo, pa_hi = ranges(wa.slot)
-    pb_lo, pb_hi = ranges(wb.slot)
-    fa_lo, fa_hi = ranges(fa_slot)
-    fb_lo, fb_hi = ranges(fb_slot)
-    slot_all_a = np.concatenate([wa.slot, fa_slot])
-    ta = np.concatenate([wa.t_s, fa_t])
-    arr_a = np.concatenate([wa.arrived, np.full(fa_t.shape[0], float(now))])
-    slot_all_b = np.concatenate([wb.slot, fb_slot])
-    tb = np.concatenate([wb.t_s, fb_t])
-    arr_b = np.concatenate([wb.arrived, np.full(fb_t.shape[0], float(now))])
-    na, nb = ta.shape[0], tb.shape[0]
-    ep_a = np.empty(min(na, nb), np.int64)
-    ep_b = np.empty(min(na, nb), np.int64)
-    g_stream = np.empty(na + nb, np.int8)
-    g_idx = np.empty(na + nb, np.int64)
-    g_reason = np.empty(na + nb, np.int8)
-    keep_a = np.zeros(na, bool)
-    keep_b = np.zeros(nb, bool)
-    n_ep, n_g = _kernels().pair(uniq, pa_lo, pa_hi, pb_lo, pb_hi, fa_lo, fa_hi, fb_lo, fb_hi, ta, arr_a, tb, arr_b,
-                                len(wa), len(wb), float(now), float(tolerance_s), float(max_wait_s), int(max_pending),
-                                ep_a, ep_b, g_stream, g_idx, g_reason, keep_a, keep_b)
-    b_all_a = np.concatenate([wa.b_nt, fa_b])
-    b_all_b = np.concatenate([wb.b_nt, fb_b])
-    ia, ib = ep_a[:n_ep], ep_b[:n_ep]
-    epochs = Epochs(slot_all_a[ia], ta[ia], tb[ib], b_all_a[ia], b_all_b[ib])
-    gs, gi = g_stream[:n_g], g_idx[:n_g]
-    from_a = gs == 0
-    gia, gib = np.where(from_a, gi, 0), np.where(from_a, 0, gi)
-
-    def pick(xa, xb):
-        if n_g == 0:
-            return xa[:0]
-        if na == 0:
-            return xb[gib]
-        if nb == 0:
-            return xa[gia]
-        return np.where(from_a.reshape((-1,) + (1,) * (xa.ndim - 1)), xa[gia], xb[gib])
-
-    given_up = GivenUp(pick(slot_all_a, slot_all_b), gs.copy(), pick(ta, tb), pick(b_all_a, b_all_b),
-                       g_reason[:n_g].copy())
-    ka, kb = np.flatnonzero(keep_a), np.flatnonzero(keep_b)
-    still = Samples(np.concatenate([slot_all_a[ka], slot_all_b[kb]]),
-                    np.concatenate([np.zeros(ka.size, np.int8), np.ones(kb.size, np.int8)]),
-                    np.concatenate([ta[ka], tb[kb]]), np.concatenate([b_all_a[ka], b_all_b[kb]]),
-                    np.concatenate([arr_a[ka], arr_b[kb]]))
-    o = np.lexsort((still.stream, still.slot))  # slot, then stream, queue order kept (lexsort is stable)
-    return epochs, still.take(o), given_up
+    w = waiting
+    key = w.slot.astype(np.int64) * 2 + w.stream
+    if key.size > 1 and not bool(np.all(key[1:] >= key[:-1])):  # sorted by slot then stream, queues kept
+        w = w.take(np.argsort(key, kind="stable"))
+    w_slot = np.ascontiguousarray(w.slot, np.int32)
+    w_stream = np.ascontiguousarray(w.stream, np.int8)
+    w_t = np.ascontiguousarray(w.t_s, float)
+    w_b = np.ascontiguousarray(w.b_nt, float).reshape(w_t.shape[0], 3)
+    w_arr = np.ascontiguousarray(w.arrived, float)
+    n_all = w_t.shape[0] + fa_t.shape[0] + fb_t.shape[0]
+    n_ep_max = min(int(np.count_nonzero(w_stream == 0)) + fa_t.shape[0],
+                   int(np.count_nonzero(w_stream == 1)) + fb_t.shape[0])
+    ep = Epochs(np.empty(n_ep_max, np.int32), np.empty(n_ep_max), np.empty(n_ep_max), np.empty((n_ep_max, 3)),
+                np.empty((n_ep_max, 3)))
+    g = GivenUp(np.empty(n_all, np.int32), np.empty(n_all, np.int8), np.empty(n_all), np.empty((n_all, 3)),
+                np.empty(n_all, np.int8))
+    still = Samples(np.empty(n_all, np.int32), np.empty(n_all, np.int8), np.empty(n_all), np.empty((n_all, 3)),
+                    np.empty(n_all))
+    n_ep, n_g, n_s = _kernels().pair(w_slot, w_stream, w_t, w_b, w_arr, fa_slot, fa_t, fa_b, fb_slot, fb_t, fb_b,
+                                     float(now), float(tolerance_s), float(max_wait_s), int(max_pending),
+                                     ep.slot, ep.t_s, ep.t_b_s, ep.b_a_nt, ep.b_b_nt, g.slot, g.stream, g.t_s,
+                                     g.b_nt, g.reason, still.slot, still.stream, still.t_s, still.b_nt, still.arrived)
+    ep = Epochs(ep.slot[:n_ep], ep.t_s[:n_ep], ep.t_b_s[:n_ep], ep.b_a_nt[:n_ep], ep.b_b_nt[:n_ep])
+    g = GivenUp(g.slot[:n_g], g.stream[:n_g], g.t_s[:n_g], g.b_nt[:n_g], g.reason[:n_g])
+    return ep, still.take(slice(0, n_s)), g
 
 
 def expire_waiting(waiting: Samples, now: float, max_wait_s: float = 10.0) -> tuple[Samples, GivenUp]:
