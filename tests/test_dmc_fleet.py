@@ -364,6 +364,13 @@ def test_slots_in_use_and_with_parameters_only():
         det.step([s], [1.0], b, b)
     assert det.add() == s and det.params(s) is None and det.internal_states(s) == {}
     assert len(det.step([], [], np.zeros((0, 3)), np.zeros((0, 3)))) == 0
+    with pytest.raises(ValueError, match="both compasses"):
+        det.set_params(s, IDENTITY, None)
+    single = fleet.FleetSingleDetector(capacity=1)  # one compass: b is neither needed nor read
+    s1 = single.add()
+    single.set_params(s1, IDENTITY, None)
+    out = single.step([s1], [0.0], b)
+    assert out.dm_nt[0, 1] == 0.0 and abs(out.dm_nt[0, 0] - (np.linalg.norm(b) - R_NT)) < 1e-6
 
 
 def test_service_settings_are_accepted():

@@ -22,8 +22,8 @@ Where the work is done. Everything per epoch runs in one compiled kernel (``_ste
 compensation with the slot's matrix and offset, strengths, headings, Δh, the smooth and rate windows (per-slot
 ring buffers, restarted at gaps over ``max_gap_s``), the four ratios, the FCM memberships and K_c, and the
 alarm latch. The stateless part (compensation, strengths, headings, Δh; the memberships) computed in numpy
-over the whole frame instead measured slower than the whole fused step at 1, 50 and 500 vehicles (figures in
-``bench/cores_bench.py``'s ``dmc_prepass`` row), so it is compiled with the rest.
+over the whole frame instead costs more, alone, than the whole fused step at 1, 50 and 500 vehicles
+(``magmesh bench cores``, row ``dmc_detector_per_epoch``), so it is compiled with the rest.
 Ring buffers start small and double when a slot's window holds more epochs than they fit (a faster
 compass); the kernel stops before the row that needs more room, the rings grow, and the step resumes there.
 
@@ -641,6 +641,8 @@ class FleetDetector:
         Δh_r (None: the settings' ``dh_ref_rad``). The windows are not restarted: call :meth:`restart_features`
         as the service does on new parameters."""
         self._check_slot(slot)
+        if p_b is None and self._mode != MODE_SINGLE:
+            raise ValueError(f"{self.impl}: set_params needs both compasses' parameters")
         dh_ref = self.default_dh_ref_rad if dh_ref_rad is None else float(dh_ref_rad)
         row = self._params[slot]
         for p, base in ((p_a, P_A), (p_b if p_b is not None else p_a, P_B)):
@@ -717,6 +719,8 @@ class FleetDetector:
         t = np.ascontiguousarray(t_s, float)
         n = t.shape[0]
         b_a = np.ascontiguousarray(b_a_nt, float).reshape(n, 3)
+        if b_b_nt is None and self._mode != MODE_SINGLE:
+            raise ValueError(f"{self.impl}: step needs both compasses' readings")
         b_b = b_a if b_b_nt is None else np.ascontiguousarray(b_b_nt, float).reshape(n, 3)
         if slot.shape != (n,):
             raise ValueError(f"slot needs one entry per epoch ({n}), got shape {slot.shape}")
