@@ -29,10 +29,9 @@ compass); the kernel stops before the row that needs more room, the rings grow, 
 
 Numbers agree with the reference to rounding, not to the bit (the tests hold the features within 1e-9; on
 their drives the largest differences are 6e-11 nT in Δm, 1.2e-10 nT/s in dΔm, 3e-15 rad/s in dΔh, 6e-14 in a
-ratio): the reference's small matrix products go
-through BLAS (fused multiply-adds, in an order that depends on the CPU's BLAS kernel) and its ``arctan2``
-through numpy's SIMD code, the kernel through plain arithmetic and libm. Sums are taken in the reference's
-order, so the windows add the same numbers the same way.
+ratio): the reference's small matrix products go through BLAS (fused multiply-adds, in an order that depends
+on the CPU's BLAS kernel) and its ``arctan2`` through numpy's SIMD code, the kernel through plain arithmetic
+and libm. Sums are taken in the reference's order, so the windows add the same numbers the same way.
 
 Pairing: :func:`pair_frame` joins a frame's two compass streams with the samples still waiting from earlier
 frames, by :class:`~magmesh.align.TimeAligner`'s rule, in one compiled pass; :class:`FleetPairer` keeps the
