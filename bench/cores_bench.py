@@ -13,6 +13,8 @@
   fitting the same ellipsoid geometrically;
 - FCM on 10,000 × 2 samples vs scikit-fuzzy's ``cmeans`` (same start);
 - EKF update: the heading fuser vs the ``ahrs`` EKF and x-io ``imufusion`` (C) on the same BROAD slice, µs/sample;
+- heading EKF, per sample: the reference, the compiled filter (one call per sample, a whole slice per call, and a
+  fleet of 500 vehicles stepped per call) beside ``vqf``'s batched C++ on the same slice;
 - Hausdorff match: pre-match + SSDA + fine pipeline vs exhaustive search vs naive scipy ``directed_hausdorff``.
 Times are medians (or minima where stated) of repeats in this process; ratios are taken in the same run.
 """
@@ -382,11 +384,72 @@ def ekf_update(n: int = 20_000) -> dict:
 
     trial = hb.load_trial(hb.trial_files()[0]).sliced(n)
     out = {"trial": trial.name, "samples": n}
-    for name, fn in (("magmesh", lambda: hb.run_magmesh(trial)), ("ahrs_ekf", lambda: hb.run_ahrs_ekf(trial)),
-                     ("imufusion", lambda: hb.run_imufusion(trial))):
+    for name, fn in (("magmesh", lambda: hb.run_magmesh(trial, impl="reference")),
+                     ("ahrs_ekf", lambda: hb.run_ahrs_ekf(trial)), ("imufusion", lambda: hb.run_imufusion(trial))):
         out[f"{name}_us_per_sample"] = round(_median_time(fn, 1) / n * 1e6, 2)
     out["speedup_vs_ahrs_ekf"] = round(out["ahrs_ekf_us_per_sample"] / out["magmesh_us_per_sample"], 2)
     out["speedup_vs_imufusion"] = round(out["imufusion_us_per_sample"] / out["magmesh_us_per_sample"], 2)
+    return out
+
+
+def heading_ekf(n: int = 20_000, n_reference: int = 4_000, repeats: int = 5, slots: int = 500,
+                fleet_samples: int = 400, frame_samples: int = 6) -> dict:
+    """The heading EKF per sample (one IMU step + its magnetometer sample, BROAD trial 02, ``imu_only``):
+    the reference (:class:`core.HeadingFilter`), the compiled filter called once per sample
+    (``CompiledHeadingFilter``), the compiled filter over the whole slice in one call, and a fleet of
+    ``slots`` vehicles stepped together (each call a frame of ``frame_samples`` samples of every vehicle, rows
+    interleaved by vehicle) — beside ``vqf``'s compiled ``updateBatch`` on the same slice. Medians of
+    ``repeats`` runs, µs per sample; every compiled kernel is loaded before timing."""
+    from bench import heading_broad as hb
+    from services.heading_fuser import compiled, profiles
+
+    compiled.warm()
+    trial = hb.load_trial(hb.trial_files()[0]).sliced(n)
+    settings = profiles.settings(profiles.IMU_ONLY)
+    g, a, m = trial.gyro_rad_s, trial.accel_m_s2, trial.mag_nt
+    dt = 1.0 / trial.rate_hz
+    ref = trial.sliced(n_reference)
+    t_ref = _median_time(lambda: hb.run_magmesh(ref, settings, impl="reference"), max(1, repeats // 2)) / n_reference
+
+    def single():
+        f = compiled.CompiledHeadingFilter(settings)
+        gl, al, ml = g.tolist(), a.tolist(), m.tolist()
+        for i in range(n):
+            f.update_imu(gl[i], al[i], dt if i else 0.0)
+            f.update_mag(ml[i])
+
+    def batched():
+        compiled.run_recording(settings, g, a, m, dt)
+
+    # the fleet: every vehicle replays the slice's first fleet_samples samples, frame by frame
+    k = fleet_samples
+    kind, t, ra, rb, rdt, rdmc, _, _ = compiled.recording_rows(g[:k], a[:k], m[:k], dt)  # 2 rows per sample
+    frames = []
+    for f0 in range(0, k, frame_samples):
+        r0, r1 = 2 * f0, 2 * min(k, f0 + frame_samples)
+        rows = r1 - r0
+        idx = np.tile(np.arange(r0, r1), slots)
+        frames.append((np.repeat(np.arange(slots), rows), kind[idx], t[idx], ra[idx], rb[idx], rdt[idx], rdmc[idx]))
+
+    def fleet():
+        fl = compiled.FleetHeading(slots)
+        for _ in range(slots):
+            fl.add(settings)
+        for fr in frames:
+            fl.step(*fr, full_output=True)
+
+    def vqf():
+        hb.run_vqf(trial)
+
+    single()  # the first call of each path loads its kernels
+    out = {"trial": trial.name, "profile": profiles.IMU_ONLY, "samples": n, "reference_samples": n_reference,
+           "fleet_slots": slots, "fleet_samples_per_slot": k, "fleet_frame_samples": frame_samples,
+           "reference_us_per_sample": round(t_ref * 1e6, 2),
+           "compiled_single_call_us_per_sample": round(_median_time(single, repeats) / n * 1e6, 3),
+           "compiled_batched_us_per_sample": round(_median_time(batched, repeats) / n * 1e6, 3),
+           "compiled_fleet_us_per_sample": round(_median_time(fleet, repeats) / (slots * k) * 1e6, 3),
+           "vqf_batched_us_per_sample": round(_median_time(vqf, repeats) / n * 1e6, 3)}
+    out["batched_speedup_vs_reference"] = round(out["reference_us_per_sample"] / out["compiled_batched_us_per_sample"], 1)
     return out
 
 
@@ -407,7 +470,7 @@ def run_all(progress=None) -> dict:
                      ("ingest_rules_per_sample", ingest_rules),
                      ("dmc_detector_per_epoch", dmc_detector),
                      ("calibration_fit", calibration_fit), ("fcm", fcm),
-                     ("ekf_update", ekf_update), ("hausdorff_match", hausdorff)):
+                     ("ekf_update", ekf_update), ("heading_ekf", heading_ekf), ("hausdorff_match", hausdorff)):
         say(f"cores: {name}")
         out[name] = fn()
     return out

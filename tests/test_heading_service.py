@@ -119,9 +119,10 @@ def test_new_calibration_rebases_the_field_reference_and_keeps_the_magnetometer(
     assert frac > 0.9, frac
     assert _rms_vs_truth(out, d) < 2.5
     # the same run with the re-base switched off reproduces the failure (so this test can fail)
-    from services.heading_fuser import core
+    from services.heading_fuser import compiled, core
 
     monkeypatch.setattr(core.HeadingFilter, "rebase_field_reference", lambda self: None)
+    monkeypatch.setattr(compiled.CompiledHeadingFilter, "rebase_field_reference", lambda self: None)
     out_off, _, _ = _run(vehicles, changed)
     assert _magnetic_frac_while_valid(out_off, changed, 30.0) < 0.2
 

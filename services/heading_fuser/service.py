@@ -9,7 +9,8 @@ CONSUMES  magmesh/{vehicle}/clean/imu             gyro + accelerometer (drives t
 PRODUCES  magmesh/{vehicle}/heading               heading/pitch/roll, 1-σ, mode, mag innovation and test ratio
           magmesh/{vehicle}/alarm/heading         heading σ past ``heading_alarm_std_rad`` while not magnetic
 
-The filter is :class:`services.heading_fuser.core.HeadingFilter` (``--impl ekf``, the default) or the
+The filter is :class:`services.heading_fuser.core.HeadingFilter` (``--impl ekf``, the default; run by its compiled
+twin :class:`services.heading_fuser.compiled.CompiledHeadingFilter` unless ``compiled = false``) or the
 ``vqf`` library's VQF (``--impl vqf``, :mod:`services.heading_fuser.vqf_impl`); this file is wiring only.
 Manifest vehicle keys used: ``declination_rad``, ``heading_profile`` (a name from
 :mod:`services.heading_fuser.profiles`, e.g. ``imu_only``) and ``mag_params.{sensor}`` (offset_nt,
@@ -48,6 +49,7 @@ class Settings(core.Settings):
     # later samples are levelled with the attitude of their own time (kept for a few seconds)
     max_imu_gap_s: float = 1.0  # a longer gap in the IMU stream restarts the filter
     alarm_clear_frac: float = 0.8  # clear the alarm below this fraction of heading_alarm_std_rad
+    compiled: bool = True  # the compiled filter (compiled.py, numba; same results); false: core.HeadingFilter
 
 
 @dataclass
@@ -103,6 +105,14 @@ class HeadingFuser(Service):
         return core.Settings(**values)
 
     def make_filter(self, settings: core.Settings):
+        """The compiled filter (``compiled``, the default) once its kernels are compiled or cached; until then
+        (a cold numba cache) the reference, while a background process compiles them: same results."""
+        if self.settings.compiled:
+            from . import compiled
+
+            if compiled.kernels_ready():
+                return compiled.CompiledHeadingFilter(settings)
+            compiled.warm_in_background(self.log)
         return core.HeadingFilter(settings)
 
     def on_start(self) -> None:
