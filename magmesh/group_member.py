@@ -27,7 +27,6 @@ loop (posted as events, ordered with the input); the coordination thread only qu
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 import time
@@ -603,14 +602,15 @@ class GroupMember:
                     out["found"] = True
         for k, s in first_rx.items():  # a key no dead member handled is missed from the first seq any received
             out["inputs"].setdefault(k, s - 1)
-        for f in sorted((d / "alarms").glob(f"{self.role}.{self.name}-*.json")):
+        from .alarmstore import load
+
+        names = {f.with_suffix(".json") for pat in ("json", "log")
+                 for f in (d / "alarms").glob(f"{self.role}.{self.name}-*.{pat}")}
+        for f in sorted(names):
             inst = f.name[len(self.role) + 1:-len(".json")]
             if inst in self.live:
                 continue
-            try:
-                data = json.loads(f.read_text())
-            except (OSError, ValueError):
-                continue
+            data = load(f)
             seqs = data.get("seqs", {})
             for k, state in data.get("published", {}).items():
                 if not k.startswith(pre):

@@ -31,6 +31,9 @@ class Journal:
     def __init__(self, path: Path):
         self.path = Path(path)
         self.index_path = self.path.with_suffix(".keys.json")
+        # slots given to new keys (or freed) since the index was written: appended lines "slot<TAB>name"
+        self.index_log = self.path.with_suffix(".keys.log")
+        self._log_fd: int | None = None
         self.slot: dict[str, int] = {}
         self.free: list[int] = []  # slots of forgotten keys
         self.n_slots = 0  # slots ever given out this run
@@ -48,6 +51,18 @@ class Journal:
             return {}
         out: dict = {}
         names = names if isinstance(names, list) else []
+        try:
+            log = self.index_log.read_bytes().decode("utf-8", "replace").split("\n")
+        except OSError:
+            log = []
+        for line in log:
+            i, tab, name = line.partition("\t")
+            if not tab or not i.isdigit() or int(i) >= SLOTS:
+                continue  # (a line torn by a kill in the middle of its write)
+            i = int(i)
+            if i >= len(names):
+                names.extend([""] * (i + 1 - len(names)))
+            names[i] = name
         for i, name in enumerate(names):
             if (i + 1) * 8 <= len(raw):
                 v = _FMT.unpack_from(raw, i * 8)[0]
@@ -87,13 +102,28 @@ class Journal:
             self.mm = mm
 
     def _write_index(self) -> None:
-        """The slot names, replaced atomically (called with the lock held: one writer of the temporary file)."""
+        """The slot names, replaced atomically, and the log of later changes emptied (called with the lock
+        held: one writer of the temporary file)."""
         names = [""] * self.n_slots  # a free slot has no name (and holds the empty value)
         for k, i in self.slot.items():
             names[i] = k
         tmp = self.index_path.with_suffix(".tmp")
         tmp.write_text(json.dumps(names))
         os.replace(tmp, self.index_path)
+        if self._log_fd is not None:
+            os.close(self._log_fd)
+            self._log_fd = None
+        try:
+            os.truncate(self.index_log, 0)
+        except OSError:
+            pass
+
+    def _append_index(self, pairs: list[tuple[int, str]]) -> None:
+        """New slot names (or freed slots: an empty name) as appended lines — one short write however many keys
+        the journal holds (called with the lock held)."""
+        if self._log_fd is None:
+            self._log_fd = os.open(self.index_log, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        os.write(self._log_fd, "".join(f"{i}\t{n}\n" for i, n in pairs).encode())
 
     def set(self, key: str, value: int) -> None:
         mm = self.mm
@@ -114,7 +144,7 @@ class Journal:
                             return
                         _FMT.pack_into(mm, i * 8, int(value))
                         self.slot[key] = i
-                        self._write_index()  # a new key: rare (bounded by the keys alive at once)
+                        self._append_index([(i, key)])  # a new key: one appended line
                         return
             _FMT.pack_into(mm, i * 8, int(value))
         except (ValueError, OSError):  # closed by a stop in progress: nothing left to account for
@@ -127,6 +157,35 @@ class Journal:
             self.set(name, _EMPTY)
             i = self.slot.get(name, -1)
         return i
+
+    def slots_of(self, names: list[str]) -> list[int]:
+        """:meth:`slot_of` for many names, the index written once (a frame brings hundreds of new keys)."""
+        mm = self.mm
+        out = []
+        new: list[tuple[int, str]] = []
+        with self._lock:
+            for name in names:
+                i = self.slot.get(name)
+                if i is None and mm is not None:
+                    if self.free:
+                        i = self.free.pop()
+                    elif self.n_slots < SLOTS:
+                        i, self.n_slots = self.n_slots, self.n_slots + 1
+                    else:
+                        self.full += 1
+                        out.append(-1)
+                        continue
+                    try:
+                        _FMT.pack_into(mm, i * 8, _EMPTY)
+                    except (ValueError, OSError):
+                        out.append(-1)
+                        continue
+                    self.slot[name] = i
+                    new.append((i, name))
+                out.append(-1 if i is None else i)
+            if new:
+                self._append_index(new)
+        return out
 
     def array(self):
         """The slots as a writable numpy int64 array over the map (writes land in the file at once, as
@@ -150,11 +209,13 @@ class Journal:
             if not gone:
                 return
             try:
+                freed = []
                 for n in gone:
                     i = self.slot.pop(n)
                     _FMT.pack_into(mm, i * 8, _EMPTY)  # emptied before the index forgets it: never misread
                     self.free.append(i)
-                self._write_index()
+                    freed.append((i, ""))
+                self._append_index(freed)
             except (ValueError, OSError):
                 return
 
@@ -198,7 +259,10 @@ class Journal:
             except BufferError:  # an array view handed out is still alive somewhere: the map closes with it
                 pass
             self.mm = None
-        for p in (self.path, self.index_path):
+        if self._log_fd is not None:
+            os.close(self._log_fd)
+            self._log_fd = None
+        for p in (self.path, self.index_path, self.index_log):
             try:
                 p.unlink()
             except OSError:

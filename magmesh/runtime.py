@@ -47,7 +47,9 @@ from . import __version__, zconf
 from .frames import NONE as _NO_SEQ
 from .frames import SeqTable, StreamKeys
 
-QUEUE_CAPACITY = 65536
+#: samples a reader thread hands to the main loop at once (what has arrived, up to this many)
+READ_BATCH = 64
+QUEUE_CAPACITY = 65536 // READ_BATCH  # queue entries (each a batch of at most READ_BATCH samples, or a query)
 ALARM_HISTORY = 64  # alarm / cal-params samples each publisher keeps for late joiners and miss recovery
 _HEADER_NAMES = frozenset(("type", "version", "vehicle", "t_s", "seq"))
 #: the contract's field names per message type (anything else in an input is an unknown extra field)
@@ -751,8 +753,8 @@ class Runner:
         js = ok[4][g_vi]
         missing = js < 0
         if missing.any():
-            for i in g_vi[missing].tolist():
-                ok[4][i] = j.slot_of("o" + ok[1][i])
+            idx = g_vi[missing]
+            ok[4][idx] = j.slots_of(["o" + ok[1][i] for i in idx.tolist()])
             js = ok[4][g_vi]
         good = js >= 0
         arr[js[good]] = last[good]
@@ -837,12 +839,14 @@ class Runner:
             ver = messages.MESSAGES[msg_type].version
             seq, cache, j = self.seq, self._row_cache, self.journal
             arr = j.array() if j is not None else None
+            new = [k for k in dict.fromkeys(keys_) if k not in cache]
+            if new:  # first rows of these keys: publishers and journal slots (the index written once)
+                js = j.slots_of(["o" + k for k in new]) if j is not None else [-1] * len(new)
+                for k, jslot in zip(new, js, strict=True):
+                    cache[k] = [self._publisher(k), jslot, self.count_out[k]]
             for i in range(n):
                 k = keys_[i]
-                c = cache.get(k)
-                if c is None:
-                    c = cache[k] = [self._publisher(k), j.slot_of("o" + k) if j is not None else -1,
-                                    self.count_out[k]]
+                c = cache[k]
                 s = seq.get(k, -1) + 1
                 m = {"type": msg_type, "version": ver, "vehicle": vehicles[i], "t_s": t_s[i], "seq": s}
                 for f, cv in zip(names, colv, strict=True):
@@ -919,7 +923,11 @@ class Runner:
             else:
                 self.raised.pop(key, None)
         self.svc.log.info("alarm %s %s: %s", key, msg["state"], msg["reason"])
-        self._persist_alarms()
+        try:  # one appended line (magmesh/alarmstore.py); now and then the whole state as a new snapshot
+            if self._alarms().record(key, msg["state"], msg["seq"], msg):
+                self._persist_alarms()
+        except OSError as e:
+            self.last_error = f"could not persist alarm state: {e}"
 
     # ---- alarm state across restarts --------------------------------------------------------
     def _alarm_file(self):
@@ -929,24 +937,31 @@ class Runner:
         d.mkdir(parents=True, exist_ok=True)
         return d / f"{self.svc.role}.{self.svc.instance}.json"
 
+    def _alarms(self):
+        store = self.__dict__.get("_alarm_store")
+        if store is None:
+            from .alarmstore import AlarmStore
+
+            store = self.__dict__["_alarm_store"] = AlarmStore(self._alarm_file())
+        return store
+
     def _persist_alarms(self) -> None:
-        """Alarm states and their seq survive a crash: a restart neither repeats nor forgets a transition."""
+        """Alarm states and their seq survive a crash: a restart neither repeats nor forgets a transition. The
+        whole state as a new snapshot (each transition is also appended as it is sent, see _alarm_sent)."""
         try:
-            f = self._alarm_file()
-            tmp = f.with_suffix(".tmp")
             with self.lock:
                 raised = dict(self.raised)
             akeys = [k for k in self.alarm_published]
-            tmp.write_text(json.dumps({"published": dict(self.alarm_published), "raised": raised,
-                                       "seqs": {k: self.seq[k] for k in akeys if k in self.seq}}))
-            os.replace(tmp, f)
+            self._alarms().compact({"published": dict(self.alarm_published), "raised": raised,
+                                    "seqs": {k: self.seq[k] for k in akeys if k in self.seq}})
         except OSError as e:
             self.last_error = f"could not persist alarm state: {e}"
 
     def restore_alarms(self) -> None:
-        try:
-            data = json.loads(self._alarm_file().read_text())
-        except (OSError, ValueError):
+        from .alarmstore import load
+
+        data = load(self._alarm_file())
+        if not data["published"]:
             return
         self.alarm_published = {k: v for k, v in data.get("published", {}).items()}
         self.alarm_adopted += 1
@@ -1157,36 +1172,59 @@ class Runner:
         return st
 
     # ---- input ----------------------------------------------------------------------------
-    def _reader(self, handle: Any, kind: str) -> None:
+    def _data_reader(self, handle: Any) -> None:
+        """Samples of one subscription into the queue: whatever has arrived, up to :data:`READ_BATCH` at once
+        (one queue operation for many samples; the loop handles them in arrival order)."""
+        first = self._first_rx
         while not self.stop_event.is_set():
             try:
                 item = handle.recv()
             except Exception:  # channel closed: session is closing
                 return
-            if kind == "s":
+            batch = []
+            while item is not None:
                 k = str(item.key_expr)
                 if k.startswith(_FLEET):  # a fleet frame: many vehicles, filtered in the main loop
-                    ev = ("s", k, item.payload.to_bytes())
-                    while not self.stop_event.is_set():
-                        try:
-                            self.q.put(ev, timeout=0.2)
-                            break
-                        except queue.Full:
-                            continue
+                    batch.append((k, item.payload.to_bytes()))
+                elif self.group is not None and self.group.skips(k):
+                    pass  # another group member's vehicle: never queued (magmesh/group_member.py)
+                else:
+                    p = item.payload.to_bytes()
+                    if k not in first:
+                        self._note_first_rx(k, p)
+                    batch.append((k, p))
+                if len(batch) >= READ_BATCH:
+                    break
+                try:
+                    item = handle.try_recv()
+                except Exception:  # noqa: BLE001 - closing: what was read still goes in
+                    item = None
+            if not batch:
+                continue
+            ev = ("S", batch)
+            while not self.stop_event.is_set():
+                try:
+                    self.q.put(ev, timeout=0.2)
+                    break
+                except queue.Full:
                     continue
-                if self.group is not None and self.group.skips(k):
-                    continue  # another group member's vehicle: never queued (magmesh/group_member.py)
-                ev = ("s", k, item.payload.to_bytes())
-                if ev[1] not in self._first_rx:
-                    self._note_first_rx(ev[1], ev[2])
-            else:
-                if kind == "status":
-                    self._answer_status(item)
-                    continue
-                if kind == "alarms":
-                    self._answer_alarms(item)
-                    continue
-                ev = ("q", kind, item)
+
+    def _reader(self, handle: Any, kind: str) -> None:
+        if kind == "s":
+            self._data_reader(handle)
+            return
+        while not self.stop_event.is_set():
+            try:
+                item = handle.recv()
+            except Exception:  # channel closed: session is closing
+                return
+            if kind == "status":
+                self._answer_status(item)
+                continue
+            if kind == "alarms":
+                self._answer_alarms(item)
+                continue
+            ev = ("q", kind, item)
             while not self.stop_event.is_set():
                 try:
                     self.q.put(ev, timeout=0.2)
@@ -1535,8 +1573,8 @@ class Runner:
             js = sk.jslots[g_vi]
             missing = js < 0
             if missing.any():
-                for i in g_vi[missing].tolist():
-                    sk.jslots[i] = j.slot_of("i" + sk.keys[i])
+                idx = g_vi[missing]
+                sk.jslots[idx] = j.slots_of(["i" + sk.keys[i] for i in idx.tolist()])
                 js = sk.jslots[g_vi]
             ok = js >= 0
             arr[js[ok]] = lastq[ok]
@@ -2008,7 +2046,10 @@ class Runner:
             except queue.Empty:
                 ev = None
             if ev is not None:
-                if ev[0] == "s":
+                if ev[0] == "S":
+                    for k, p in ev[1]:
+                        self.handle_sample(k, p)
+                elif ev[0] == "s":
                     self.handle_sample(ev[1], ev[2])
                 elif ev[0] == "q":
                     self.handle_query(ev[1], ev[2])
@@ -2079,6 +2120,10 @@ class Runner:
             svc.log.error("on_stop failed: %s", e)
         if self.group is not None:
             self.group.stop()
+        store = self.__dict__.get("_alarm_store")
+        if store is not None and store.appended:  # the log folded into the snapshot
+            self._persist_alarms()
+            store.close()
         if self.clean_stop and not (self.group is not None and (self.group.owned or self.group.release)):
             self.remove_journal()  # (a group member stopped holding vehicles leaves it to the member taking them)
         try:
@@ -2233,6 +2278,11 @@ def run(svc: Service, conf: Any, ready: threading.Event | None = None, standby: 
         signal.signal(signal.SIGTERM, _on_signal)
     try:
         runner.start()
+        # what start-up made (modules, compiled kernels, tables) lives as long as the process: out of the
+        # collector's way, so its full collections stay short under a fleet's allocation rate
+        import gc
+
+        gc.freeze()
         if ready is not None:
             ready.set()
         if isinstance(svc, SimPublisher):

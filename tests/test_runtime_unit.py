@@ -253,3 +253,30 @@ def test_drop_reasons_are_lost_skipped_or_rejected():
                                        "alarm_state_unchanged", "calibrated stream cal/mag in use",
                                        "no_usable_params")] == ["lost", "lost", "lost", "rejected", "skipped",
                                                                 "skipped", "skipped"]
+
+
+def test_alarm_log_survives_a_kill_and_compacts(tmp_path, monkeypatch):
+    """Each transition is one appended line (no rewrite of every vehicle's state); a new process of the instance
+    reads snapshot + log; a torn last line is ignored; compaction keeps the state."""
+    from magmesh import alarmstore
+
+    r, s = _runner(tmp_path, monkeypatch)
+    for i, v in enumerate(["car-1", "car-2", "car-3"]):
+        r.svc.alarm(v, "dmc", "raised", "warning", "interference", 2.0, 1.0, 10.0 + i)
+    r.svc.alarm("car-2", "dmc", "cleared", "warning", "ok again", None, None, 14.0)
+    f = r._alarm_file()
+    assert not f.exists() and len(f.with_suffix(".log").read_bytes().splitlines()) == 4
+    with open(f.with_suffix(".log"), "ab") as fh:
+        fh.write(b'{"k":"magmesh/car-9/alarm/dmc","s":"rai')  # killed in the middle of a write
+    r2, _ = _runner(tmp_path, monkeypatch)
+    r2.restore_alarms()
+    assert sorted(r2.raised) == [keys.alarm("car-1", "dmc"), keys.alarm("car-3", "dmc")]
+    assert r2.alarm_published[keys.alarm("car-2", "dmc")] == "cleared" and r2.seq[keys.alarm("car-2", "dmc")] == 1
+    assert r2.raised[keys.alarm("car-3", "dmc")]["t_s"] == 12.0
+    r2._persist_alarms()  # compaction: snapshot written, log emptied, same state
+    assert f.exists() and f.with_suffix(".log").read_bytes() == b""
+    assert alarmstore.load(f)["published"] == r2.alarm_published
+    # an older line than the snapshot's seq changes nothing
+    with open(f.with_suffix(".log"), "ab") as fh:
+        fh.write(b'{"k":"magmesh/car-2/alarm/dmc","s":"raised","q":0,"m":{}}\n')
+    assert alarmstore.load(f)["published"][keys.alarm("car-2", "dmc")] == "cleared"

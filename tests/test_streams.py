@@ -177,3 +177,54 @@ def test_runtime_unbatches_a_long_batch_in_time_order(tmp_path, monkeypatch):
     times = [t for _, t, _ in svc.got]
     assert len(times) == 3 * n and times == sorted(times)
     assert [s for k, _, s in svc.got if k == keys.clean_imu("car-1")] == list(range(2 * n))
+
+
+def test_typed_batch_decode_agrees_with_the_checking_decoder():
+    """The one-pass typed decode of a valid batch gives what the checking path gives, and a damaged payload it
+    still takes, the checking path takes with the same content; what it cannot take it hands over (so the
+    checking path words the error). 400 seeded damaged copies of one batch."""
+    from schemas.batch import _decode_typed, _Slow
+
+    rng = np.random.default_rng(11)
+    base = batch.encode("car-1", 4, {
+        "mag/1": {"t_s": [1.0, 1.02], "seq": [7, 8], "cols": {"sensor": "1", "b_nt": _field(2)}},
+        "imu": {"t_s": [1.0, 1.01, 1.02], "seq": [1, 2, 3],
+                "cols": {"gyro_rad_s": _field(3) * 1e-4, "accel_m_s2": _field(3) * 1e-4}},
+        "gnss": {"t_s": [1.0], "seq": [0], "cols": {
+            "lat_deg": [32.0], "lon_deg": [118.8], "alt_m": [10.0], "vel_enu_m_s": [[1.0, 0.0, 0.0]],
+            "course_rad": [1.0], "speed_m_s": [1.0], "fix_type": ["3d"], "num_sats": [9], "pdop": [1.2]}}})
+
+    def view(b):
+        return (b.vehicle, b.t_s, b.seq, {k: (c.t_s, c.seq, c.cols) for k, c in b.streams.items()})
+
+    assert view(_decode_typed(base)) == view(_checking_decode(base))
+    typed_ok = handed_over = 0
+    for i in range(400):
+        p = bytearray(base)
+        for _ in range(int(rng.integers(1, 3))):
+            p[int(rng.integers(0, len(p)))] = int(rng.integers(0, 256))
+        p = bytes(p)
+        try:
+            t = _decode_typed(p)
+        except (_Slow, messages.SchemaError):
+            handed_over += 1
+            continue
+        typed_ok += 1
+        assert view(t) == view(_checking_decode(p)), i
+    assert typed_ok > 100 and handed_over > 50
+
+
+def _checking_decode(p):
+    """schemas.batch.decode with its typed fast path switched off."""
+    import schemas.batch as sb
+
+    real = sb._decode_typed
+
+    def refuse(_):
+        raise sb._Slow
+
+    sb._decode_typed = refuse
+    try:
+        return sb.decode(p, check=True)
+    finally:
+        sb._decode_typed = real

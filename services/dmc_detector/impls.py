@@ -58,6 +58,7 @@ class FcmDmcDetector(DmcDetectorService):
         self.model = fcm.FcmModel.load(path)
         self.log.info("FCM model %s: %s features, %d centres, trained on %s", path, self.model.feature_set,
                       len(self.model.centres), ", ".join(self.model.training.get("drives", [])) or "?")
+        super().on_start()
 
     def make_fleet(self):
         if not hasattr(self, "model"):

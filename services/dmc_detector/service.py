@@ -107,6 +107,10 @@ class DmcDetectorService(Service):
         return None
 
     # ---- service --------------------------------------------------------------------------
+    def on_start(self) -> None:
+        if self.fleet is not None:  # compile (or load from numba's disk cache) before serving: never on a sample
+            fleet.warm()
+
     @property
     def sensors(self) -> tuple[str, str]:
         return (self.settings.sensor_a, self.settings.sensor_b)

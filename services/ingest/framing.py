@@ -2,7 +2,8 @@
 compiled call, published as one frame.
 
 Each input — a v1 single sample or a v2 batch, already decoded and checked against the contract by the
-runtime and :func:`schemas.batch.decode` — is appended to the window as it is. When the window is due
+runtime and :func:`schemas.batch.decode` — is appended to its streams' flat column lists (no object per
+sample). When the window is due
 (``batch_window_s`` after its first sample, or when it holds ``FLUSH_ROWS`` rows) each stream's rows are
 decided together: the physical ranges on whole columns (:func:`services.ingest.fleet.range_ok_mask`), then time
 order, duplicates, the stream clocks and seq gaps by :class:`services.ingest.fleet.FleetStreams`, which decides
@@ -21,7 +22,6 @@ import numpy as np
 
 from schemas import batch as batches
 from schemas import frame as fleetframe
-from schemas import keys
 from schemas.messages import MESSAGES
 
 from . import fleet
@@ -30,47 +30,77 @@ from . import fleet
 FLUSH_ROWS = 200_000
 
 
-class _Piece:
-    __slots__ = ("vi", "slot", "t", "seq", "cols", "now", "n", "vehicle")
+class _Acc:
+    """One stream's rows of the open window as flat lists, extended per input (no object per sample)."""
 
-    def __init__(self, vehicle: str, vi: int, slot: int, t: list, seq: list, cols: dict, now: float):
-        self.vehicle, self.vi, self.slot, self.t, self.seq, self.cols, self.now = vehicle, vi, slot, t, seq, cols, now
-        self.n = len(t)
+    __slots__ = ("msg_type", "vi", "slot", "t", "seq", "now", "cols", "n", "fields", "shared")
 
+    def __init__(self, msg_type: str):
+        self.msg_type = msg_type
+        self.vi: list[int] = []
+        self.slot: list[int] = []
+        self.t: list[float] = []
+        self.seq: list[int] = []
+        self.now: list[float] = []
+        self.cols: dict[str, list] = {}
+        self.n = 0
+        self.fields = {f.name: f for f in MESSAGES[msg_type].fields}
+        self.shared: dict[str, str | None] = {}  # a str field's one value over every row so far (None: they differ)
 
-def _column(f: Any, pieces: list[_Piece], n: int) -> Any:
-    """One field's values over the window's pieces: an array for numeric kinds (NaN where a row lacks an
-    optional field), one string when every row shares it, else a list (None where a row lacks it)."""
-    vals = [p.cols.get(f.name) for p in pieces]
-    if all(v is None for v in vals):
-        return None
-    if f.kind == "str":
-        if all(isinstance(v, str) for v in vals) and len({*vals}) == 1:
-            return vals[0]
-        out: list = []
-        for p, v in zip(pieces, vals, strict=True):
-            out.extend([v] * p.n if isinstance(v, str) or v is None else v)
-        return out
-    width = {"vec3": 3, "mat3": 9, "floats": f.length}.get(f.kind)
-    numeric = f.kind == "float" or (width is not None and f.kind != "floats") or (f.kind == "floats" and f.length)
-    out = []
-    if numeric and f.kind != "bool":
-        blank = math.nan if width is None else [math.nan] * width
-        for p, v in zip(pieces, vals, strict=True):
-            if v is None:
-                out.extend([blank] * p.n)
-            elif f.nullable:
-                out.extend(blank if x is None else x for x in v)
+    def add(self, vi: int, slot: int, t: list, seq: list, cols: dict, now: float) -> None:
+        n = len(t)
+        self.vi.extend([vi] * n)
+        self.slot.extend([slot] * n)
+        self.t.extend(t)
+        self.seq.extend(seq)
+        self.now.extend([now] * n)
+        n0 = self.n
+        for name, v in cols.items():
+            f = self.fields.get(name)
+            if f is None:
+                continue
+            col = self.cols.get(name)
+            if col is None:  # a field the earlier rows lack: blanks for them
+                col = self.cols[name] = [_blank(f)] * n0
+                if f.kind == "str":
+                    self.shared[name] = None if n0 else (v if isinstance(v, str) else None)
+            if isinstance(v, str):
+                if self.shared.get(name) != v:
+                    self.shared[name] = None
+                col.extend([v] * n)
             else:
-                out.extend(v)
-        return np.asarray(out, float)
-    if f.kind == "bool" and all(v is not None for v in vals):
-        for v in vals:
-            out.extend(v)
-        return np.asarray(out, np.uint8)
-    for p, v in zip(pieces, vals, strict=True):
-        out.extend([None] * p.n if v is None else v)
-    return out
+                self.shared[name] = None
+                col.extend(v)
+        self.n = n0 + n
+        for name, col in self.cols.items():  # a field these rows lack: blanks
+            if len(col) < self.n:
+                col.extend([_blank(self.fields[name])] * (self.n - len(col)))
+                self.shared[name] = None
+
+    def column(self, name: str) -> Any:
+        """The window's column: an array for the numeric kinds, one string when every row shares it, else a list."""
+        f = self.fields[name]
+        col = self.cols[name]
+        if f.kind == "str":
+            s = self.shared.get(name)
+            return s if s is not None else col
+        if f.kind == "bool":
+            return col if any(x is None for x in col) else np.asarray(col, np.uint8)
+        if f.kind in ("float", "vec3", "mat3") or (f.kind == "floats" and f.length):
+            if f.nullable:
+                blank = _blank(f)
+                col = [blank if x is None else x for x in col]
+            return np.asarray(col, float)
+        return col
+
+
+def _blank(f: Any) -> Any:
+    """What a row without optional field ``f`` holds in its column (NaN for numbers, else None)."""
+    if f.kind == "float":
+        return math.nan
+    if f.kind in ("vec3", "mat3") or (f.kind == "floats" and f.length):
+        return [math.nan] * {"vec3": 3, "mat3": 9}.get(f.kind, f.length or 0)
+    return None
 
 
 class FramingIngest:
@@ -85,7 +115,7 @@ class FramingIngest:
         if d is None:
             d = self.__dict__["_fr_d"] = {
                 "fs": fleet.FleetStreams(self.settings), "slot": {}, "vehicles": [], "vidx": {}, "window": {},
-                "rows": 0, "since": None, "rebases": 0}
+                "rows": 0, "since": None}
         return d
 
     def _frame_slot(self, fr: dict, vehicle: str, raw_key: str) -> tuple[int, int]:
@@ -102,28 +132,33 @@ class FramingIngest:
     def frame_single(self, info: Any, msg: dict) -> None:
         """A decoded v1 sample into the window."""
         fr = self._fr()
-        name = batches.stream_name(info)
         vi, s = self._frame_slot(fr, info.vehicle, info.key)
         cols = {f.name: [msg[f.name]] for f in MESSAGES[msg["type"]].fields if f.name in msg}
-        self._frame_add(fr, name, _Piece(info.vehicle, vi, s, [msg["t_s"]], [msg["seq"]], cols, time.monotonic()))
+        self._frame_add(fr, batches.stream_name(info), msg["type"], vi, s, [msg["t_s"]], [msg["seq"]], cols,
+                        time.monotonic())
 
     def frame_batch(self, vehicle: str, b: Any) -> None:
         """A decoded, checked v2 batch into the window, stream by stream."""
         fr = self._fr()
         now = time.monotonic()
+        count_in = self._rt.count_in
         for name, c in b.streams.items():
             if not c.n:
                 continue
             raw_key = batches.stream_key("raw", vehicle, name)
-            self._rt.count_in[raw_key].n += c.n
+            count_in[raw_key].n += c.n
             vi, s = self._frame_slot(fr, vehicle, raw_key)
-            self._frame_add(fr, name, _Piece(vehicle, vi, s, c.t_s, c.seq, c.cols, now))
+            self._frame_add(fr, name, c.msg_type, vi, s, c.t_s, c.seq, c.cols, now)
 
-    def _frame_add(self, fr: dict, name: str, p: _Piece) -> None:
-        fr["window"].setdefault(name, []).append(p)
-        fr["rows"] += p.n
+    def _frame_add(self, fr: dict, name: str, msg_type: str, vi: int, slot: int, t: list, seq: list, cols: dict,
+                   now: float) -> None:
+        acc = fr["window"].get(name)
+        if acc is None:
+            acc = fr["window"][name] = _Acc(msg_type)
+        acc.add(vi, slot, t, seq, cols, now)
+        fr["rows"] += len(t)
         if fr["since"] is None:
-            fr["since"] = p.now
+            fr["since"] = now
         if fr["rows"] >= FLUSH_ROWS:
             self.frame_flush(force=True)
 
@@ -134,35 +169,30 @@ class FramingIngest:
             return
         window, fr["window"], fr["rows"], fr["since"] = fr["window"], {}, 0, None
         out: dict[str, fleetframe.Stream] = {}
-        for name, pieces in window.items():
+        for name, acc in window.items():
             try:
-                st = self._decide(fr, name, pieces)
+                st = self._decide(fr, name, acc)
             except Exception as e:  # noqa: BLE001 - the window's samples of this stream are lost, and counted so
                 self._rt.last_error = f"{type(e).__name__}: {e}"[:500]
                 self._rt.log_limited("frame-decide", "deciding a window of %s failed: %s", name, e)
-                for p in pieces:
-                    self.count_drop(batches.stream_key("raw", p.vehicle, name), "handler_error", p.n)
+                vs = fr["vehicles"]
+                for i, k in zip(*np.unique(np.asarray(acc.vi), return_counts=True), strict=True):
+                    self.count_drop(batches.stream_key("raw", vs[int(i)], name), "handler_error", int(k))
                 continue
             if st is not None and st.n:
                 out[name] = st
         if out:
             self.publish_frame("clean", fr["vehicles"], out)
 
-    def _decide(self, fr: dict, name: str, pieces: list[_Piece]) -> fleetframe.Stream | None:
-        mt = batches.stream_type(name)
-        ns = np.fromiter((p.n for p in pieces), np.int64, len(pieces))
-        n = int(ns.sum())
-        t = np.fromiter((x for p in pieces for x in p.t), float, n)
-        seq = np.fromiter((x for p in pieces for x in p.seq), np.int64, n)
-        slot = np.repeat(np.fromiter((p.slot for p in pieces), np.int32, len(pieces)), ns)
-        vi = np.repeat(np.fromiter((p.vi for p in pieces), np.uint32, len(pieces)), ns)
-        now = np.repeat(np.fromiter((p.now for p in pieces), float, len(pieces)), ns)
-        fields = MESSAGES[mt].fields
-        cols = {}
-        for f in fields:
-            c = _column(f, pieces, n)
-            if c is not None:
-                cols[f.name] = c
+    def _decide(self, fr: dict, name: str, acc: _Acc) -> fleetframe.Stream | None:
+        mt = acc.msg_type
+        n = acc.n
+        t = np.array(acc.t, float)
+        seq = np.array(acc.seq, np.int64)
+        slot = np.array(acc.slot, np.int32)
+        vi = np.array(acc.vi, np.uint32)
+        now = np.array(acc.now, float)
+        cols = {k: acc.column(k) for k in acc.cols}
         ok = fleet.range_ok_mask(mt, t, {k: v for k, v in cols.items() if isinstance(v, np.ndarray)}, self.settings)
         if mt == "mag":  # the sensor must be the key's (a v1 single says it itself)
             want = name.partition("/")[2]
@@ -173,16 +203,17 @@ class FramingIngest:
                 ok[:] = False
         kind = np.full(n, fleet.KIND_CODE[mt], np.int8)
         d = fr["fs"].decide(slot, kind, t, seq, ok, now)
-        acc = d.accepted
-        if (d.code == fleet.ACCEPTED_REBASE).any():
-            k = int((d.code == fleet.ACCEPTED_REBASE).sum())
+        accepted = d.accepted
+        rebased = d.code == fleet.ACCEPTED_REBASE
+        if rebased.any():
+            k = int(rebased.sum())
             for _ in range(k):
                 self._rt.count_rebase("clock")
             self.log.warning("%s: %d stream clock(s) re-based after %d consistent samples refused on time", name, k,
                              self.settings.rebase_after)
-        if not acc.all():
-            self._frame_rejects(fr, name, mt, pieces, ns, d, cols, t)
-        idx = np.flatnonzero(acc)
+        if not accepted.all():
+            self._frame_rejects(fr, name, mt, vi, slot, d, cols, t)
+        idx = np.flatnonzero(accepted)
         if not idx.size:
             return None
         order = idx[np.argsort(vi[idx], kind="stable")]
@@ -196,23 +227,21 @@ class FramingIngest:
                 sub[k] = [c[i] for i in order.tolist()]
         return fleetframe.Stream(name, mt, vi[order], t[order], None, sub)
 
-    def _frame_rejects(self, fr: dict, name: str, mt: str, pieces: list[_Piece], ns: np.ndarray, d: Any,
+    def _frame_rejects(self, fr: dict, name: str, mt: str, vi: np.ndarray, slot: np.ndarray, d: Any,
                        cols: dict, t: np.ndarray) -> None:
         """One reject report per stream key and code of the window (the first refused sample's sentence, with
         the count), every refused sample counted."""
-        owner = np.repeat(np.arange(len(pieces)), ns)
         first: dict[tuple[int, int], list] = {}
         for i in np.flatnonzero(d.refused).tolist():
-            c = int(d.code[i])
-            k = (pieces[int(owner[i])].slot, c)
+            k = (int(slot[i]), int(d.code[i]))
             e = first.get(k)
             if e is None:
                 first[k] = [i, 1]
             else:
                 e[1] += 1
-        for (_, _c), (i, count) in first.items():
-            p = pieces[int(owner[i])]
-            raw_key = batches.stream_key("raw", p.vehicle, name)
+        for i, count in first.values():
+            vehicle = fr["vehicles"][int(vi[i])]
+            raw_key = batches.stream_key("raw", vehicle, name)
             msg = {"type": mt, "t_s": float(t[i])}
             for f in MESSAGES[mt].fields:
                 v = cols.get(f.name)
@@ -225,7 +254,7 @@ class FramingIngest:
                     msg[f.name] = v if isinstance(v, str) else v[i]
             r = fr["fs"].rejection(d, i, raw_key, msg)
             more = f" ({count} samples of this window refused so)" if count > 1 else ""
-            self.reject(raw_key, r.code, r.reason + more, r.field, 0, p.vehicle, float(t[i]), mt)
+            self.reject(raw_key, r.code, r.reason + more, r.field, 0, vehicle, float(t[i]), mt)
             if count > 1:
                 self.count_drop(raw_key, f"rejected:{r.code}", count - 1)
 
@@ -240,8 +269,8 @@ class FramingIngest:
 
     def frame_evict_vehicle(self, vehicle: str) -> None:
         fr = self.__dict__.get("_fr_d")
-        if fr is None or vehicle not in fr["vidx"] or any(fr["window"].values()):
-            return  # (a vehicle with rows in the open window keeps its index until the next eviction round)
+        if fr is None or vehicle not in fr["vidx"] or fr["rows"]:
+            return  # (with rows in the open window the indices stay until the next eviction round)
         vs = [v for v in fr["vehicles"] if v != vehicle]
         fr["vehicles"], fr["vidx"] = vs, {v: i for i, v in enumerate(vs)}
 
@@ -255,7 +284,3 @@ class FramingIngest:
         st = fr["fs"].state[idx]
         return list(zip([k for k, _ in items], st["upstream_gaps"].tolist(), st["seq_rebases"].tolist(),
                         st["clock_rebases"].tolist(), strict=True))
-
-    @staticmethod
-    def frame_key(instance: str) -> str:
-        return keys.fleet_frame(instance, "clean")

@@ -66,6 +66,12 @@ class Ingest(FramingIngest, BatchingIngest, Service):
         accept(msg, st, now, self.settings)
         self.emit(info, msg)
 
+    def on_start(self) -> None:
+        if self.frame_output:  # compile (or load from numba's disk cache) before serving: never on a sample
+            from .fleet import warm
+
+            warm()
+
     def on_tick(self) -> None:
         if self.frame_output:
             self.frame_flush()
