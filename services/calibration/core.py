@@ -27,6 +27,8 @@ from magmesh import magcal, maths
 from . import arls, online_ekf, sufficiency, two_step
 
 USABLE = ("ok", "manifest", "converging")  # statuses whose parameters cal/mag applies
+#: window bound without decimation (``sample_interval_s = 0``) unless ``window_max_samples`` says otherwise
+UNDECIMATED_WINDOW_SAMPLES = 100_000
 
 
 @dataclass(frozen=True)
@@ -44,6 +46,7 @@ class CalibrationSettings:
     min_coverage_2d: float = 0.75
     min_coverage_3d: float = 0.55
     max_axis_ratio: float = 3.0
+    window_max_samples: int = 0  # samples the window keeps at most; 0: all a decimated window can hold (see below)
 
     def __post_init__(self):
         if self.method not in ("arls", "ls"):
@@ -54,6 +57,19 @@ class CalibrationSettings:
             raise ValueError("window_s and refit_interval_s must be > 0, sample_interval_s ≥ 0")
         if not 0 < self.improve_ratio <= 1:
             raise ValueError("improve_ratio must be in (0, 1]")
+        if self.window_max_samples < 0:
+            raise ValueError("window_max_samples must be ≥ 0 (0: derived from window_s and sample_interval_s)")
+
+    @property
+    def window_capacity(self) -> int:
+        """Samples the fit window holds at most: ``window_max_samples``, or when 0 what decimation allows
+        (kept samples are ≥ ``sample_interval_s`` apart, so ``window_s / sample_interval_s + 2`` never binds;
+        without decimation :data:`UNDECIMATED_WINDOW_SAMPLES`). The oldest sample leaves first."""
+        if self.window_max_samples > 0:
+            return int(self.window_max_samples)
+        if self.sample_interval_s > 0:
+            return int(math.floor(self.window_s / self.sample_interval_s)) + 2
+        return UNDECIMATED_WINDOW_SAMPLES
 
     @property
     def sufficiency(self) -> sufficiency.SufficiencySettings:
@@ -129,12 +145,18 @@ class FitAttempt:
 
 
 class SensorCalibrator:
-    """update(t, b) for every sample; maybe_fit(t) when due; ``current`` is the set in use."""
+    """update(t, b) for every sample; fit(t) when due; ``current`` is the set in use.
+
+    The window keeps each kept sample's field as float32 (what :class:`services.calibration.fleet.FleetCalibration`
+    stores for a whole fleet): 24 significant bits, a few thousandths of a nT at the Earth's field, far below any
+    magnetometer's noise. Both forms round identically, so their fits are the same.
+    """
 
     def __init__(self, sensor: str, settings: CalibrationSettings = CalibrationSettings(),
                  initial: ParamRecord | None = None):
         self.sensor = sensor
         self.settings = settings
+        self.capacity = settings.window_capacity
         self.current = initial
         self.reset_window()
         self.last_attempt: FitAttempt | None = None
@@ -157,8 +179,11 @@ class SensorCalibrator:
             return
         self.last_kept_t = t_s
         self.t.append(float(t_s))
-        self.m.append(tuple(float(x) for x in b_nt))
+        self.m.append(tuple(np.asarray(b_nt, np.float32).astype(float).tolist()))
         while self.t and self.t[0] < t_s - st.window_s:
+            self.t.popleft()
+            self.m.popleft()
+        while len(self.t) > self.capacity:
             self.t.popleft()
             self.m.popleft()
 
@@ -169,83 +194,104 @@ class SensorCalibrator:
         return np.asarray(self.m, float).reshape(-1, 3)
 
     def choose_model(self, m: np.ndarray) -> tuple[str, sufficiency.Verdict]:
-        st = self.settings
-        suf = st.sufficiency
-        if st.model != "auto":
-            return st.model, sufficiency.check_samples(m, st.model, suf)
-        v3 = sufficiency.check_samples(m, "3d", suf)
-        if v3.ok:
-            return "3d", v3
-        return "2d", sufficiency.check_samples(m, "2d", suf)
+        return choose_model(m, self.settings)
 
     def fit(self, t_s: float) -> FitAttempt:
         """Fit the current window; replace the current set only when the candidate is better."""
-        st = self.settings
         self.last_fit_t = t_s
         self.n_fits += 1
-        m_all = self.window()
-        model, verdict = self.choose_model(m_all)
-        if not verdict.ok:
-            return self._refuse(t_s, model, verdict.reason, verdict.coverage_frac, len(m_all))
-        centre = self.current.params.offset if self.current is not None and self.current.status == "ok" else None
-        idx = sufficiency.balanced_subset(m_all, model, st.sufficiency, centre=centre)
-        m = m_all[idx]
-        radius = st.field_radius_nt if st.field_radius_nt > 0 else None
-        if st.method == "arls":
-            res = arls.fit_arls(m, model, radius, st.arls)
-        else:
-            res = two_step.fit_ls(m, model, radius)
-        if not res.ok:
-            return self._refuse(t_s, model, res.reason, verdict.coverage_frac, len(m))
-        check = sufficiency.check_fit(m, res.params, st.sufficiency, res.weights)
-        if not check.ok:
-            return self._refuse(t_s, model, check.reason, check.coverage_frac, len(m))
-        cand = ParamRecord(res.params, new_param_id(self.sensor, res.method, t_s), "ok", res.method, res.rmse_nt,
-                           check.coverage_frac, len(m), res.n_gross_rejected, t_s, res.duration_ms)
-        better, why = self.is_better(cand, m)
-        attempt = FitAttempt(better, why, cand)
+        attempt = fit_window(self.sensor, self.window(), t_s, self.current, self.settings)
         self.last_attempt = attempt
-        if better:
-            self.current = cand
+        if attempt.record is not None and attempt.record.status == "refused":
+            self.n_refused += 1
+        if attempt.accepted:
+            self.current = attempt.record
             self.n_replaced += 1
         return attempt
 
     def is_better(self, cand: ParamRecord, m: np.ndarray) -> tuple[bool, str]:
-        cur = self.current
-        if cur is None or cur.status != "ok":
-            return True, "first fitted parameter set"
-        if cur.params.model == "3d" and cand.params.model == "2d":
-            return False, "keeps the 3-D parameter set: a 2-D fit cannot replace it"
-        if cur.params.model == "2d" and cand.params.model == "3d":
-            return True, "3-D fit replaces the 2-D parameter set"
-        r_new = relative_residual(m, cand.params)
-        r_old = relative_residual(m, cur.params)
-        if r_new < self.settings.improve_ratio * r_old:
-            return True, f"residual {100 * r_new:.2f}% < {100 * r_old:.2f}% of the set in use"
-        return False, f"residual {100 * r_new:.2f}% not below {self.settings.improve_ratio:g} × {100 * r_old:.2f}%"
-
-    def _refuse(self, t_s: float, model: str, reason: str, coverage: float, n: int) -> FitAttempt:
-        self.n_refused += 1
-        base = self.current.params if self.current is not None else magcal.MagParams(model=model)
-        rec = ParamRecord(replace(base, model=model), new_param_id(self.sensor, "refused", t_s), "refused",
-                          self.settings.method, None, coverage, n, 0, t_s, 0.0, reason)
-        self.last_attempt = FitAttempt(False, reason, rec)
-        return self.last_attempt
+        return is_better(cand, self.current, m, self.settings)
 
     @property
     def internal_states(self) -> dict:
-        a = self.last_attempt
-        return {
-            "window_samples": len(self.t),
-            "fits": self.n_fits,
-            "refused": self.n_refused,
-            "replaced": self.n_replaced,
-            "current_param_id": self.current.param_id if self.current else None,
-            "current_status": self.current.status if self.current else None,
-            "current_method": self.current.method if self.current else None,
-            "last_attempt": None if a is None else {"accepted": a.accepted, "reason": a.reason,
-                                                    "coverage_frac": a.record.coverage_frac if a.record else None},
-        }
+        return sensor_states(len(self.t), self.n_fits, self.n_refused, self.n_replaced, self.current,
+                             self.last_attempt)
+
+
+def sensor_states(window_samples: int, fits: int, refused: int, replaced: int, current: ParamRecord | None,
+                  attempt: FitAttempt | None) -> dict:
+    """The status entry of one sensor's fits (``calibration.vehicles.{v}.sensors.{s}``)."""
+    return {
+        "window_samples": int(window_samples),
+        "fits": int(fits),
+        "refused": int(refused),
+        "replaced": int(replaced),
+        "current_param_id": current.param_id if current else None,
+        "current_status": current.status if current else None,
+        "current_method": current.method if current else None,
+        "last_attempt": None if attempt is None else {"accepted": attempt.accepted, "reason": attempt.reason,
+                                                      "coverage_frac": attempt.record.coverage_frac
+                                                      if attempt.record else None},
+    }
+
+
+def choose_model(m: np.ndarray, st: CalibrationSettings) -> tuple[str, sufficiency.Verdict]:
+    suf = st.sufficiency
+    if st.model != "auto":
+        return st.model, sufficiency.check_samples(m, st.model, suf)
+    v3 = sufficiency.check_samples(m, "3d", suf)
+    if v3.ok:
+        return "3d", v3
+    return "2d", sufficiency.check_samples(m, "2d", suf)
+
+
+def fit_window(sensor: str, m_all: np.ndarray, t_s: float, current: ParamRecord | None,
+               st: CalibrationSettings) -> FitAttempt:
+    """One fit attempt on a window of samples (N×3, oldest first): sufficiency, Two-Step LS or ARLS on the
+    balanced subset, the fit checks, and whether the candidate is better than ``current``. Pure: the caller
+    keeps the window, the counters and the set in use (:class:`SensorCalibrator`, and the fleet form)."""
+    model, verdict = choose_model(m_all, st)
+    if not verdict.ok:
+        return _refused(sensor, current, st, t_s, model, verdict.reason, verdict.coverage_frac, len(m_all))
+    centre = current.params.offset if current is not None and current.status == "ok" else None
+    idx = sufficiency.balanced_subset(m_all, model, st.sufficiency, centre=centre)
+    m = m_all[idx]
+    radius = st.field_radius_nt if st.field_radius_nt > 0 else None
+    if st.method == "arls":
+        res = arls.fit_arls(m, model, radius, st.arls)
+    else:
+        res = two_step.fit_ls(m, model, radius)
+    if not res.ok:
+        return _refused(sensor, current, st, t_s, model, res.reason, verdict.coverage_frac, len(m))
+    check = sufficiency.check_fit(m, res.params, st.sufficiency, res.weights)
+    if not check.ok:
+        return _refused(sensor, current, st, t_s, model, check.reason, check.coverage_frac, len(m))
+    cand = ParamRecord(res.params, new_param_id(sensor, res.method, t_s), "ok", res.method, res.rmse_nt,
+                       check.coverage_frac, len(m), res.n_gross_rejected, t_s, res.duration_ms)
+    better, why = is_better(cand, current, m, st)
+    return FitAttempt(better, why, cand)
+
+
+def is_better(cand: ParamRecord, cur: ParamRecord | None, m: np.ndarray, st: CalibrationSettings) -> tuple[bool, str]:
+    if cur is None or cur.status != "ok":
+        return True, "first fitted parameter set"
+    if cur.params.model == "3d" and cand.params.model == "2d":
+        return False, "keeps the 3-D parameter set: a 2-D fit cannot replace it"
+    if cur.params.model == "2d" and cand.params.model == "3d":
+        return True, "3-D fit replaces the 2-D parameter set"
+    r_new = relative_residual(m, cand.params)
+    r_old = relative_residual(m, cur.params)
+    if r_new < st.improve_ratio * r_old:
+        return True, f"residual {100 * r_new:.2f}% < {100 * r_old:.2f}% of the set in use"
+    return False, f"residual {100 * r_new:.2f}% not below {st.improve_ratio:g} × {100 * r_old:.2f}%"
+
+
+def _refused(sensor: str, current: ParamRecord | None, st: CalibrationSettings, t_s: float, model: str, reason: str,
+             coverage: float, n: int) -> FitAttempt:
+    base = current.params if current is not None else magcal.MagParams(model=model)
+    rec = ParamRecord(replace(base, model=model), new_param_id(sensor, "refused", t_s), "refused",
+                      st.method, None, coverage, n, 0, t_s, 0.0, reason)
+    return FitAttempt(False, reason, rec)
 
 
 # ---- vehicle: sensors + online EKF ------------------------------------------------------------

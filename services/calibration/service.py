@@ -10,6 +10,12 @@ Produces  magmesh/{vehicle}/cal/mag/{sensor}     h = M (m − offset), calibrate
 Parameter sets persist as JSON under ``state_dir()/calibration/`` and are reloaded on start; the
 manifest's ``mag_params`` table (status "manifest") is used until a fit or a saved set exists. A
 fresh fit replaces the set in use only when it fits the current samples better (see core.py).
+
+One implementation serves both inputs: :class:`services.calibration.fleet.FleetCalibration` holds every vehicle's
+state. A fleet frame (``on_frame``) is handled in one call for all its vehicles and its compensated samples go out
+as one ``cal`` frame (each row numbered on its per-vehicle ``cal/mag`` key); a single sample (``on_message``, when
+ingest publishes singles) is the same call with one row, and goes out as one ``cal/mag`` message. Fits run within
+``fit_budget_frac`` of a core (the most overdue first; fleet.py), parameter sets always go out on ``cal/params``.
 """
 
 from __future__ import annotations
@@ -18,15 +24,19 @@ import json
 import math
 import os
 import re
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
+
+import numpy as np
 
 from magmesh import magcal, paths
 from magmesh.runtime import Service
+from schemas import frame as fleetframe
 from schemas import keys
 from services.physical import refuse_unphysical
 
 from . import online_ekf
-from .core import USABLE, CalibrationSettings, OnlineSettings, ParamRecord, VehicleCalibration
+from .core import USABLE, CalibrationSettings, OnlineSettings, ParamRecord
+from .fleet import FleetCalibration, GnssIn, ImuIn, MagIn
 
 
 @dataclass(frozen=True)
@@ -37,6 +47,8 @@ class Settings:
     window_s: float = 600.0  # fit window, s of sample time
     sample_interval_s: float = 0.05  # decimation of the fit window, s
     refit_interval_s: float = 5.0  # fit attempt period, s of sample time
+    fit_budget_frac: float = 0.05  # share of one core fits may take (CPU time); 0: no limit (fit when due)
+    window_max_samples: int = 0  # fit window bound, samples; 0: what window_s / sample_interval_s allows
     field_radius_nt: float = 0.0  # > 0: scale |h| to this; 0: the fitted radius
     improve_ratio: float = 0.95  # a new set must have a residual below this × the current one's
     k0: float = 1.5  # IGG-III lower threshold, standardised residuals
@@ -91,7 +103,7 @@ class Calibration(Service):
             method=s.method, model=s.model, window_s=s.window_s, sample_interval_s=s.sample_interval_s,
             refit_interval_s=s.refit_interval_s, field_radius_nt=s.field_radius_nt, improve_ratio=s.improve_ratio,
             k0=s.k0, k1=s.k1, min_samples=s.min_samples, min_coverage_2d=s.min_coverage_2d,
-            min_coverage_3d=s.min_coverage_3d)
+            min_coverage_3d=s.min_coverage_3d, window_max_samples=s.window_max_samples)
         if s.ekf_tilt not in ("level", "accel"):
             raise ValueError(f"ekf_tilt must be 'level' or 'accel', got {s.ekf_tilt!r}")
         self.online_settings = OnlineSettings(
@@ -100,6 +112,11 @@ class Calibration(Service):
                                        heading_noise_rad=math.radians(s.ekf_heading_noise_deg),
                                        min_speed_m_s=s.ekf_min_speed_m_s, gate_sigma=s.ekf_gate_sigma,
                                        random_walk_nt_sqrt_s=s.ekf_random_walk_nt_sqrt_s))
+        self.fleet = FleetCalibration(self.cal_settings, self.online_settings, fit_budget_frac=s.fit_budget_frac)
+        from .fleet import warm
+
+        warm()  # compile (or load from numba's disk cache) before serving: never on a sample
+        self._by_name: dict[str, VehicleSlot] = {}
         self.last_msgs: dict[str, dict] = {}  # cal/params key → last message published
         self.dirty: set[tuple[str, str]] = set()
         self.saved = self._load_saved()
@@ -116,7 +133,7 @@ class Calibration(Service):
         self._persist()
 
     # ---- per vehicle ------------------------------------------------------------------------
-    def new_vehicle(self, vehicle: str) -> VehicleCalibration:
+    def new_vehicle(self, vehicle: str) -> VehicleSlot:
         cfg = self.vehicles_config.get(vehicle, {}) or {}
         initial: dict[str, ParamRecord] = {}
         for sid, table in (cfg.get("mag_params") or {}).items():
@@ -130,61 +147,140 @@ class Calibration(Service):
         decl = cfg.get("declination_rad") if cfg.get("declination_source") == "manifest" else None
         kind = cfg.get("kind")
         kinds = {k.strip() for k in self.settings.ekf_kinds.split(",") if k.strip()}
-        online = self.online_settings
-        if kind is not None and kind not in kinds:
-            # a multirotor flies sideways, a replayed recording has no GNSS: course is not heading
-            online = replace(online, enabled=False)
-        vc = VehicleCalibration(vehicle, self.cal_settings, online, initial, decl)
-        self.log.info("vehicle %s (kind %s): online EKF %s", vehicle, kind or "unknown",
-                      "on" if online.enabled else "off")
+        # a multirotor flies sideways, a replayed recording has no GNSS: course is not heading
+        online = self.online_settings.enabled and (kind is None or kind in kinds)
+        old = self._by_name.pop(vehicle, None)
+        if old is not None:  # the runtime dropped its state (a group hand-over): start the vehicle afresh
+            self.fleet.free_vehicle(old.vslot)
+        vs = VehicleSlot(vehicle, self.fleet.add_vehicle(vehicle, online, decl, initial))
+        self._by_name[vehicle] = vs
+        self.log.info("vehicle %s (kind %s): online EKF %s", vehicle, kind or "unknown", "on" if online else "off")
         for sid in initial:
-            vc.sensor(sid)
-            self._publish_params(vehicle, sid, vc.sensors[sid].current, t_s=initial[sid].fit_t_s)
-        return vc
+            self._publish_params(vehicle, sid, self.fleet.records[self.fleet.sensors(vs.vslot)[sid]],
+                                 t_s=initial[sid].fit_t_s)
+        return vs
 
-    def on_message(self, info, msg, state: VehicleCalibration) -> None:
+    def evict_vehicle(self, vehicle: str, state: VehicleSlot) -> None:
+        if self._by_name.get(vehicle) is state:
+            del self._by_name[vehicle]
+            self.fleet.free_vehicle(state.vslot)
+
+    def on_message(self, info, msg, state: VehicleSlot) -> None:
+        """One sample (contract v1, or the runtime's per-sample hand-out): the fleet core with one row."""
         if refuse_unphysical(self, info, msg):
             return
         stream = info.stream
+        fc = self.fleet
+        one = _ONE
+        t = np.array([msg["t_s"]], float)
         if stream == "mag":
-            self._on_mag(info, msg, state)
+            sid = info.sensor
+            slot = fc.add_sensor(state.vslot, sid)
+            step = fc.step([MagIn(sid, one, np.array([slot], np.int64), t, np.array([msg["b_nt"]], float))])
+            self._handle(step.events)
+            if not self.settings.publish_cal_mag:
+                return
+            if not step.usable[0][0]:
+                self.count_drop(info.key, "no_usable_params")
+                return
+            fields = {"sensor": sid, "b_nt": [float(x) for x in step.h[0][0]], "calibrated": True,
+                      "param_id": step.param_ids(0)[0]}
+            if "temp_c" in msg:
+                fields["temp_c"] = msg["temp_c"]
+            self.publish(keys.cal_mag(info.vehicle, sid), "mag", info.vehicle, msg["t_s"], **fields)
         elif stream == "imu":
-            state.on_imu(msg["t_s"], msg["gyro_rad_s"], msg["accel_m_s2"])
+            fc.step([ImuIn(one, np.array([state.vslot], np.int64), t, np.array([msg["gyro_rad_s"]], float),
+                           np.array([msg["accel_m_s2"]], float))])
         elif stream == "gnss":
-            for sid, rec in state.on_gnss(msg["t_s"], msg):
-                self.log.info("vehicle %s sensor %s: %s parameter set %s (%s)", info.vehicle, sid, rec.status,
-                              rec.param_id, rec.reason)
-                self._publish_params(info.vehicle, sid, rec, msg["t_s"])
+            cols = {k: [msg[k]] for k in _GNSS_FIELDS}
+            self._handle(fc.step([GnssIn(one, np.array([state.vslot], np.int64), t, cols)]).events)
 
-    def _on_mag(self, info, msg, state: VehicleCalibration) -> None:
-        sid = info.sensor
-        sc = state.on_mag(sid, msg["t_s"], msg["b_nt"])
-        if sc.due(msg["t_s"]):
-            had = sc.current
-            attempt = sc.fit(msg["t_s"])
-            if attempt.accepted:
+    def on_frame(self, fr) -> None:
+        """A fleet frame: every vehicle's mag, imu and gnss rows in one call; the compensated samples out as one
+        ``cal`` frame."""
+        fc = self.fleet
+        names = fr.vehicles
+        present = np.zeros(len(names), bool)
+        for st in fr.streams.values():
+            present[st.vi] = True
+        vmap = np.full(len(names), -1, np.int64)
+        states = self.vehicle_states
+        for i in np.flatnonzero(present).tolist():
+            vs = states.get(names[i])
+            if vs is None:
+                vs = self.state_for(names[i])
+            vmap[i] = vs.vslot
+        inputs, mags, new = [], [], []
+        for j, (name, st) in enumerate(fr.streams.items()):
+            head, _, sid = name.partition("/")
+            vsl = vmap[st.vi]
+            if head == "mag":
+                slots = fc.sensor_slots(vsl, sid)
+                miss = np.flatnonzero(slots < 0)
+                if miss.size:  # a vehicle's first rows of this sensor: its first row decides the creation order
+                    first = miss[np.r_[True, st.vi[miss][1:] != st.vi[miss][:-1]]]
+                    new += [(int(st.vi[i]), float(st.t_s[i]), j, int(vsl[i]), sid) for i in first.tolist()]
+                x = MagIn(sid, st.vi, slots, st.t_s, st.cols["b_nt"])
+                mags.append((x, st))
+            elif head == "imu":
+                x = ImuIn(st.vi, vsl, st.t_s, st.cols["gyro_rad_s"], st.cols["accel_m_s2"])
+            elif head == "gnss":
+                x = GnssIn(st.vi, vsl, st.t_s, st.cols)
+            else:
+                continue
+            inputs.append(x)
+        if new:
+            for _, _, _, v, sid in sorted(new):
+                fc.add_sensor(v, sid)
+            for x, st in mags:
+                x.slots = fc.sensor_slots(vmap[st.vi], x.sid)
+        step = fc.step(inputs)
+        self._handle(step.events)
+        if not self.settings.publish_cal_mag or not mags:
+            return
+        out = {}
+        for i, (x, st) in enumerate(mags):
+            use = step.usable[i]
+            if not use.all():
+                bad_vi, n_bad = np.unique(st.vi[~use], return_counts=True)
+                for vi, n in zip(bad_vi.tolist(), n_bad.tolist(), strict=True):
+                    self.count_drop(keys.clean_mag(names[vi], x.sid), "no_usable_params", n)
+            rows = np.flatnonzero(use)
+            if not rows.size:
+                continue
+            pids = step.param_ids(i)
+            pids = [pids[r] for r in rows.tolist()] if rows.size < len(pids) else pids
+            cols = {"sensor": x.sid, "b_nt": step.h[i][rows], "calibrated": np.ones(rows.size, np.uint8),
+                    "param_id": pids[0] if all(p == pids[0] for p in pids) else pids}
+            temp = st.cols.get("temp_c")
+            if isinstance(temp, np.ndarray):
+                cols["temp_c"] = temp[rows]
+            out[f"mag/{x.sid}"] = fleetframe.Stream(f"mag/{x.sid}", "mag", st.vi[rows], st.t_s[rows], None, cols)
+        if out:
+            self.publish_frame("cal", names, out)
+
+    def _handle(self, events) -> None:
+        """Publish what the fleet core decided: fitted sets, refusals while nothing usable is in use, EKF sets."""
+        for e in events:
+            if e.kind == "ekf":
+                rec = e.record
+                self.log.info("vehicle %s sensor %s: %s parameter set %s (%s)", e.vehicle, e.sensor, rec.status,
+                              rec.param_id, rec.reason)
+                self._publish_params(e.vehicle, e.sensor, rec, e.t_s)
+                continue
+            a = e.attempt
+            if a.accepted:
+                r = a.record
                 self.log.info("vehicle %s sensor %s: new %s %s fit %s, rmse %.0f nT, %d gross errors rejected (%s)",
-                              info.vehicle, sid, attempt.record.params.model, attempt.record.method,
-                              attempt.record.param_id, attempt.record.rmse_nt or -1, attempt.record.n_gross_rejected,
-                              attempt.reason)
-                self._publish_params(info.vehicle, sid, sc.current, msg["t_s"])
-            elif had is None or had.status not in USABLE:
+                              e.vehicle, e.sensor, r.params.model, r.method, r.param_id, r.rmse_nt or -1,
+                              r.n_gross_rejected, a.reason)
+                self._publish_params(e.vehicle, e.sensor, r, e.t_s)
+            elif e.had is None or e.had.status not in USABLE:
                 # nothing usable yet: say why on cal/params (once per distinct reason)
-                last = self.last_msgs.get(keys.cal_params(info.vehicle, sid))
-                if attempt.record is not None and (last is None or _gist(last.get("reason", "")) != _gist(attempt.reason)):
-                    self.log.info("vehicle %s sensor %s: fit refused: %s", info.vehicle, sid, attempt.reason)
-                    self._publish_params(info.vehicle, sid, attempt.record, msg["t_s"], persist=False)
-        cur = sc.current
-        if not self.settings.publish_cal_mag:
-            return
-        if cur is None or cur.status not in USABLE:
-            self.count_drop(info.key, "no_usable_params")
-            return
-        h = cur.params.apply(msg["b_nt"])
-        fields = {"sensor": sid, "b_nt": [float(x) for x in h], "calibrated": True, "param_id": cur.param_id}
-        if "temp_c" in msg:
-            fields["temp_c"] = msg["temp_c"]
-        self.publish(keys.cal_mag(info.vehicle, sid), "mag", info.vehicle, msg["t_s"], **fields)
+                last = self.last_msgs.get(keys.cal_params(e.vehicle, e.sensor))
+                if a.record is not None and (last is None or _gist(last.get("reason", "")) != _gist(a.reason)):
+                    self.log.info("vehicle %s sensor %s: fit refused: %s", e.vehicle, e.sensor, a.reason)
+                    self._publish_params(e.vehicle, e.sensor, a.record, e.t_s, persist=False)
 
     # ---- parameters: publish, answer, persist -----------------------------------------------
     def _publish_params(self, vehicle: str, sid: str, rec: ParamRecord | None, t_s: float, persist: bool = True):
@@ -202,6 +298,7 @@ class Calibration(Service):
         return [(k, m) for k, m in list(self.last_msgs.items()) if qke.intersects(zenoh.KeyExpr(k))]
 
     def on_tick(self) -> None:
+        self._handle(self.fleet.run_queued())  # fits that waited for the budget
         self._persist()
 
     def _dir(self):
@@ -213,13 +310,14 @@ class Calibration(Service):
         d = self._dir()
         d.mkdir(parents=True, exist_ok=True)
         for vehicle, sid in list(self.dirty):
-            vc = self.vehicle_states.get(vehicle)
-            sc = vc.sensors.get(sid) if vc else None
-            if sc is None or sc.current is None or sc.current.status not in ("ok", "converging"):
+            vs = self.vehicle_states.get(vehicle)
+            slot = self.fleet.sensors(vs.vslot).get(sid) if vs else None
+            cur = self.fleet.records[slot] if slot is not None else None
+            if cur is None or cur.status not in ("ok", "converging"):
                 continue
             path = d / f"{_safe(vehicle)}__{_safe(sid)}.json"
             tmp = path.with_suffix(".tmp")
-            tmp.write_text(json.dumps({"vehicle": vehicle, "sensor": sid, "record": sc.current.to_json()}, indent=1))
+            tmp.write_text(json.dumps({"vehicle": vehicle, "sensor": sid, "record": cur.to_json()}, indent=1))
             os.replace(tmp, path)  # atomic: a crash never leaves half a file
         self.dirty.clear()
 
@@ -240,14 +338,16 @@ class Calibration(Service):
         return out
 
     def status_extra(self) -> dict:
+        fc = self.fleet
         vehicles = {}
-        for v, vc in list(self.vehicle_states.items()):
-            if vc is None:
+        rows = []
+        for v, vs in list(self.vehicle_states.items()):
+            if vs is None:
                 continue
             sensors = {}
-            for sid, sc in list(vc.sensors.items()):
-                cur = sc.current
-                entry = dict(sc.internal_states)
+            for sid, slot in list(fc.sensors(vs.vslot).items()):
+                cur = fc.records[slot]
+                entry = fc.sensor_entry(slot)
                 if cur is not None:
                     entry["params"] = {
                         "status": cur.status, "method": cur.method, "model": cur.params.model,
@@ -257,19 +357,30 @@ class Calibration(Service):
                         "coverage_frac": round(cur.coverage_frac, 3), "observable": list(cur.params.observable),
                         "n_gross_rejected": cur.n_gross_rejected,
                     }
-                onl = vc.onl.get(sid)
-                if onl is not None:
-                    entry["ekf"] = {**onl.ekf.internal_states, **onl.ekf.flags}
+                ekf = fc.ekf_states(slot)
+                if ekf is not None:
+                    entry["ekf"] = ekf
                 sensors[sid] = entry
-            vehicles[v] = {"sensors": sensors, "gnss_unusable_reason": vc.gnss_reason}
+                rows.append((v, sid, cur))
+            vehicles[v] = {"sensors": sensors, "gnss_unusable_reason": fc.gnss_reason(vs.vslot)}
         parts = []
-        for v, vc in sorted(list(self.vehicle_states.items())):
-            for sid, sc in sorted(list(vc.sensors.items()) if vc else []):
-                cur = sc.current
-                if cur is None:
-                    parts.append(f"{v}/{sid} none")
-                else:
-                    rmse = "" if cur.rmse_nt is None else f" {cur.rmse_nt:.0f}nT"
-                    parts.append(f"{v}/{sid} {cur.status} {cur.method} {cur.params.model}{rmse}")
+        for v, sid, cur in sorted(rows, key=lambda r: (r[0], r[1])):
+            if cur is None:
+                parts.append(f"{v}/{sid} none")
+            else:
+                rmse = "" if cur.rmse_nt is None else f" {cur.rmse_nt:.0f}nT"
+                parts.append(f"{v}/{sid} {cur.status} {cur.method} {cur.params.model}{rmse}")
         # "summary" first: `magmesh status` shows the start of this entry in its NOTE column
-        return {"calibration": {"summary": "; ".join(parts), "vehicles": vehicles}}
+        return {"calibration": {"summary": "; ".join(parts), "vehicles": vehicles, "fits": fc.scheduler_status()}}
+
+
+@dataclass(eq=False)
+class VehicleSlot:
+    """What the runtime keeps per vehicle: its slot in the fleet core (the state itself lives there)."""
+
+    name: str
+    vslot: int
+
+
+_ONE = np.zeros(1, np.int64)
+_GNSS_FIELDS = ("speed_m_s", "course_rad", "fix_type", "num_sats", "pdop", "lat_deg", "lon_deg", "alt_m")
