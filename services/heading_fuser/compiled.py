@@ -688,17 +688,24 @@ def _lag_add_gyro(x, iv, L, t, g0, g1, g2):
 
 
 @njit(cache=True, error_model="numpy")
-def _lag_attitude_at(x, L, first, k, tq):
+def _lag_attitude_at(x, L, first, k, tq, lo):
     """MagLagEstimator._attitudes_at for one time: normalised linear interpolation of the ring buffer's
-    filled part (logical index j ↔ physical (first + j) % n_buf)."""
+    filled part (logical index j ↔ physical (first + j) % n_buf). ``lo`` (≥ the answer, or −1) starts the
+    search for searchsorted(side=left); returns the attitude and that index (times asked in decreasing order
+    walk down from the last answer)."""
     ogt = L[L_GT]
-    lo, hi = 0, k  # searchsorted, side left
-    while lo < hi:
-        mid = (lo + hi) >> 1
-        if x[ogt + (first + mid) % LAG_NBUF] < tq:
-            lo = mid + 1
-        else:
-            hi = mid
+    if lo < 0:
+        lo, hi = 0, k  # searchsorted, side left
+        while lo < hi:
+            mid = (lo + hi) >> 1
+            if x[ogt + (first + mid) % LAG_NBUF] < tq:
+                lo = mid + 1
+            else:
+                hi = mid
+    else:
+        while lo > 0 and x[ogt + (first + lo - 1) % LAG_NBUF] >= tq:
+            lo -= 1
+    found = lo
     idx = min(max(lo, 1), k - 1)
     i0 = (first + idx - 1) % LAG_NBUF
     i1 = (first + idx) % LAG_NBUF
@@ -713,7 +720,7 @@ def _lag_attitude_at(x, L, first, k, tq):
     qy = x[o0 + 2] * a + x[o1 + 2] * f
     qz = x[o0 + 3] * a + x[o1 + 3] * f
     n = math.sqrt(w * w + qx * qx + qy * qy + qz * qz)
-    return w / n, qx / n, qy / n, qz / n
+    return w / n, qx / n, qy / n, qz / n, found
 
 
 @njit(cache=True, error_model="numpy")
@@ -785,10 +792,11 @@ def _lag_add_mag(x, iv, L, t, m0, m1, m2, ref_nt, W):
     x[X_LLAST_T] = t
     p0, p1, p2 = x[om + 4 * h + 1], x[om + 4 * h + 2], x[om + 4 * h + 3]
     oA, oB, oC = L[L_A], L[L_B], L[L_C]
+    lo1 = lo0 = -1
     for g in range(G):
         d = x[og + g]
-        w1, x1, y1, z1 = _lag_attitude_at(x, L, first, k, t - d)
-        w0, x0, y0, z0 = _lag_attitude_at(x, L, first, k, t0 - d)
+        w1, x1, y1, z1, lo1 = _lag_attitude_at(x, L, first, k, t - d, lo1)
+        w0, x0, y0, z0, lo0 = _lag_attitude_at(x, L, first, k, t0 - d, lo0)
         w = w1 * w0 + x1 * x0 + y1 * y0 + z1 * z0
         qx = w1 * x0 - x1 * w0 - y1 * z0 + z1 * y0
         qy = w1 * y0 + x1 * z0 - y1 * w0 - z1 * x0
@@ -1248,10 +1256,12 @@ class _Work(NamedTuple):
     dx6: np.ndarray
     b31: np.ndarray
     x31: np.ndarray
+    pn3: np.ndarray
+    t3: np.ndarray
     h_g3: np.ndarray
 
 
-_WORK_FIXED = 9 + 9 + 9 + 6 + 36 + 36 + 18 + 18 + 18 + 18 + 18 + 6 + 6 + 3 + 3
+_WORK_FIXED = 9 + 9 + 9 + 6 + 36 + 36 + 18 + 18 + 18 + 18 + 18 + 6 + 6 + 3 + 3 + 9 + 9
 
 
 def _work_size(gmax: int) -> int:
@@ -1291,9 +1301,13 @@ def _work(wb, gmax):
     o += 3
     x31 = wb[o:o + 3].reshape((3, 1))
     o += 3
+    pn3 = wb[o:o + 9].reshape((3, 3))
+    o += 9
+    t3 = wb[o:o + 9].reshape((3, 3))
+    o += 9
     g = max(gmax, 1)
     h_g3 = wb[o:o + 3 * g].reshape((g, 3))
-    return _Work(r3, rm3, s3, s3b, m6, t6, pht, k63, a63, b36, x36, dx, dx6, b31, x31, h_g3)
+    return _Work(r3, rm3, s3, s3b, m6, t6, pht, k63, a63, b36, x36, dx, dx6, b31, x31, pn3, t3, h_g3)
 
 
 @njit(cache=True, error_model="numpy")
@@ -1312,12 +1326,10 @@ def _euler(x):
 
 
 @njit(cache=True, error_model="numpy")
-def _attitude_std(x, L, R):
+def _attitude_std(x, L, R, Pn, T):
     """core.HeadingFilter.attitude_std: 1-σ (heading, pitch, roll)."""
     P = _P(x, L)
     _qmat(x[X_Q], x[X_Q + 1], x[X_Q + 2], x[X_Q + 3], R)
-    Pn = np.empty((3, 3))
-    T = np.empty((3, 3))
     for a in range(3):
         for c in range(3):
             T[a, c] = R[a, 0] * P[0, c] + R[a, 1] * P[1, c] + R[a, 2] * P[2, c]
@@ -1338,7 +1350,7 @@ def _attitude_std(x, L, R):
 
 
 @njit(cache=True, error_model="numpy")
-def _output(x, iv, L, o, full_out, ret, changed, R):
+def _output(x, iv, L, o, full_out, ret, changed, W):
     o[O_MODE] = iv[I_MODE]
     o[O_REASON] = iv[I_TR_REASON] if changed else 0
     o[O_FUSED] = iv[I_FL_FUSED]
@@ -1357,7 +1369,7 @@ def _output(x, iv, L, o, full_out, ret, changed, R):
         o[O_HEADING] = h
         o[O_PITCH] = p
         o[O_ROLL] = r
-        hs, ps, rs = _attitude_std(x, L, R)
+        hs, ps, rs = _attitude_std(x, L, W.r3, W.pn3, W.t3)
         o[O_HSTD] = hs
         o[O_PSTD] = ps
         o[O_RSTD] = rs
@@ -1382,7 +1394,7 @@ def _step(S, X, IS, L, wb, slots, kind, t_s, a, b, dt_s, dmc, out, full_out, sta
             if iv[I_WN] >= wcap or iv[I_MN] >= mcap:
                 return r
             ret = _mag(s, x, iv, L, a[r, 0], a[r, 1], a[r, 2], np.int64(dmc[r]), t_s[r], W)
-        _output(x, iv, L, out[r], full_out, ret, iv[I_NTR] != ntr, W.r3)
+        _output(x, iv, L, out[r], full_out, ret, iv[I_NTR] != ntr, W)
     return slots.shape[0]
 
 
@@ -1430,7 +1442,7 @@ def _rebase1(X, IS, L, k):
 def _euler_std1(X, L, k):
     R = np.empty((3, 3))
     h, p, r = _euler(X[k])
-    hs, ps, rs = _attitude_std(X[k], L, R)
+    hs, ps, rs = _attitude_std(X[k], L, R, np.empty((3, 3)), np.empty((3, 3)))
     return h, p, r, hs, ps, rs
 
 
