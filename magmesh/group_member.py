@@ -143,6 +143,12 @@ class GroupMember:
         self.stats["not_owned"] += 1
         return False
 
+    def plain(self, vehicle: str) -> bool:
+        """Whether every output of ``vehicle`` is this instance's to publish now, whatever its time: it holds the
+        vehicle and no hand-over of it is under way (what :meth:`gate` would say for any ``t_s``)."""
+        return vehicle in self.owned and vehicle not in self.post_cut and vehicle not in self.release \
+            and vehicle not in self.arm and vehicle not in self.warming
+
     def gate(self, key: str, msg_type: str, vehicle: str, t_s: float, fields: dict) -> bool:
         """Whether an output of ``vehicle`` at sample time ``t_s`` is this instance's to publish now."""
         cut = self.release.get(vehicle)

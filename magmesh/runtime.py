@@ -81,6 +81,7 @@ LOST_REASONS = frozenset(("upstream_gap", "handler_error", "queue_overflow", "in
 
 _ENCODINGS: dict[str, Any] = {}
 _CLEAN_BATCH = f"/clean/{keys.BATCH}"
+_RAW_BATCH = f"/raw/{keys.BATCH}"
 _FLEET = f"{keys.ROOT}/{keys.FLEET}/"
 _ROW_ENC = None  # msgspec encoder of per-vehicle rows (publish_rows), made on first use
 
@@ -567,6 +568,7 @@ class Runner:
         self.frame_seq_in: dict[str, int] = {}
         self._ofkeys: dict[tuple[str, str, str], tuple] = {}  # output frame rows: per (kind, name) keys and slots
         self._row_cache: dict[str, list] = {}  # publish_rows: key -> [publisher, journal slot, out counter]
+        self._raw_batch_keys: dict[str, KeyInfo] = {}  # raw/batch keys already checked (a service taking them)
         self.mirrors: dict[str, str] = {}  # message type -> frame kind its rows are mirrored in (publish_rows)
         service._rt = self
 
@@ -759,13 +761,27 @@ class Runner:
         good = js >= 0
         arr[js[good]] = last[good]
 
+    def _plain(self, vehicle: str) -> bool:
+        """Whether every output of ``vehicle`` goes out now, whatever its time (no hand-over of it under way)."""
+        if self.mode != "active" or vehicle in self.cut or vehicle in self.recovering:
+            return False
+        return self.group is None or self.group.plain(vehicle)
+
     def _gate_frame_rows(self, kind: str, name: str, vehicles: list[str], st: Any) -> Any:
         """The rows of a frame that are this instance's to publish now (see :meth:`publish`); rows to hold are
-        kept as single messages on their per-vehicle keys (published when the hand-over completes)."""
+        kept as single messages on their per-vehicle keys (published when the hand-over completes). Vehicles with
+        no hand-over under way keep all their rows without a per-row step."""
         from .frames import stream_key
 
+        g_vi, starts, ends = st.groups()
         keep = np.zeros(st.n, bool)
-        for i in range(st.n):
+        slow = []
+        for i, a, b in zip(g_vi.tolist(), starts.tolist(), ends.tolist(), strict=True):
+            if self._plain(vehicles[i]):
+                keep[a:b] = True
+            else:
+                slow.extend(range(a, b))
+        for i in slow:
             v = vehicles[int(st.vi[i])]
             k = stream_key(kind, v, name)
             t = float(st.t_s[i])
@@ -824,13 +840,22 @@ class Runner:
         t_s = t_s.tolist() if isinstance(t_s, np.ndarray) else t_s
         cols = dict(zip(names, colv, strict=True))
         bad = _invalid_rows(msg_type, cols, t_s, n)
-        if self._gated() or self.recovering or self.reconcile_pending or bad:
-            for i in range(n):
-                m = self.publish(keys_[i], msg_type, vehicles[i], float(t_s[i]),
-                                 {f: c[i] for f, c in zip(names, colv, strict=True)})
-                if m is not None:
-                    out[i] = m["seq"]
+        rows = range(n)
+        if self.reconcile_pending or bad:
+            slow, rows = list(range(n)), ()
+        elif self._gated() or self.recovering:  # rows of vehicles in a hand-over (or just resumed) one by one
+            plain = {v: self._plain(v) for v in set(vehicles)}
+            slow = [i for i in range(n) if not plain[vehicles[i]]]
+            if slow:
+                rows = [i for i in range(n) if plain[vehicles[i]]]
         else:
+            slow = []
+        for i in slow:
+            m = self.publish(keys_[i], msg_type, vehicles[i], float(t_s[i]),
+                             {f: c[i] for f, c in zip(names, colv, strict=True)})
+            if m is not None:
+                out[i] = m["seq"]
+        if rows:
             if _ROW_ENC is None:
                 import msgspec
 
@@ -844,7 +869,7 @@ class Runner:
                 js = j.slots_of(["o" + k for k in new]) if j is not None else [-1] * len(new)
                 for k, jslot in zip(new, js, strict=True):
                     cache[k] = [self._publisher(k), jslot, self.count_out[k]]
-            for i in range(n):
+            for i in rows:
                 k = keys_[i]
                 c = cache[k]
                 s = seq.get(k, -1) + 1
@@ -857,7 +882,7 @@ class Runner:
                 seq[k] = s
                 c[2].n += 1
                 out[i] = s
-            self.n_sent += n
+            self.n_sent += len(rows)
             if j is not None:
                 j.sent(self.n_sent)
         if mirror:
@@ -1275,6 +1300,17 @@ class Runner:
             if self.batch_in and key.endswith(_CLEAN_BATCH):
                 self.handle_batch(key, payload)
                 return
+            if self.svc.RAW_BATCHES and key.endswith(_RAW_BATCH):
+                info = self._raw_batch_keys.get(key)
+                if info is not None and len(payload) <= MAX_PAYLOAD_BYTES["batch"]:
+                    # a vehicle's raw batch seen before (its key checked then): what check_input and dispatch
+                    # do for a batch, without their general steps
+                    now = time.monotonic()
+                    self.count_in[key].n += 1
+                    self.key_seen[key] = now
+                    self.vehicle_seen[info.vehicle] = now
+                    self.svc.on_message(info, payload, self.state_for(info.vehicle))
+                    return
             got = self.check_input(key, payload)
             if got is not None:
                 self.dispatch(*got)
@@ -1624,6 +1660,8 @@ class Runner:
             return None
         if mtype == "batch":  # contract v2 raw batches: validated by the service that takes them (ingest)
             if self.svc.RAW_BATCHES:
+                if info.kind == "raw" and len(self._raw_batch_keys) < 65536:
+                    self._raw_batch_keys[key] = info
                 return info, payload
             self.count_drop(key, "batch_not_consumed")
             return None
@@ -1730,6 +1768,7 @@ class Runner:
         n0 = sum(self.evicted.values())
         for k in [k for k, t in list(self.key_seen.items()) if t < cutoff]:
             del self.key_seen[k]
+            self._raw_batch_keys.pop(k, None)
             c = self.count_in.pop(k, None)
             self.evicted_in += c.n if c is not None else 0
             self.in_seq.pop(k, None)

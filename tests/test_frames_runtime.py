@@ -267,3 +267,30 @@ def test_publish_rows_held_during_a_hand_over_then_mirrored(tmp_path, monkeypatc
     (fp,) = [p for k, p in sess.out if k.startswith("magmesh/fleet/")]
     st = frame.decode(fp).streams["dmc"]
     assert st.seq.tolist() == [42] and st.t_s.tolist() == [1.02]
+
+
+class _Group:
+    """A group member's gate: car-1 held plainly, car-2 being handed over (cut at 1.01 s)."""
+
+    def __init__(self):
+        self.calls = []
+
+    def plain(self, v):
+        return v == "car-1"
+
+    def gate(self, key, msg_type, vehicle, t_s, fields):
+        self.calls.append((vehicle, t_s))
+        return t_s < 1.01
+
+
+def test_publish_rows_in_a_group_gates_only_vehicles_in_a_hand_over(tmp_path, monkeypatch):
+    svc = _FrameSvc(instance="dmc-1")
+    r, sess = _runner(svc, tmp_path, monkeypatch)
+    r.group = _Group()
+    veh = ["car-1", "car-2", "car-1", "car-2"]
+    seqs = r.publish_rows("dmc", [keys.dmc(v) for v in veh], veh, [1.0, 1.0, 1.02, 1.02], _dmc_cols(4), mirror="dmc")
+    assert seqs == [0, 0, 1, -1]  # car-2's row after the cut is the new owner's
+    assert r.group.calls == [("car-2", 1.0), ("car-2", 1.02)]  # car-1 never went through the gate
+    (fp,) = [p for k, p in sess.out if k.startswith("magmesh/fleet/")]
+    st = frame.decode(fp).streams["dmc"]
+    assert sorted(st.seq.tolist()) == [0, 0, 1] and st.n == 3

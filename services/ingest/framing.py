@@ -49,12 +49,26 @@ class _Acc:
 
     def add(self, vi: int, slot: int, t: list, seq: list, cols: dict, now: float) -> None:
         n = len(t)
+        n0 = self.n
         self.vi.extend([vi] * n)
         self.slot.extend([slot] * n)
         self.t.extend(t)
         self.seq.extend(seq)
         self.now.extend([now] * n)
-        n0 = self.n
+        if n0 and len(cols) == len(self.cols) and all(k in self.cols for k in cols):
+            # the same fields as the rows before (the common case): extend them, no blanks to fill
+            shared = self.shared
+            for name, v in cols.items():
+                if isinstance(v, str):
+                    if shared.get(name, v) != v:
+                        shared[name] = None
+                    self.cols[name].extend([v] * n)
+                else:
+                    if name in shared:
+                        shared[name] = None
+                    self.cols[name].extend(v)
+            self.n = n0 + n
+            return
         for name, v in cols.items():
             f = self.fields.get(name)
             if f is None:
