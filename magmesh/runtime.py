@@ -699,8 +699,8 @@ class Runner:
         """Whether outputs may be held back or suppressed now (a hand-over in progress, or a group member)."""
         return self.mode != "active" or bool(self.cut) or self.group is not None
 
-    def publish_frame(self, kind: str, vehicles: list[str], streams_: dict) -> int:
-        """One fleet frame of this instance's shard. A stream whose ``seq`` is None has its rows numbered here,
+    def publish_frame(self, kind: str, vehicles: list[str], streams_: dict, gated: bool = False) -> int:
+        """One fleet frame of this instance's shard (``gated``: its rows already went through the gate). A stream whose ``seq`` is None has its rows numbered here,
         per vehicle, on their per-vehicle keys (the numbers single samples there would carry, journalled as
         theirs). While outputs are gated (hand-over, group) each row goes through the same per-vehicle gate as a
         single message: a row held back goes out later alone on its per-vehicle key."""
@@ -711,7 +711,7 @@ class Runner:
         for name, st in streams_.items():
             if st.n == 0:
                 continue
-            if self._gated():
+            if self._gated() and not gated:
                 st = self._gate_frame_rows(kind, name, vehicles, st)
                 if st is None or st.n == 0:
                     continue
@@ -909,7 +909,7 @@ class Runner:
                 fcols[f] = vals[0] if vals and all(isinstance(x, str) and x == vals[0] for x in vals) else vals
         st = fleetframe.Stream(msg_type, msg_type, vi[order], np.asarray(t_s, float)[idx_a],
                                np.asarray(seqs, np.int64)[idx_a], fcols)
-        self.publish_frame(kind, list(names), {msg_type: st})
+        self.publish_frame(kind, list(names), {msg_type: st}, gated=True)
 
     def _release_held(self, held: list) -> int:
         """Publish outputs held during a hand-over; those of a mirrored type go out as one frame too."""
