@@ -22,3 +22,15 @@ def _own_state_dir(tmp_path_factory, monkeypatch):
     d = tmp_path_factory.mktemp("state")
     monkeypatch.setenv("MAGMESH_STATE_DIR", str(d))
     return d
+
+
+def pytest_sessionstart(session):
+    """A cold numba cache: compile the heading fuser's kernels in a background process while the tests run
+    (python -m services.heading_fuser.compiled --warm; tests/test_heading_compiled.py waits for it)."""
+    try:
+        from services.heading_fuser import compiled
+
+        if not compiled.kernels_ready():
+            compiled.warm_in_background()
+    except Exception:  # noqa: BLE001 — never stop a test session for a warm-up
+        pass

@@ -21,6 +21,15 @@ TOL_RAD = 1e-9
 IMU, MAG, REBASE, RESET = 0, 1, 2, 3
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _kernels():
+    """Load the kernels once: after the background warm-up that conftest.py starts on a cold cache (compiling
+    them here too would only compete with it for the cores)."""
+    if compiled._WARMING is not None:
+        compiled._WARMING.wait(timeout=600)
+    compiled.warm()
+
+
 # ---- harness ------------------------------------------------------------------------------------------------
 def _hd(a: float, b: float) -> float:
     return abs(math.remainder(a - b, 2 * math.pi))
