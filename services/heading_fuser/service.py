@@ -22,17 +22,22 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
 
 from magmesh.magcal import MagParams
 from magmesh.runtime import Service
 from schemas import keys
 from services.physical import refuse_unphysical
 
-from . import core, profiles
+from . import compiled, core, fleet, profiles
 
-MAX_PENDING = 2000
+MAX_PENDING = fleet.MAX_PENDING
+#: mode changes logged per second at most (the rest are counted and named in the next line logged)
+TRANSITION_LOGS_PER_S = 20.0
+_MODE_CODE = {m: i for i, m in enumerate(core.MODES)}
 
 
 @dataclass(frozen=True)
@@ -52,29 +57,76 @@ class Settings(core.Settings):
     compiled: bool = True  # the compiled filter (compiled.py, numba; same results); false: core.HeadingFilter
 
 
-@dataclass
 class VehicleState:
-    filter: core.HeadingFilter
-    last_imu_t: float | None = None
-    last_cal_t: float = -math.inf
-    last_pub_t: float = -math.inf
-    dmc_valid: bool | None = None
-    dmc_credibility: float | None = None
-    dmc_t: float = -math.inf
-    dmc_hist: deque = field(default_factory=lambda: deque(maxlen=4096))  # (t_s, valid) of recent verdicts
-    params: MagParams | None = None
-    param_source: str = "none"
-    n_transitions_logged: int = 0
-    alarm_raised: bool = False
-    alarm_raised_t: float | None = None
-    pending_mag: deque = field(default_factory=deque)  # (t_s, b_nt, key) waiting for the IMU / DMC verdict
-    pending_imu: deque = field(default_factory=deque)  # (t_s, gyro, accel) not yet stepped
-    newest_imu_t: float | None = None
-    newest_mag_t: float | None = None
+    """A vehicle's place in the service: its join slot (fleet.py), its filter — a view of its slot in the shared
+    compiled fleet, or a filter object of its own (the reference, VQF) — and its calibration parameters."""
+
+    def __init__(self, join: fleet.FleetJoin, slot: int, filt, fleet_slot: int, vehicle: str, sensor: str):
+        self.join, self.slot, self.filter, self.fleet_slot = join, slot, filt, fleet_slot
+        self.params: MagParams | None = None
+        self.param_source = "none"
+        self.n_transitions_logged = 0
+        self.imu_key = keys.clean_imu(vehicle)
+        self.cal_key = keys.cal_mag(vehicle, sensor)
+        self.clean_key = keys.clean_mag(vehicle, sensor)
+        self.heading_key = keys.heading(vehicle)
+
+    @property
+    def alarm_raised(self) -> bool:
+        return self.join.alarm_raised(self.slot)
+
+    @property
+    def dmc_valid(self) -> bool | None:
+        return self.join.dmc(self.slot)[0]
+
+    @property
+    def last_imu_t(self) -> float | None:
+        return self.join.last_imu_t(self.slot)
+
+    @property
+    def pending_mag(self) -> list[tuple[float, list[float], str, float]]:
+        """Magnetometer samples waiting for the IMU or their DMC verdict: (t_s, field nT, stream, arrived)."""
+        return self.join.pending_mag(self.slot)
+
+
+class _Rows(NamedTuple):
+    """The filter's state after each event (what the output rules and the heading messages read)."""
+
+    mode: np.ndarray  # code into core.MODES
+    uncertain: np.ndarray  # flags.heading_uncertain
+    alarm_std_rad: np.ndarray  # internal_states.heading_std_rad (after IMU events)
+    reason: np.ndarray  # the fleet's mode-change reason code (0: none, or a filter of its own)
+    heading_rad: np.ndarray
+    pitch_rad: np.ndarray
+    roll_rad: np.ndarray
+    heading_std_rad: np.ndarray
+    pitch_std_rad: np.ndarray
+    roll_std_rad: np.ndarray
+    mag_innovation_rad: np.ndarray  # NaN: none
+    mag_test_ratio: np.ndarray
+    mag_fused: np.ndarray
+    time_since_mag_fused_s: np.ndarray
+    t_s: np.ndarray  # the filter's clock
+
+
+def _rows_of(o: compiled.StepOutput) -> _Rows:
+    return _Rows(o.mode, o.heading_uncertain, o.heading_std_rad, o.reason, o.heading_rad, o.pitch_rad, o.roll_rad,
+                 o.heading_std_rad, o.pitch_std_rad, o.roll_std_rad, o.mag_innovation_rad, o.mag_test_ratio,
+                 o.mag_fused, o.time_since_mag_fused_s, o.t_s)
+
+
+def _opt(x: float) -> float | None:
+    return None if x != x else x
 
 
 class HeadingFuser(Service):
-    """The project's quaternion EKF with DMC switching and guarded re-acquisition (core.py)."""
+    """The project's quaternion EKF with DMC switching and guarded re-acquisition (core.py).
+
+    Every vehicle has a slot in the service's join (fleet.py: its IMU, magnetometer and DMC verdict streams
+    joined by time, state in arrays) and, with the compiled filter, a slot in one shared
+    :class:`compiled.FleetHeading`: a fleet frame's rows of every vehicle go through the join in one compiled call
+    and the filters in another (:meth:`on_frame`); a single sample is a call of one row (:meth:`on_message`).
+    """
 
     role = "heading_fuser"
     impl = "ekf"
@@ -82,6 +134,22 @@ class HeadingFuser(Service):
     CONSUMES = ("clean/imu", "cal/mag/{sensor}", "clean/mag/{sensor}", "cal/params/{sensor}", "dmc")
     ADOPTS_RESTORED_ALARMS = True  # a restored raised heading alarm stays until the filter's σ falls again
     PRODUCES = ("heading", "alarm/heading")
+
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        s = self.settings
+        self.join = fleet.FleetJoin(16, cal_timeout_s=s.cal_timeout_s, dmc_timeout_s=s.dmc_timeout_s,
+                                    dmc_wait_wall_s=s.dmc_wait_wall_s, mag_wait_s=s.mag_wait_s,
+                                    max_imu_gap_s=s.max_imu_gap_s, publish_period_s=s.publish_period_s,
+                                    alarm_clear_std_rad=s.alarm_clear_frac * s.heading_alarm_std_rad)
+        self.filters: compiled.FleetHeading | None = None  # the shared compiled fleet (made on first use)
+        self._slot_of: dict[str, int] = {}  # vehicle -> join slot
+        self._slot_state: dict[int, VehicleState] = {}
+        self._slot_vehicle: dict[int, str] = {}
+        self._fslot = np.full(16, -1, np.int64)  # join slot -> compiled fleet slot (−1: a filter of its own)
+        self._gen = 0  # bumped when slots change (frame vehicle maps are rebuilt)
+        self._vmaps: dict[tuple[str, str], list] = {}
+        self._log_window = [-math.inf, 0, 0]  # transition logs: window start, lines in it, lines not logged
 
     def subscriptions(self) -> list[str]:
         p, s = self.vehicle_pattern, self.settings.sensor
@@ -105,15 +173,21 @@ class HeadingFuser(Service):
         return core.Settings(**values)
 
     def make_filter(self, settings: core.Settings):
-        """The compiled filter (``compiled``, the default) once its kernels are compiled or cached; until then
-        (a cold numba cache) the reference, while a background process compiles them: same results."""
+        """A filter of the vehicle's own: the compiled filter (``compiled``, the default) once its kernels are
+        compiled or cached; until then (a cold numba cache) the reference, while a background process compiles
+        them: same results. (Vehicles normally get a slot of the shared compiled fleet instead: see
+        :meth:`new_vehicle`.)"""
         if self.settings.compiled:
-            from . import compiled
-
             if compiled.kernels_ready():
                 return compiled.CompiledHeadingFilter(settings)
             compiled.warm_in_background(self.log)
         return core.HeadingFilter(settings)
+
+    def _fleet_filter(self) -> bool:
+        """Whether a new vehicle gets a slot of the shared compiled fleet (the ekf implementation with its
+        kernels compiled or cached)."""
+        return (self.settings.compiled and type(self).make_filter is HeadingFuser.make_filter
+                and compiled.kernels_ready())
 
     def on_start(self) -> None:
         super().on_start()
@@ -122,23 +196,64 @@ class HeadingFuser(Service):
             if name not in profiles.PROFILES:
                 raise SystemExit(f"heading_fuser: vehicle {vehicle}: unknown heading profile {name!r}; known: "
                                  f"{', '.join(profiles.PROFILES)}")
+        fleet.warm()  # the join's kernels: compiled or loaded now, never on a sample
+        if self.settings.compiled and type(self).make_filter is HeadingFuser.make_filter:
+            if compiled.kernels_ready():
+                compiled.warm()  # loaded from numba's disk cache (a fraction of a second)
+            else:
+                compiled.warm_in_background(self.log)
 
     def new_vehicle(self, vehicle: str) -> VehicleState:
-        st = VehicleState(self.make_filter(self.core_settings(vehicle)))
-        st.alarm_raised = self.holds_alarm(vehicle, "heading")  # after a restart: the latch as the mesh knows it
-        st.alarm_raised_t = self.held_alarm_raised_t_s(vehicle, "heading")  # its clear names the raise time
+        old = self._slot_of.pop(vehicle, None)
+        if old is not None:  # the vehicle's state was dropped (handed over, taken back): its slots go too
+            self._free(old)
+        settings = self.core_settings(vehicle)
+        slot = self.join.add()
+        if slot >= len(self._fslot):
+            self._fslot = np.concatenate([self._fslot, np.full(self.join.capacity - len(self._fslot), -1, np.int64)])
+        if self._fleet_filter():
+            if self.filters is None:
+                self.filters = compiled.FleetHeading(16)
+            fslot = self.filters.add(settings)
+            filt = fleet.SlotFilter(self.filters, fslot)
+        else:
+            fslot, filt = -1, self.make_filter(settings)
+        self._fslot[slot] = fslot
+        st = VehicleState(self.join, slot, filt, fslot, vehicle, self.settings.sensor)
+        # after a restart: the latch as the mesh knows it (its clear names the raise time)
+        self.join.set_alarm(slot, self.holds_alarm(vehicle, "heading"), self.held_alarm_raised_t_s(vehicle, "heading"))
         table = ((self.vehicles_config.get(vehicle, {}) or {}).get("mag_params") or {}).get(self.settings.sensor)
         if table:
             try:
                 st.params, st.param_source = MagParams.from_message(table), "manifest"
+                self.join.set_params(slot, st.params.offset, st.params.M)
             except (TypeError, ValueError) as e:
                 self.log.error("vehicle %s: manifest mag_params.%s unusable: %s", vehicle, self.settings.sensor, e)
+        self._slot_of[vehicle] = slot
+        self._slot_state[slot] = st
+        self._slot_vehicle[slot] = vehicle
+        self._gen += 1
         self.log.info("vehicle %s: heading filter %s started (profile %s, declination %.2f°, fallback parameters: %s)",
-                      vehicle, self.impl, self.profile_name(vehicle), math.degrees(st.filter.settings.declination_rad),
+                      vehicle, self.impl, self.profile_name(vehicle), math.degrees(settings.declination_rad),
                       st.param_source)
         return st
 
-    # ---- inputs -------------------------------------------------------------------------------
+    def _free(self, slot: int) -> None:
+        self.join.free(slot)
+        fs = int(self._fslot[slot])
+        if fs >= 0 and self.filters is not None:
+            self.filters.free(fs)
+        self._fslot[slot] = -1
+        self._slot_state.pop(slot, None)
+        self._slot_vehicle.pop(slot, None)
+        self._gen += 1
+
+    def evict_vehicle(self, vehicle: str, state: VehicleState) -> None:
+        if self._slot_of.get(vehicle) == state.slot:
+            del self._slot_of[vehicle]
+            self._free(state.slot)
+
+    # ---- inputs: single samples -----------------------------------------------------------------
     def on_message(self, info, msg: dict, state: VehicleState) -> None:
         if refuse_unphysical(self, info, msg):
             return
@@ -147,159 +262,277 @@ class HeadingFuser(Service):
             self.count_drop(info.key, f"not the fused magnetometer (sensor {self.settings.sensor})")
             return
         if kind == "clean" and stream == "imu":
-            if state.newest_imu_t is not None and msg["t_s"] <= state.newest_imu_t:
-                self.count_drop(info.key, "IMU sample not after the previous one")
-                return
-            state.newest_imu_t = msg["t_s"]
-            state.pending_imu.append((msg["t_s"], msg["gyro_rad_s"], msg["accel_m_s2"]))
-            self._drain(info.vehicle, state)
+            code, v, w = fleet.R_IMU, msg["gyro_rad_s"], msg["accel_m_s2"]
         elif kind == "cal" and stream == "mag":
-            state.last_cal_t = msg["t_s"]
-            self._on_mag(info, msg["t_s"], msg["b_nt"], state)
+            code, v, w = fleet.R_CAL, msg["b_nt"], None
         elif kind == "clean" and stream == "mag":
-            if msg["t_s"] - state.last_cal_t <= self.settings.cal_timeout_s:
-                self.count_drop(info.key, "calibrated stream cal/mag in use")
-            elif state.params is None:
-                self.count_drop(info.key, "no calibration parameters yet (cal/params or manifest mag_params)")
-            else:
-                self._on_mag(info, msg["t_s"], state.params.apply(msg["b_nt"]), state)
-        elif kind == "cal" and stream == "params":
-            if msg["status"] in ("ok", "manifest"):
-                new = MagParams.from_message(msg)
-                changed = state.params is not None and not _same_params(state.params, new)
-                state.params, state.param_source = new, "cal"
-                if changed:
-                    # the calibrated field changes scale and direction with the parameters: the field
-                    # reference learned under the old ones is re-learned, the magnetometer stays in use
-                    self.log.info("vehicle %s: new calibration parameters at t=%.2f s: field reference re-based",
-                                  info.vehicle, msg["t_s"])
-                    state.filter.rebase_field_reference()
-            else:
-                self.count_drop(info.key, f"parameters with status {msg['status']!r} not used")
+            code, v, w = fleet.R_CLEAN, msg["b_nt"], None
         elif kind == "dmc":
-            state.dmc_valid, state.dmc_credibility, state.dmc_t = msg["valid"], msg["credibility"], msg["t_s"]
-            state.dmc_hist.append((msg["t_s"], msg["valid"]))
-            self._drain(info.vehicle, state)
-
-    def _on_mag(self, info, t: float, b_nt, st: VehicleState) -> None:
-        if st.newest_imu_t is None:
-            self.count_drop(info.key, "no IMU sample yet")
+            code, v, w = fleet.R_DMC, (1.0 if msg["valid"] else 0.0, msg["credibility"], 0.0), None
+        elif kind == "cal" and stream == "params":
+            self._on_params(info, msg, state)
             return
-        st.newest_mag_t = t if st.newest_mag_t is None else max(st.newest_mag_t, t)
-        st.pending_mag.append((t, b_nt, info.key, time.monotonic()))
-        if len(st.pending_mag) > MAX_PENDING:
-            self.count_drop(st.pending_mag.popleft()[2], "neither the IMU nor the DMC verdict reached its time")
-        self._drain(info.vehicle, st)
+        else:
+            return
+        ev = self.join.push_one(state.slot, code, msg["t_s"], v, w, time.monotonic())
+        self._report_drops()
+        if ev.n:
+            self._handle(ev, rows_out=False)
 
-    def _drain(self, vehicle: str, st: VehicleState) -> None:
-        """Advance the filter through the waiting IMU and magnetometer samples in time order.
+    def _on_params(self, info, msg: dict, state: VehicleState) -> None:
+        if msg["status"] in ("ok", "manifest"):
+            new = MagParams.from_message(msg)
+            changed = state.params is not None and not _same_params(state.params, new)
+            state.params, state.param_source = new, "cal"
+            self.join.set_params(state.slot, new.offset, new.M)
+            if changed:
+                # the calibrated field changes scale and direction with the parameters: the field
+                # reference learned under the old ones is re-learned, the magnetometer stays in use
+                self.log.info("vehicle %s: new calibration parameters at t=%.2f s: field reference re-based",
+                              info.vehicle, msg["t_s"])
+                state.filter.rebase_field_reference()
+                self.join.set_mode(state.slot, _MODE_CODE[state.filter.mode])  # a re-base may end gyro_only
+                self._log_transitions(info.vehicle, state)
+        else:
+            self.count_drop(info.key, f"parameters with status {msg['status']!r} not used")
 
-        The streams arrive on separate subscriptions, in bursts when the mesh runs faster than real
-        time; the filter must see them interleaved by time (a field sample levelled with an attitude
-        seconds off would be wrong). A magnetometer sample waits until the IMU has reached its time and,
-        while a DMC stream is alive, until the DMC verdict for its time has arrived; a verdict more than
-        ``dmc_timeout_s`` behind the newest IMU sample is not waited for.
-        """
-        while True:
-            mag = st.pending_mag[0] if st.pending_mag else None
-            if mag is not None and st.last_imu_t is not None and mag[0] <= st.last_imu_t + 1e-6:
-                t = mag[0]
-                dmc, ready = None, True
-                if st.dmc_hist:
-                    if st.dmc_hist[-1][0] >= t - 1e-6:
-                        dmc = self._verdict_at(st, t)
-                    elif self._verdict_due(st, mag):
-                        ready = False  # the verdict for this time is on its way
-                if ready:
-                    st.pending_mag.popleft()
-                    st.filter.update_mag(mag[1], dmc, t_s=t)  # levelled with the attitude of its own time
-                    continue
-            imu = st.pending_imu[0] if st.pending_imu else None
-            if imu is None:
-                break
-            if mag is not None and mag[0] < imu[0] - 1e-9 and st.last_imu_t is not None and mag[0] <= st.last_imu_t + 1e-6:
-                # that magnetometer sample waits for its DMC verdict: the IMU goes on (up to the timeout)
-                if self._verdict_due(st, mag) and len(st.pending_imu) < MAX_PENDING:
-                    break
-            elif (st.newest_mag_t is not None and imu[0] > st.newest_mag_t + 1e-6
-                    and st.newest_imu_t - st.newest_mag_t <= self.settings.mag_wait_s
-                    and len(st.pending_imu) < MAX_PENDING):
-                break  # the magnetometer stream has not reached this time yet: wait a little for it
-            st.pending_imu.popleft()
-            self._step_imu(vehicle, imu, st)
-        self._log_transitions(vehicle, st)
+    # ---- inputs: fleet frames -------------------------------------------------------------------
+    def on_frame(self, fr) -> None:
+        """A fleet frame (clean: imu + mag/{sensor}; cal: mag/{sensor}; dmc: dmc): every vehicle's rows through
+        the join in one call, the filters in another, the heading messages out through ``publish_rows``."""
+        mag = f"mag/{self.settings.sensor}"
+        kind = fr.kind
+        parts = []
+        for pos, (name, st) in enumerate(fr.streams.items()):
+            if st.n == 0:
+                continue
+            if name == "imu" and kind == "clean":
+                parts.append((pos, fleet.R_IMU, st, st.cols["gyro_rad_s"], st.cols["accel_m_s2"]))
+            elif name == mag and kind in ("clean", "cal"):
+                b = st.cols["b_nt"]
+                parts.append((pos, fleet.R_CAL if kind == "cal" else fleet.R_CLEAN, st, b, b))
+            elif name == "dmc" and kind == "dmc":
+                v = np.zeros((st.n, 3))
+                v[:, 0] = st.cols["valid"]
+                v[:, 1] = st.cols["credibility"]
+                parts.append((pos, fleet.R_DMC, st, v, v))
+        if not parts:
+            return
+        vmap = self._frame_slots(fr, [p[2] for p in parts])
+        if len(parts) == 1:
+            _, code, st, v, w = parts[0]
+            slot = vmap[st.vi]
+            codes = np.full(st.n, code, np.int8)
+            t = np.array(st.t_s, float)
+            v = np.array(v, float)
+            w = v if w is v else np.array(w, float)
+        else:  # each vehicle's rows in time order, ties in the frame's stream order (the per-sample order)
+            t_all = np.concatenate([p[2].t_s for p in parts])
+            pos = np.concatenate([np.full(p[2].n, p[0], np.int64) for p in parts])
+            order = np.lexsort((pos, t_all))
+            slot = np.concatenate([vmap[p[2].vi] for p in parts])[order]
+            codes = np.concatenate([np.full(p[2].n, p[1], np.int8) for p in parts])[order]
+            t = t_all[order]
+            v = np.concatenate([p[3] for p in parts])[order]
+            w = np.concatenate([p[4] for p in parts])[order]
+        ev = self.join.push(slot, codes, t, v, w, time.monotonic())
+        self._report_drops()
+        if ev.n:
+            self._handle(ev, rows_out=True)
 
-    def _step_imu(self, vehicle: str, imu: tuple, st: VehicleState) -> None:
-        t, gyro, accel = imu
-        f = st.filter
-        dt = 0.0 if st.last_imu_t is None else t - st.last_imu_t
-        if dt > self.settings.max_imu_gap_s:
-            self.log.warning("vehicle %s: IMU gap of %.2f s at t=%.2f s: restarting the heading filter", vehicle, dt, t)
-            f.reset()
-            st.n_transitions_logged = 0
-            dt = 0.0
-        st.last_imu_t = t
-        f.update_imu(gyro, accel, dt, t_s=t)
-        if f.aligned:
-            self._check_alarm(vehicle, t, st)
-            if t - st.last_pub_t >= self.settings.publish_period_s - 1e-9:
-                st.last_pub_t = t
-                self._publish(vehicle, t, st)
+    def _frame_slots(self, fr, streams_: list) -> np.ndarray:
+        """Join slot of each vehicle index of the frame that has rows here (−1 elsewhere); kept per frame key while
+        the frame's vehicle list and the vehicles served stay the same."""
+        states = self.vehicle_states
+        ck = (fr.shard, fr.kind)
+        c = self._vmaps.get(ck)
+        if c is None or c[1] != self._gen or c[2] != len(states) or c[0] != fr.vehicles:
+            if len(self._vmaps) > 64:
+                self._vmaps.clear()
+            c = self._vmaps[ck] = [fr.vehicles, self._gen, len(states), np.full(len(fr.vehicles), -1, np.int64)]
+        vmap = c[3]
+        for st in streams_:
+            miss = vmap[st.vi] < 0
+            if miss.any():
+                for i in np.unique(st.vi[miss]).tolist():
+                    v = fr.vehicles[i]
+                    vs = states.get(v)
+                    vmap[i] = (vs if vs is not None else self.state_for(v)).slot
+                c[1], c[2] = self._gen, len(states)  # new vehicles made above are in the map already
+        return vmap
 
-    def _verdict_due(self, st: VehicleState, mag: tuple) -> bool:
-        """Whether a magnetometer sample still waits for its DMC verdict: while the DMC stream is alive
-        and the sample has waited less than ``dmc_wait_wall_s`` of wall-clock time. Bounded in wall
-        time, not sample time, so that at any replay speed a verdict that is merely late (a busy
-        detector) is still used, and one that never comes holds the heading back at most that long.
-        The verdict's own age in sample time (``dmc_timeout_s``) still ends the wait when the
-        detector has stopped."""
-        if not st.dmc_hist:
-            return False
-        if mag[0] - st.dmc_hist[-1][0] > self.settings.dmc_timeout_s:
-            return False  # the detector has fallen silent: its last verdict is too old to wait on
-        return time.monotonic() - mag[3] < self.settings.dmc_wait_wall_s
+    # ---- the events: filters, outputs ------------------------------------------------------------
+    def _report_drops(self) -> None:
+        slots, counts = self.join.take_drops()
+        for s, row in zip(slots.tolist(), counts.tolist(), strict=True):
+            st = self._slot_state.get(s)
+            if st is None:
+                continue
+            for c, (stream, reason) in fleet.DROPS.items():
+                if row[c]:
+                    key = st.imu_key if stream == "imu" else (st.cal_key if stream == "cal" else st.clean_key)
+                    self.count_drop(key, reason, row[c])
 
-    @staticmethod
-    def _verdict_at(st: VehicleState, t: float) -> bool | None:
-        for tv, valid in reversed(st.dmc_hist):
-            if tv <= t + 1e-6:
-                return valid
-        return None
+    def _step(self, ev: fleet.Events, fs: np.ndarray) -> _Rows:
+        """Every event through its vehicle's filter (``fs``: each row's slot in the shared compiled fleet, −1 for a
+        filter of the vehicle's own): the fleet in a call per run of rows (a filter restart splits the run), the
+        others row by row."""
+        own = np.flatnonzero(fs < 0)
+        resets = np.flatnonzero(ev.reset)
+        for r in resets.tolist():
+            self.log.warning("vehicle %s: IMU gap of %.2f s at t=%.2f s: restarting the heading filter",
+                             self._slot_vehicle.get(int(ev.slot[r])), float(ev.gap_s[r]), float(ev.t_s[r]))
+        if not len(own):
+            return _rows_of(self._step_fleet(np.arange(ev.n), fs, ev, resets))
+        n = ev.n
+        nan = np.full(n, math.nan)
+        rows = _Rows(np.zeros(n, np.int64), np.zeros(n, bool), nan.copy(), np.zeros(n, np.int64), nan.copy(),
+                     nan.copy(), nan.copy(), nan.copy(), nan.copy(), nan.copy(), nan.copy(), nan.copy(),
+                     np.zeros(n, bool), nan.copy(), nan.copy())
+        mine = np.flatnonzero(fs >= 0)
+        if len(mine):
+            o = self._step_fleet(mine, fs, ev, resets[fs[resets] >= 0])
+            for dst, src in zip(rows, _rows_of(o), strict=True):
+                dst[mine] = src
+        for r in own.tolist():
+            st = self._slot_state[int(ev.slot[r])]
+            f = st.filter
+            if ev.kind[r] == fleet.E_IMU:
+                if ev.reset[r]:
+                    f.reset()
+                    st.n_transitions_logged = 0
+                f.update_imu(ev.a[r], ev.b[r], float(ev.dt_s[r]), t_s=float(ev.t_s[r]))
+                s = f.internal_states
+                rows.uncertain[r] = f.flags.heading_uncertain
+                rows.alarm_std_rad[r] = s.heading_std_rad
+                rows.time_since_mag_fused_s[r] = s.time_since_mag_fused_s
+                if f.aligned:
+                    rows.heading_rad[r], rows.pitch_rad[r], rows.roll_rad[r] = f.euler()
+                    rows.heading_std_rad[r], rows.pitch_std_rad[r], rows.roll_std_rad[r] = f.attitude_std()
+                    rows.mag_innovation_rad[r] = math.nan if s.mag_innovation_rad is None else s.mag_innovation_rad
+                    rows.mag_test_ratio[r] = math.nan if s.mag_test_ratio is None else s.mag_test_ratio
+                    rows.mag_fused[r] = f.flags.mag_fused
+            else:
+                d = int(ev.dmc[r])
+                f.update_mag(ev.a[r], None if d < 0 else bool(d), t_s=float(ev.t_s[r]))
+            rows.mode[r] = _MODE_CODE[f.mode]
+        return rows
+
+    def _step_fleet(self, idx: np.ndarray, fs: np.ndarray, ev: fleet.Events, resets: np.ndarray):
+        """Rows ``idx`` of the events (vehicles of the shared fleet) through it; ``resets``: rows restarting a filter."""
+        fh = self.filters
+        whole = len(idx) == ev.n
+
+        def part(a, b):
+            sel = slice(a, b) if whole else idx[a:b]
+            return fh.step(fs[sel] if not whole else fs[a:b], ev.kind[sel], ev.t_s[sel], ev.a[sel], ev.b[sel],
+                           ev.dt_s[sel], ev.dmc[sel])
+
+        if not len(resets):
+            return part(0, len(idx))
+        outs, a = [], 0
+        pos = resets if whole else np.searchsorted(idx, resets)
+        for p, r in zip(pos.tolist(), resets.tolist(), strict=True):
+            if p > a:
+                outs.append(part(a, p))
+            fh.reset(int(fs[r]))
+            a = p
+        outs.append(part(a, len(idx)))
+        return compiled.StepOutput(*(np.concatenate(x) for x in zip(*outs, strict=True)))
+
+    def _handle(self, ev: fleet.Events, rows_out: bool) -> None:
+        """Events released by the join: filters stepped, then per row the alarm latch, the heading messages (one
+        per vehicle per ``publish_period_s``) and the mode changes."""
+        fs = self._fslot[ev.slot]
+        rows = self._step(ev, fs)
+        dec = self.join.decide(ev, rows.mode, rows.uncertain, rows.alarm_std_rad, rows.reason)
+        if len(dec.transition_row) or ev.reset.any():
+            self._note_transitions(ev, fs, rows, dec)
+        own = fs < 0
+        if own.any():
+            for slot in set(ev.slot[own].tolist()):
+                self._log_transitions(self._slot_vehicle[slot], self._slot_state[slot])
+        for r, state, raised_t in zip(dec.alarm_row.tolist(), dec.alarm_state.tolist(),
+                                      dec.alarm_raised_t_s.tolist(), strict=True):
+            self._alarm(r, state, raised_t, ev, rows)
+        if len(dec.publish):
+            self._publish(dec.publish, ev, rows, rows_out)
+
+    def _note_transitions(self, ev: fleet.Events, fs: np.ndarray, rows: _Rows, dec: fleet.Decisions) -> None:
+        """The fleet's mode changes into each vehicle's ``filter.transitions`` (a restart clears them, as the
+        filter's reset does), then logged."""
+        marks = [(r, 1, f) for r, f in zip(dec.transition_row.tolist(), dec.transition_from.tolist(), strict=True)
+                 if fs[r] >= 0]
+        marks += [(r, 0, 0) for r in np.flatnonzero(ev.reset & (fs >= 0)).tolist()]
+        marks.sort()
+        touched = {}
+        for r, what, frm in marks:
+            slot = int(ev.slot[r])
+            st = self._slot_state[slot]
+            f = st.filter
+            if what == 0:
+                f.transitions = []
+                st.n_transitions_logged = 0
+            else:
+                f.transitions.append((float(rows.t_s[r]), core.MODES[frm], core.MODES[int(rows.mode[r])],
+                                      compiled.REASONS[int(rows.reason[r])]))
+            touched[slot] = st
+        for slot, st in touched.items():
+            st.filter._ntr = self.filters.mode_changes(st.fleet_slot)
+            self._log_transitions(self._slot_vehicle[slot], st)
+
+    def _alarm(self, r: int, state: int, raised_t: float, ev: fleet.Events, rows: _Rows) -> None:
+        """``_check_alarm``: the heading alarm raised or cleared after event row ``r``."""
+        vehicle = self._slot_vehicle[int(ev.slot[r])]
+        s = self.settings
+        t = float(ev.t_s[r])
+        h_std = float(rows.alarm_std_rad[r])
+        mode = core.MODES[int(rows.mode[r])]
+        if state:
+            self.alarm(vehicle, "heading", "raised", "warning",
+                       f"heading uncertainty {math.degrees(h_std):.1f}° after "
+                       f"{float(rows.time_since_mag_fused_s[r]):.0f} s without a usable magnetometer (mode {mode})",
+                       h_std, s.heading_alarm_std_rad, t, unit="rad")
+        else:
+            self.alarm(vehicle, "heading", "cleared", "warning",
+                       f"heading uncertainty back to {math.degrees(h_std):.1f}° (mode {mode})",
+                       h_std, s.heading_alarm_std_rad, t, unit="rad", raised_t_s=_opt(raised_t))
 
     # ---- outputs ------------------------------------------------------------------------------
-    def _publish(self, vehicle: str, t: float, st: VehicleState) -> None:
-        f = st.filter
-        heading, pitch, roll = f.euler()
-        h_std, p_std, r_std = f.attitude_std()
-        s = f.internal_states
-        self.publish(
-            keys.heading(vehicle), "heading", vehicle, t,
-            heading_rad=heading, pitch_rad=pitch, roll_rad=roll,
-            heading_std_rad=h_std, pitch_std_rad=p_std, roll_std_rad=r_std,
-            mode=f.mode, mag_innovation_rad=s.mag_innovation_rad, mag_test_ratio=s.mag_test_ratio,
-            mag_fused=f.flags.mag_fused,
-        )
-
-    def _check_alarm(self, vehicle: str, t: float, st: VehicleState) -> None:
-        f, s = st.filter, self.settings
-        h_std = f.internal_states.heading_std_rad
-        if not st.alarm_raised and f.flags.heading_uncertain:
-            st.alarm_raised, st.alarm_raised_t = True, t
-            self.alarm(vehicle, "heading", "raised", "warning",
-                       f"heading uncertainty {math.degrees(h_std):.1f}° after {f.internal_states.time_since_mag_fused_s:.0f} s "
-                       f"without a usable magnetometer (mode {f.mode})",
-                       h_std, s.heading_alarm_std_rad, t, unit="rad")
-        elif st.alarm_raised and (f.mode == "magnetic" or h_std < s.alarm_clear_frac * s.heading_alarm_std_rad):
-            st.alarm_raised = False
-            self.alarm(vehicle, "heading", "cleared", "warning",
-                       f"heading uncertainty back to {math.degrees(h_std):.1f}° (mode {f.mode})",
-                       h_std, s.heading_alarm_std_rad, t, unit="rad", raised_t_s=st.alarm_raised_t)
+    def _publish(self, idx: np.ndarray, ev: fleet.Events, rows: _Rows, rows_out: bool) -> None:
+        """Heading messages after event rows ``idx``: one ``publish_rows`` call (frames), or one message each."""
+        slots = ev.slot[idx].tolist()
+        vehicles = [self._slot_vehicle[s] for s in slots]
+        t = ev.t_s[idx].tolist()
+        cols = {"heading_rad": rows.heading_rad[idx].tolist(), "pitch_rad": rows.pitch_rad[idx].tolist(),
+                "roll_rad": rows.roll_rad[idx].tolist(), "heading_std_rad": rows.heading_std_rad[idx].tolist(),
+                "pitch_std_rad": rows.pitch_std_rad[idx].tolist(), "roll_std_rad": rows.roll_std_rad[idx].tolist(),
+                "mode": [core.MODES[m] for m in rows.mode[idx].tolist()],
+                "mag_innovation_rad": [_opt(x) for x in rows.mag_innovation_rad[idx].tolist()],
+                "mag_test_ratio": [_opt(x) for x in rows.mag_test_ratio[idx].tolist()],
+                "mag_fused": [bool(x) for x in rows.mag_fused[idx].tolist()]}
+        if rows_out:
+            self.publish_rows("heading", [self._slot_state[s].heading_key for s in slots], vehicles, t, cols)
+            return
+        names = list(cols)
+        for i, (s, v) in enumerate(zip(slots, vehicles, strict=True)):
+            self.publish(self._slot_state[s].heading_key, "heading", v, t[i], **{k: cols[k][i] for k in names})
 
     def _log_transitions(self, vehicle: str, st: VehicleState) -> None:
         tr = st.filter.transitions
+        w = self._log_window
         while st.n_transitions_logged < len(tr):
             t, a, b, why = tr[st.n_transitions_logged]
-            self.log.info("vehicle %s: t=%.2f s heading mode %s → %s (%s)", vehicle, t, a, b, why)
+            now = time.monotonic()
+            if now - w[0] >= 1.0:
+                if w[2]:
+                    self.log.info("%d more heading mode changes not logged in the last second", w[2])
+                w[0], w[1], w[2] = now, 0, 0
+            if w[1] < TRANSITION_LOGS_PER_S:
+                self.log.info("vehicle %s: t=%.2f s heading mode %s → %s (%s)", vehicle, t, a, b, why)
+                w[1] += 1
+            else:
+                w[2] += 1
             st.n_transitions_logged += 1
         if len(tr) > 1000:  # keep the list short on long runs
             del tr[:500]
@@ -308,6 +541,8 @@ class HeadingFuser(Service):
     def status_extra(self) -> dict:
         out = {}
         for vehicle, st in self.vehicle_states.items():
+            if st is None:
+                continue
             f = st.filter
             out[vehicle] = {
                 "mode": f.mode,
@@ -319,6 +554,9 @@ class HeadingFuser(Service):
                 "field_rebases": getattr(f, "n_rebases", 0),
                 "dmc_valid": st.dmc_valid,
                 "alarm_raised": st.alarm_raised,
+                "waiting": {"mag": self.join.I[st.slot, fleet.I_PM_N].item(),
+                            "imu": self.join.pending_imu(st.slot)},
+                "join": self.join.counts(st.slot),
             }
         return {"vehicles": out}
 
@@ -330,8 +568,6 @@ def _same_params(a: MagParams, b: MagParams) -> bool:
     """Whether two parameter sets calibrate alike: the largest change of the calibrated field, over
     raw fields on the sphere of ``a`` (its offset ± radius along each axis), relative to the radius,
     is below :data:`REBASE_CHANGE_FRAC`."""
-    import numpy as np
-
     r = float(a.field_radius_nt) or 50_000.0
     raw = a.offset + r * np.vstack([np.eye(3), -np.eye(3)])
     d = np.linalg.norm(a.apply(raw) - b.apply(raw), axis=1)
