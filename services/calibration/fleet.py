@@ -71,7 +71,7 @@ from typing import Any
 
 import numpy as np
 
-from magmesh import magcal, maths
+from magmesh import magcal
 
 from . import online_ekf
 from .core import (
@@ -108,12 +108,19 @@ N_F = 52
 I_CUR_OBS = 20  # 3
 I_EV_OBS = 23  # 3
 N_I = 26
-# vehicle slot floats (VF): the declination override (NaN: from the GNSS position), a GNSS row's pre-work
-VF_DECL, VF_RATE, VF_ROLL, VF_PITCH, VF_YAW_RATE = range(5)
-N_VF = 5
-# vehicle slot ints (VI); its sensor slots from VI_SENS on, in the order they were created
-VI_IN_USE, VI_ONLINE, VI_IMU_HEAD, VI_IMU_N, VI_SR_HEAD, VI_SR_N, VI_NSENS = range(7)
-VI_SENS = 7
+# vehicle slot floats (VF): the declination override (NaN: from the GNSS position), a GNSS row's pre-work, the
+# rounded position of its last GNSS row and the declination there, its last GNSS row's PDOP and speed (status)
+(VF_DECL, VF_RATE, VF_ROLL, VF_PITCH, VF_YAW_RATE, VF_CELL_LAT, VF_CELL_LON, VF_CELL_ALT, VF_CELL_DECL, VF_G_PDOP,
+ VF_G_SPEED) = range(11)
+N_VF = 11
+# vehicle slot ints (VI): its last GNSS row's fix (index in GNSS_FIXES, −1 none) and satellites; its sensor slots
+# from VI_SENS on, in the order they were created
+VI_IN_USE, VI_ONLINE, VI_IMU_HEAD, VI_IMU_N, VI_SR_HEAD, VI_SR_N, VI_NSENS, VI_G_FIX, VI_G_SATS = range(9)
+VI_SENS = 9
+#: fix types of the gnss message (schemas/messages.py), by their code in VI_G_FIX
+GNSS_FIXES = ("none", "2d", "3d", "dgps", "rtk_float", "rtk_fixed")
+_FIX_CODE = {f: i for i, f in enumerate(GNSS_FIXES)}
+_GOOD_FIX = np.array([f in online_ekf.GOOD_FIX for f in GNSS_FIXES])
 # settings vector
 (C_WINDOW, C_INTERVAL, C_REFIT, C_IMU_WINDOW, C_RW2, C_HN2, C_VEL_STD, C_MIN_SPEED, C_MAX_YAW, C_GATE2, C_OBS_RATIO,
  C_CONV_STD, C_MIN_TILT, C_PRIOR_STD, C_CONV_PUB, C_MIN_CHANGE, C_EKF_IMPROVE, C_MIN_INTERVAL, C_MIN_EPOCHS,
@@ -164,22 +171,12 @@ def _merge_py(vi, t, starts, ends, out):
 
 
 def _rot_py(roll, pitch):
-    """Ry(−θ) Rx(φ) (maths.rot_y(−pitch) @ maths.rot_x(roll)), row-major 9."""
+    """Ry(−θ) Rx(φ) (maths.rot_y(−pitch) @ maths.rot_x(roll)), row-major 9 (a tuple: no allocation)."""
     c = math.cos(-pitch)
     s = math.sin(-pitch)
     cr = math.cos(roll)
     sr = math.sin(roll)
-    R = np.empty(9)
-    R[0] = c
-    R[1] = s * sr
-    R[2] = s * cr
-    R[3] = 0.0
-    R[4] = cr
-    R[5] = -sr
-    R[6] = -s
-    R[7] = c * sr
-    R[8] = c * cr
-    return R
+    return (c, s * sr, s * cr, 0.0, cr, -sr, -s, c * sr, c * cr)
 
 
 def _heading_rms_py(EP, s, n_ep, head, off, M):
@@ -233,8 +230,8 @@ def _rebase_py(s, cfg, SF, SI):
     SI[s, I_BASE_VER] = SI[s, I_CUR_VER]
 
 
-def _ekf_update_py(s, t, m, course, roll, pitch, decl, speed, yaw_rate, ok, cfg, SF, SI):
-    """One GNSS epoch of a sensor's EKF (HardIronEkf.update, 3 states). True when fused."""
+def _ekf_update_py(s, t, m, course, roll, pitch, decl, speed, yaw_rate, ok, cfg, SF, SI, scr):
+    """One GNSS epoch of a sensor's EKF (HardIronEkf.update, 3 states). True when fused. ``scr``: scratch."""
     tl = SF[s, F_T_LAST]
     if not math.isnan(tl) and t >= tl:
         dt = max(0.0, t - tl)
@@ -265,7 +262,7 @@ def _ekf_update_py(s, t, m, course, roll, pitch, decl, speed, yaw_rate, ok, cfg,
     a0 = g0 * R[0] + g1 * R[3]
     a1 = g0 * R[1] + g1 * R[4]
     a2 = g0 * R[2] + g1 * R[5]
-    H = np.empty(3)
+    H = scr[0:3]
     H[0] = -(a0 * M[0] + a1 * M[3] + a2 * M[6])
     H[1] = -(a0 * M[1] + a1 * M[4] + a2 * M[7])
     H[2] = -(a0 * M[2] + a1 * M[5] + a2 * M[8])
@@ -288,16 +285,16 @@ def _ekf_update_py(s, t, m, course, roll, pitch, decl, speed, yaw_rate, ok, cfg,
     if tr > 1.0:
         SI[s, I_N_REJ] += 1
         return False
-    K = np.empty(3)
+    K = scr[3:6]
     for i in range(3):
         K[i] = (P[3 * i] * H[0] + P[3 * i + 1] * H[1] + P[3 * i + 2] * H[2]) / S
     for i in range(3):
         SF[s, F_X + i] = SF[s, F_X + i] + K[i] * z
-    A = np.empty(9)  # I − K Hᵀ
+    A = scr[6:15]  # I − K Hᵀ
     for i in range(3):
         for j in range(3):
             A[3 * i + j] = (1.0 if i == j else 0.0) - K[i] * H[j]
-    AP = np.empty(9)
+    AP = scr[15:24]
     for i in range(3):
         for j in range(3):
             AP[3 * i + j] = A[3 * i] * P[j] + A[3 * i + 1] * P[3 + j] + A[3 * i + 2] * P[6 + j]
@@ -311,35 +308,36 @@ def _ekf_update_py(s, t, m, course, roll, pitch, decl, speed, yaw_rate, ok, cfg,
     return True
 
 
-def _record_check_py(s, t, cfg, SF, SI, EP):
+def _record_check_py(s, t, cfg, SF, SI, EP, scr):
     """Whether the EKF estimate becomes a parameter set now (VehicleCalibration._maybe_ekf_record's decisions):
     0 no, EV_CONVERGING, EV_OK; the record's offset, observability and heading residuals are left in the slot."""
     nf = SI[s, I_N_FUSED]
     if nf == 0:
         return 0
     excited = nf >= 10 and math.sqrt(SF[s, F_TILT_SQ] / nf) >= cfg[C_MIN_TILT]
-    std = np.empty(3)
-    obs = np.empty(3, np.bool_)
-    off = np.empty(3)
+    std = scr[24:27]
+    obs = scr[27:30]  # 1.0 observable, 0.0 not
+    off = scr[30:33]
     any_obs = False
     for i in range(3):
         std[i] = math.sqrt(SF[s, F_P + 4 * i])
-        obs[i] = std[i] / cfg[C_PRIOR_STD] < cfg[C_OBS_RATIO]
-    obs[2] = obs[2] and excited
+        obs[i] = 1.0 if std[i] / cfg[C_PRIOR_STD] < cfg[C_OBS_RATIO] else 0.0
+    if not excited:
+        obs[2] = 0.0
     converged = False
     for i in range(3):
-        off[i] = SF[s, F_X + i] if obs[i] else SF[s, F_PRIOR + i]
-        any_obs = any_obs or obs[i]
+        off[i] = SF[s, F_X + i] if obs[i] != 0.0 else SF[s, F_PRIOR + i]
+        any_obs = any_obs or obs[i] != 0.0
     if any_obs:
         converged = True
         for i in range(3):
-            if obs[i] and not std[i] < cfg[C_CONV_STD]:
+            if obs[i] != 0.0 and not std[i] < cfg[C_CONV_STD]:
                 converged = False
     st = SI[s, I_CUR_STATUS]
     has_cur = st != ST_NONE
     trusted = st == ST_OK or st == ST_MANIFEST
     for i in range(3):
-        o = obs[i]
+        o = obs[i] != 0.0
         if trusted and SI[s, I_CUR_OBS + i] != 0:
             o = True
         SI[s, I_EV_OBS + i] = 1 if o else 0
@@ -349,11 +347,12 @@ def _record_check_py(s, t, cfg, SF, SI, EP):
             return 0
         SI[s, I_EV_INUSE] = 0
         return EV_CONVERGING
-    base_off = np.zeros(3)
-    base_M = np.zeros(9)
-    base_M[0] = 1.0
-    base_M[4] = 1.0
-    base_M[8] = 1.0
+    base_off = scr[33:36]
+    base_M = scr[36:45]
+    for i in range(3):
+        base_off[i] = 0.0
+    for i in range(9):
+        base_M[i] = 1.0 if i % 4 == 0 else 0.0
     if has_cur:
         for i in range(3):
             base_off[i] = SF[s, F_CUR_OFF + i]
@@ -366,7 +365,7 @@ def _record_check_py(s, t, cfg, SF, SI, EP):
         sig = 0.0
         if any_obs:
             for i in range(3):
-                if obs[i]:
+                if obs[i] != 0.0:
                     sig += std[i] * std[i]
             sig = math.sqrt(sig)
         else:
@@ -396,6 +395,8 @@ def _run_py(k0, phase0, allow_fit, order, kind, kidx, mag_slot, mag_t, mag_b, im
     phase = phase0
     wcap = WT.shape[1]
     ecap = EP.shape[1]
+    m = np.empty(3)
+    scr = np.empty(48)  # the EKF's scratch: no allocation per epoch
     for k in range(k0, order.shape[0]):
         i = order[k]
         kd = kind[i]
@@ -594,7 +595,6 @@ def _run_py(k0, phase0, allow_fit, order, kind, kidx, mag_slot, mag_t, mag_b, im
             ok = g_f[r, G_OK] != 0.0
             decl = g_f[r, G_DECL]
             course = g_f[r, G_COURSE]
-            m = np.empty(3)
             for j in range(j0, VI[v, VI_NSENS]):
                 s = VI[v, VI_SENS + j]
                 if SI[s, I_EKF_ON] == 0:
@@ -622,7 +622,7 @@ def _run_py(k0, phase0, allow_fit, order, kind, kidx, mag_slot, mag_t, mag_b, im
                 m[2] /= cnt
                 if SI[s, I_CUR_STATUS] != ST_NONE and SI[s, I_CUR_VER] != SI[s, I_BASE_VER] and SI[s, I_CUR_EKF] == 0:
                     _rebase(s, cfg, SF, SI)  # a new static fit: restart the EKF around it
-                if _ekf_update(s, t, m, course, roll, pitch, decl, speed, yaw_rate, ok, cfg, SF, SI):
+                if _ekf_update(s, t, m, course, roll, pitch, decl, speed, yaw_rate, ok, cfg, SF, SI, scr):
                     en = SI[s, I_EP_N]
                     eh = SI[s, I_EP_HEAD]
                     if en == ecap:
@@ -643,7 +643,7 @@ def _run_py(k0, phase0, allow_fit, order, kind, kidx, mag_slot, mag_t, mag_b, im
                     EP[s, e, 4] = roll
                     EP[s, e, 5] = pitch
                     EP[s, e, 6] = decl
-                ev = _record_check(s, t, cfg, SF, SI, EP)
+                ev = _record_check(s, t, cfg, SF, SI, EP, scr)
                 if ev != 0:
                     SI[s, I_EV_KIND] = ev
                     return STOP_EKF, k, j
@@ -685,6 +685,124 @@ def _kernels():
         _merge = jit(_merge_py)
         _compiled = True
     return _run
+
+
+# ---- declination ----------------------------------------------------------------------------------------------
+
+
+class Declinations:
+    """Magnetic declination at GNSS positions, as :meth:`core.VehicleCalibration.declination` computes it (IGRF at
+    the position rounded to 0.01° and 100 m, :func:`magmesh.maths.earth_field_enu_nt`), remembered per rounded
+    position and computed for all new positions of a frame at once.
+
+    ``ppigrf.igrf`` reads its coefficient file and interpolates the coefficients to the date on every call (about
+    50 ms); at 500 vehicles a car enters a new 0.01° cell several times a second, which would cost a third of a
+    core. Here the same steps run with the coefficients read and interpolated once (``ppigrf.ppigrf.read_shc``, the
+    same interpolation in time), then ppigrf's own ``geod2geoc``, ``get_legendre``, sums and ``geoc2geod`` for a
+    batch of positions (about 3 ms for one position or 50). Values agree with ``maths.earth_field_enu_nt`` to
+    rounding (matrix products over a batch instead of one row; tests: 1e-12 relative)."""
+
+    #: cells computed around a new one, each way (7 × 7 cells of 0.01°: about 7 km × 7 km at mid latitudes)
+    NEAR = 3
+
+    def __init__(self, date: str = "2026-06-01", max_entries: int = 500_000):
+        self.date = date
+        self.max_entries = max_entries
+        self.memo: dict[tuple, float] = {}
+        self._coef = None
+        self.computed = 0
+        self.batches = 0
+
+    def _coefficients(self):
+        if self._coef is None:
+            import datetime as _dt
+
+            from ppigrf import ppigrf  # the module: read_shc, get_legendre, geod2geoc, geoc2geod, RE
+
+            d = np.array([_dt.datetime.fromisoformat(self.date)])
+            g, h = ppigrf.read_shc(ppigrf.shc_fn)
+            keys = g.keys()
+            n, m = np.array([k for k in g.columns]).T
+            index = g.index.union(d)
+            g = g.reindex(index).groupby(index).first().interpolate(method="time").loc[d, :]
+            h = h.reindex(index).groupby(index).first().interpolate(method="time").loc[d, :]
+            self._coef = (ppigrf, keys, n.reshape((1, -1)), m.reshape((1, -1)), np.hstack((g.values, h.values)).T)
+        return self._coef
+
+    def field_enu_nt(self, lat_deg, lon_deg, alt_m) -> np.ndarray:
+        """IGRF field (east, north, up; nT) at positions (arrays; alt in m), as ppigrf.igrf."""
+        ppigrf, keys, n, m, gh = self._coefficients()
+        lat = np.asarray(lat_deg, float).ravel()
+        lon = np.asarray(lon_deg, float).ravel()
+        hkm = np.asarray(alt_m, float).ravel() / 1000.0
+        theta, r, _, __ = ppigrf.geod2geoc(lat, hkm, hkm, hkm)
+        r, theta, phi = (x.reshape((-1, 1)) for x in (r, theta, lon))
+        P, dP = ppigrf.get_legendre(theta, keys)
+        phi_rad = np.radians(phi)
+        cosmphi = np.cos(phi_rad * m)
+        sinmphi = np.sin(phi_rad * m)
+        nn, mm = np.tile(n, 2), np.tile(m, 2)
+        n_map = ((nn >= 1) & (nn <= 13)).astype(int)
+        RE = ppigrf.RE
+        G = n_map * (RE / r) ** (nn + 2) * (nn + 1) * np.hstack((P * cosmphi, P * sinmphi))
+        Br = G.dot(gh).T
+        G = - n_map * (RE / r) ** (nn + 1) * np.hstack((dP * cosmphi, dP * sinmphi)) * RE / r
+        Bt = G.dot(gh).T
+        G = - n_map * (RE / r) ** (nn + 1) * mm * np.hstack((-P * sinmphi, P * cosmphi)) * RE / r / \
+            np.sin(np.radians(theta))
+        Bp = G.dot(gh).T
+        _, __, Bn, Bu = ppigrf.geoc2geod(theta.ravel(), r.ravel(), Bt, Br)
+        return np.stack([np.ravel(Bp), np.ravel(Bn), np.ravel(Bu)], axis=1)
+
+    @staticmethod
+    def cells(lat_deg: np.ndarray, lon_deg: np.ndarray, alt_m: np.ndarray) -> tuple:
+        """The rounded positions: Python's ``round(lat, 2)``, ``round(lon, 2)``, ``round(alt, -2)``, element by
+        element (numpy's rounding agrees with it except next to a tie, where Python's is taken)."""
+        out = []
+        for x, nd in ((lat_deg, 2), (lon_deg, 2), (alt_m, -2)):
+            x = np.asarray(x, float)
+            y = x * 10.0 ** nd
+            r = np.rint(y)
+            r = r / 10.0 ** nd if nd > 0 else r * 10.0 ** -nd
+            near = np.abs(np.abs(y - np.floor(y)) - 0.5) < 1e-6
+            if near.any():
+                r = r.copy()
+                for i in np.flatnonzero(near).tolist():
+                    r[i] = round(float(x[i]), nd)
+            out.append(r)
+        return tuple(out)
+
+    def __call__(self, lat_deg: np.ndarray, lon_deg: np.ndarray, alt_m: np.ndarray, rounded: bool = False) -> np.ndarray:
+        """Declination (rad, east positive) per position (``rounded``: already :meth:`cells`). A position in a cell
+        not seen yet is computed together with the cells around it (``NEAR`` cells each way, same altitude): the
+        next cells a vehicle enters are then known already, and one ppigrf pass serves several crossings."""
+        cells = (lat_deg, lon_deg, alt_m) if rounded else self.cells(lat_deg, lon_deg, alt_m)
+        k = list(zip(*(c.tolist() for c in cells), strict=True))
+        memo = self.memo
+        new = list({x for x in k if x not in memo})
+        if new:
+            if len(memo) + len(new) * (2 * self.NEAR + 1) ** 2 > self.max_entries:
+                memo.clear()
+            c = np.array(new)
+            d = np.arange(-self.NEAR, self.NEAR + 1, dtype=float)
+            # neighbours as round() gives them: the double nearest to (k ± i) / 100
+            la = (np.rint(c[:, 0] * 100.0)[:, None, None] + d[None, :, None]) / 100.0
+            lo = (np.rint(c[:, 1] * 100.0)[:, None, None] + d[None, None, :]) / 100.0
+            la, lo = np.broadcast_arrays(la, lo)
+            al = np.broadcast_to(c[:, 2][:, None, None], la.shape)
+            pts = {}
+            for x in zip(la.ravel().tolist(), lo.ravel().tolist(), al.ravel().tolist(), strict=True):
+                if x not in memo and -90.0 <= x[0] <= 90.0:
+                    pts[x] = None
+            for x in new:
+                pts[x] = None  # (a latitude at the pole's edge still gets its own value)
+            todo = list(pts)
+            b = self.field_enu_nt(*np.array(todo).T)
+            for x, dd in zip(todo, np.arctan2(b[:, 0], b[:, 1]).tolist(), strict=True):
+                memo[x] = dd
+            self.computed += len(todo)
+            self.batches += 1
+        return np.array([memo[x] for x in k], float)
 
 
 # ---- inputs and outputs -------------------------------------------------------------------------------------------
@@ -735,31 +853,49 @@ class Event:
     had: ParamRecord | None = None  # the set in use before a fit
 
 
-@dataclass
 class Step:
-    """What :meth:`FleetCalibration.step` gives per magnetometer input (in the order given): the compensated
-    field ``h`` (n × 3), ``usable`` (a set with status ok, manifest or converging was in use), and ``events`` in
-    the order they happened."""
+    """What :meth:`FleetCalibration.step` gives per magnetometer input (in the order given): ``h[i]`` the
+    compensated field (n × 3), ``usable[i]`` whether a set with status ok, manifest or converging was in use for
+    the row, :meth:`param_ids` the id of that set; ``events`` the parameter-set decisions in the order they
+    happened."""
 
-    h: list
-    usable: list
-    ver: list
-    slots: list
-    events: list = field(default_factory=list)
-    _pids: dict = field(default_factory=dict)
-    _cur: Any = None
+    __slots__ = ("h", "usable", "events", "_bounds", "_ver", "_slots", "_pid_now", "_ver_now", "_pids")
+
+    def __init__(self, h, use, ver, slots, bounds, events, pids, pid_now, ver_now):
+        self.h = [h[a:b] for a, b in bounds]
+        self.usable = [use[a:b] for a, b in bounds]
+        self.events = events
+        self._bounds, self._ver, self._slots = bounds, ver, slots
+        self._pid_now, self._ver_now, self._pids = pid_now, ver_now, pids
 
     def param_ids(self, i: int) -> list:
         """The id of the set that compensated each row of magnetometer input ``i`` (None where none was usable)."""
-        slots, ver, use = self.slots[i], self.ver[i], self.usable[i]
-        cur_pid, cur_ver = self._cur
-        out = cur_pid[slots]
-        late = np.flatnonzero(ver != cur_ver[slots])
-        for r in late.tolist():
-            out[r] = self._pids.get((int(slots[r]), int(ver[r])))
+        a, b = self._bounds[i]
+        out = self._pid_now[a:b]
+        late = np.flatnonzero(self._ver[a:b] != self._ver_now[a:b])
+        if late.size:
+            out = out.copy()
+            for r in late.tolist():
+                out[r] = self._pids.get((int(self._slots[a + r]), int(self._ver[a + r])))
+        use = self.usable[i]
         if not use.all():
+            out = out.copy()
             out[~use] = None
         return out.tolist()
+
+
+_E1 = np.zeros(0)
+_E1I = np.zeros(0, np.int64)
+_E3 = np.zeros((0, 3))
+_EG = np.zeros((0, N_G))
+
+
+def _cat(xs: list, f: str, dt, empty: np.ndarray) -> np.ndarray:
+    if not xs:
+        return empty
+    if len(xs) == 1:
+        return np.ascontiguousarray(getattr(xs[0], f), dt)
+    return np.ascontiguousarray(np.concatenate([np.asarray(getattr(x, f), dt) for x in xs]))
 
 
 def _grow_ring(arr: np.ndarray, head: np.ndarray, n: np.ndarray) -> np.ndarray:
@@ -824,7 +960,7 @@ class FleetCalibration:
         # per vehicle slot
         self.vnames: list[str | None] = [None] * cap
         self.vsensors: list[dict[str, int]] = [{} for _ in range(cap)]
-        self.gnss_last: list[tuple | None] = [None] * cap  # fix_type, num_sats, pdop, speed of the last GNSS row
+        self._odd_fix: dict[int, str] = {}  # vehicle slot → a fix type outside GNSS_FIXES (its last GNSS row's)
         self._free_s: list[int] = list(range(cap - 1, -1, -1))
         self._free_v: list[int] = list(range(cap - 1, -1, -1))
         self._sid_slots: dict[str, np.ndarray] = {}  # sensor id → sensor slot per vehicle slot (−1: none)
@@ -837,7 +973,7 @@ class FleetCalibration:
         self.fits_run = 0
         self.fits_delayed = 0
         self.fit_cpu_s = 0.0
-        self._decl: dict[tuple, float] = {}
+        self.declinations = Declinations()
         self._events: list[Event] = []
         self._pids: dict[tuple[int, int], str] = {}
 
@@ -874,7 +1010,6 @@ class FleetCalibration:
                 setattr(self, name, b)
             self.vnames += [None] * old
             self.vsensors += [{} for _ in range(old)]
-            self.gnss_last += [None] * old
             self._free_v = list(range(new - 1, old - 1, -1)) + self._free_v
             for sid, a in self._sid_slots.items():
                 self._sid_slots[sid] = np.concatenate([a, np.full(old, -1, np.int64)])
@@ -886,14 +1021,15 @@ class FleetCalibration:
         if not self._free_v:
             self._grow("v")
         v = self._free_v.pop()
-        self.VF[v] = 0.0
+        self.VF[v] = math.nan
         self.VF[v, VF_DECL] = math.nan if declination_rad is None else float(declination_rad)
         self.VI[v] = 0
         self.VI[v, VI_IN_USE] = 1
         self.VI[v, VI_ONLINE] = 1 if (online and self.online.enabled) else 0
+        self.VI[v, VI_G_FIX] = -2  # no GNSS row yet
         self.vnames[v] = name
         self.vsensors[v] = {}
-        self.gnss_last[v] = None
+        self._odd_fix.pop(v, None)
         for sid, rec in (initial or {}).items():
             self.add_sensor(v, sid, rec)
         return v
@@ -961,7 +1097,7 @@ class FleetCalibration:
         self.vsensors[v] = {}
         self.VI[v] = 0
         self.vnames[v] = None
-        self.gnss_last[v] = None
+        self._odd_fix.pop(v, None)
         self._free_v.append(v)
 
     def sensor_slots(self, vslots: np.ndarray, sid: str) -> np.ndarray:
@@ -972,7 +1108,11 @@ class FleetCalibration:
         return a[vslots]
 
     def sensors(self, v: int) -> dict[str, int]:
+        """The sensor slots of vehicle slot ``v`` by sensor id, in the order they were created."""
         return self.vsensors[v]
+
+    def vslot_of(self, s: int) -> int:
+        return int(self.SI[s, I_VSLOT])
 
     # ---- the set in use -------------------------------------------------------------------------------------
     def _set_current(self, s: int, rec: ParamRecord) -> None:
@@ -1045,10 +1185,12 @@ class FleetCalibration:
     def _run_queue(self) -> None:
         if not self.queue:
             return
-        q = np.fromiter(self.queue, np.int64, len(self.queue))
-        lag = self.SF[q, F_LAST_T] - self.SF[q, F_DUE_T]
         if not self.unlimited:
             self._refill()
+            if self.tokens <= 0:
+                return
+        q = np.fromiter(self.queue, np.int64, len(self.queue))
+        lag = self.SF[q, F_LAST_T] - self.SF[q, F_DUE_T]
         for s in q[np.argsort(-lag, kind="stable")].tolist():
             if not self.unlimited and self.tokens <= 0:
                 break
@@ -1109,44 +1251,57 @@ class FleetCalibration:
         self._events.append(Event(v, self.vnames[v], sid, "ekf", t_s, rec))
 
     # ---- GNSS inputs ------------------------------------------------------------------------------------------
-    def _declination(self, lat: float, lon: float, alt: float) -> float:
-        k = (round(lat, 2), round(lon, 2), round(alt, -2))
-        d = self._decl.get(k)
-        if d is None:
-            if len(self._decl) > 100_000:
-                self._decl.clear()
-            d = self._decl[k] = maths.declination_rad(maths.earth_field_enu_nt(*k))
-        return d
-
     def _gnss_columns(self, g: GnssIn) -> np.ndarray:
         """Per GNSS row: speed, course, whether the epoch is usable (online_ekf.gnss_usable), declination."""
         n = len(g.t_s)
         cols = g.cols
-        out = np.zeros((n, N_G))
+        out = np.empty((n, N_G))
         speed = np.asarray(cols["speed_m_s"], float)
         sats = np.asarray(cols["num_sats"], np.int64)
         pdop = np.asarray(cols["pdop"], float)
         fix = cols["fix_type"]
-        fixes = [fix] * n if isinstance(fix, str) else list(fix)
-        good = np.fromiter((f in online_ekf.GOOD_FIX for f in fixes), bool, n)
+        if isinstance(fix, str):
+            fcode = np.full(n, _FIX_CODE.get(fix, -1), np.int64)
+        else:
+            fcode = np.fromiter((_FIX_CODE.get(f, -1) for f in fix), np.int64, n)
         e = self.online.ekf
         out[:, G_SPEED] = speed
         out[:, G_COURSE] = np.asarray(cols["course_rad"], float)
-        out[:, G_OK] = good & (sats >= e.min_sats) & ~(pdop > e.max_pdop) & ~(speed < e.min_speed_m_s)
+        out[:, G_OK] = (fcode >= 0) & _GOOD_FIX[fcode] & (sats >= e.min_sats) & ~(pdop > e.max_pdop) & \
+            ~(speed < e.min_speed_m_s)
         vs = np.asarray(g.vslots, np.int64)
+        VF = self.VF
         online = self.VI[vs, VI_ONLINE] != 0
-        decl = self.VF[vs, VF_DECL]
-        need = np.flatnonzero(online & np.isnan(decl))
-        if need.size:
-            lat, lon, alt = (np.asarray(cols[k], float) for k in ("lat_deg", "lon_deg", "alt_m"))
+        decl = VF[vs, VF_DECL]
+        need = online & np.isnan(decl)
+        if need.any():
+            # the declination at the rounded position: the vehicle's last one when it has not left its cell
+            ni = np.flatnonzero(need)
+            la, lo, al = Declinations.cells(*(np.asarray(cols[c], float)[ni] for c in ("lat_deg", "lon_deg", "alt_m")))
+            vn = vs[ni]
+            same = (la == VF[vn, VF_CELL_LAT]) & (lo == VF[vn, VF_CELL_LON]) & (al == VF[vn, VF_CELL_ALT])
+            d = VF[vn, VF_CELL_DECL].copy()
+            moved = ~same
+            if moved.any():
+                d[moved] = self.declinations(la[moved], lo[moved], al[moved], rounded=True)
+                VF[vn[moved], VF_CELL_LAT] = la[moved]
+                VF[vn[moved], VF_CELL_LON] = lo[moved]
+                VF[vn[moved], VF_CELL_ALT] = al[moved]
+                VF[vn[moved], VF_CELL_DECL] = d[moved]
             decl = decl.copy()
-            for i in need.tolist():
-                decl[i] = self._declination(float(lat[i]), float(lon[i]), float(alt[i]))
+            decl[ni] = d
         out[:, G_DECL] = decl
-        # the last row of each online vehicle: what status names as the reason a GNSS epoch was not used
+        # each online vehicle's last row: what the status names as the reason an epoch was not used
         last = np.flatnonzero(np.r_[vs[1:] != vs[:-1], True] & online) if n else np.zeros(0, np.int64)
-        for i in last.tolist():
-            self.gnss_last[int(vs[i])] = (fixes[i], int(sats[i]), float(pdop[i]), float(speed[i]))
+        if last.size:
+            vl = vs[last]
+            self.VI[vl, VI_G_FIX] = fcode[last]
+            self.VI[vl, VI_G_SATS] = sats[last]
+            VF[vl, VF_G_PDOP] = pdop[last]
+            VF[vl, VF_G_SPEED] = speed[last]
+            if (fcode[last] < 0).any():  # a fix type this version does not know: kept by name
+                for i in last[fcode[last] < 0].tolist():
+                    self._odd_fix[int(vs[i])] = fix if isinstance(fix, str) else fix[i]
         return out
 
     # ---- the step ---------------------------------------------------------------------------------------------
@@ -1154,55 +1309,55 @@ class FleetCalibration:
         """Handle one frame's rows (``inputs``: :class:`MagIn`, :class:`ImuIn`, :class:`GnssIn` in the frame's
         stream order; every magnetometer row must have its sensor slot). Waiting fits run first, within the
         budget."""
-        run = _kernels()
+        run = _run if _compiled else _kernels()
         self._events = []
         self._pids = {}
-        self._run_queue()
-        mags = [x for x in inputs if isinstance(x, MagIn)]
-        imus = [x for x in inputs if isinstance(x, ImuIn)]
-        gnss = [x for x in inputs if isinstance(x, GnssIn)]
-        n_each = [len(x.t_s) for x in inputs]
-        total = sum(n_each)
-        kind = np.empty(total, np.int8)
-        kidx = np.empty(total, np.int64)
-        offs = {K_MAG: 0, K_IMU: 0, K_GNSS: 0}
-        pos = 0
-        for x, n in zip(inputs, n_each, strict=True):
-            kd = K_MAG if isinstance(x, MagIn) else (K_IMU if isinstance(x, ImuIn) else K_GNSS)
-            kind[pos:pos + n] = kd
-            kidx[pos:pos + n] = np.arange(offs[kd], offs[kd] + n)
-            offs[kd] += n
-            pos += n
-        if len(inputs) == 1 or total <= 1:
-            order = np.arange(total, dtype=np.int64)
+        if self.queue:
+            self._run_queue()
+        mags, imus, gnss, kinds, n_each = [], [], [], [], []
+        for x in inputs:
+            tp = type(x)
+            if tp is MagIn:
+                mags.append(x)
+                kinds.append(K_MAG)
+            elif tp is ImuIn:
+                imus.append(x)
+                kinds.append(K_IMU)
+            else:
+                gnss.append(x)
+                kinds.append(K_GNSS)
+            n_each.append(len(x.t_s))
+        if len(inputs) == 1:
+            n = n_each[0]
+            kind = np.full(n, kinds[0], np.int8)
+            kidx = order = np.arange(n, dtype=np.int64)
         else:
-            vi = np.concatenate([np.asarray(x.vi, np.int64) for x in inputs])
-            t_all = np.concatenate([np.asarray(x.t_s, float) for x in inputs])
+            kind = np.repeat(np.array(kinds, np.int8), n_each)
             ends = np.cumsum(n_each).astype(np.int64)
             starts = ends - np.asarray(n_each, np.int64)
-            order = np.empty(total, np.int64)
+            kidx = np.empty(int(ends[-1]) if len(ends) else 0, np.int64)
+            offs = [0, 0, 0]
+            for kd, a, n in zip(kinds, starts.tolist(), n_each, strict=True):
+                kidx[a:a + n] = np.arange(offs[kd], offs[kd] + n)
+                offs[kd] += n
+            vi = np.concatenate([np.asarray(x.vi, np.int64) for x in inputs])
+            t_all = np.concatenate([np.asarray(x.t_s, float) for x in inputs])
+            order = np.empty(kidx.shape[0], np.int64)
             _merge(vi, t_all, starts, ends, order)
-
-        def cat(xs, f, shape, dt=float):
-            if not xs:
-                return np.zeros(shape, dt)
-            if len(xs) == 1:
-                return np.ascontiguousarray(getattr(xs[0], f), dt)
-            return np.ascontiguousarray(np.concatenate([np.asarray(getattr(x, f), dt) for x in xs]))
-
-        mag_slot = cat(mags, "slots", 0, np.int64)
-        mag_t = cat(mags, "t_s", 0)
-        mag_b = cat(mags, "b_nt", (0, 3)).reshape(-1, 3)
-        imu_v = cat(imus, "vslots", 0, np.int64)
-        imu_t = cat(imus, "t_s", 0)
-        imu_g = cat(imus, "gyro_rad_s", (0, 3)).reshape(-1, 3)
-        imu_a = cat(imus, "accel_m_s2", (0, 3)).reshape(-1, 3)
-        g_v = cat(gnss, "vslots", 0, np.int64)
-        g_t = cat(gnss, "t_s", 0)
-        g_f = np.concatenate([self._gnss_columns(g) for g in gnss]) if gnss else np.zeros((0, N_G))
-        if mag_slot.size and mag_slot.min() < 0:
-            raise ValueError("every magnetometer row needs its sensor slot (add_sensor)")
+        mag_slot = _cat(mags, "slots", np.int64, _E1I)
+        mag_t = _cat(mags, "t_s", float, _E1)
+        mag_b = _cat(mags, "b_nt", float, _E3).reshape(-1, 3)
+        imu_v = _cat(imus, "vslots", np.int64, _E1I)
+        imu_t = _cat(imus, "t_s", float, _E1)
+        imu_g = _cat(imus, "gyro_rad_s", float, _E3).reshape(-1, 3)
+        imu_a = _cat(imus, "accel_m_s2", float, _E3).reshape(-1, 3)
+        g_v = _cat(gnss, "vslots", np.int64, _E1I)
+        g_t = _cat(gnss, "t_s", float, _E1)
+        g_f = (self._gnss_columns(gnss[0]) if len(gnss) == 1 else
+               np.concatenate([self._gnss_columns(g) for g in gnss])) if gnss else _EG
         nm = mag_t.shape[0]
+        if nm and mag_slot.min() < 0:
+            raise ValueError("every magnetometer row needs its sensor slot (add_sensor)")
         out_h = np.empty((nm, 3))
         out_ver = np.empty(nm, np.int64)
         out_use = np.empty(nm, np.uint8)
@@ -1210,11 +1365,10 @@ class FleetCalibration:
         npend = np.zeros(1, np.int64)
         k, phase = 0, 0
         while True:
-            allow = self._allow_now()
-            code, k, j = run(k, phase, allow, order, kind, kidx, mag_slot, mag_t, mag_b, imu_v, imu_t, imu_g, imu_a,
-                             g_v, g_t, g_f, self.cfg, self.SF, self.SI, self.VF, self.VI, self.WT, self.WM, self.RT,
-                             self.RM, self.EP, self.IT, self.IG, self.IA, self.ST, self.SV, out_h, out_ver, out_use,
-                             pend, npend)
+            code, k, j = run(k, phase, self._allow_now(), order, kind, kidx, mag_slot, mag_t, mag_b, imu_v, imu_t,
+                             imu_g, imu_a, g_v, g_t, g_f, self.cfg, self.SF, self.SI, self.VF, self.VI, self.WT,
+                             self.WM, self.RT, self.RM, self.EP, self.IT, self.IG, self.IA, self.ST, self.SV, out_h,
+                             out_ver, out_use, pend, npend)
             if code == DONE:
                 break
             r = int(kidx[order[k]])
@@ -1238,17 +1392,12 @@ class FleetCalibration:
                 phase = 0
         if npend[0]:
             self.queue.update(pend[:npend[0]].tolist())
-        use = out_use.astype(bool)
-        hs, uses, vers, slots = [], [], [], []
-        a = 0
+        bounds, a = [], 0
         for x in mags:
-            n = len(x.t_s)
-            hs.append(out_h[a:a + n])
-            uses.append(use[a:a + n])
-            vers.append(out_ver[a:a + n])
-            slots.append(mag_slot[a:a + n])
-            a += n
-        return Step(hs, uses, vers, slots, self._events, self._pids, (self.cur_pid.copy(), self.SI[:, I_CUR_VER].copy()))
+            bounds.append((a, a + len(x.t_s)))
+            a += len(x.t_s)
+        return Step(out_h, out_use.view(bool), out_ver, mag_slot, bounds, self._events, self._pids,
+                    self.cur_pid[mag_slot], self.SI[mag_slot, I_CUR_VER])
 
     # ---- what the status shows --------------------------------------------------------------------------------
     def sensor_entry(self, s: int) -> dict:
@@ -1290,10 +1439,12 @@ class FleetCalibration:
 
     def gnss_reason(self, v: int) -> str:
         """Why the vehicle's last GNSS epoch was not usable ("" when it was, or before any)."""
-        g = self.gnss_last[v]
-        if g is None:
+        code = int(self.VI[v, VI_G_FIX])
+        if code == -2:
             return ""
-        return online_ekf.gnss_usable(g[0], g[1], g[2], g[3], self.online.ekf)[1]
+        fix = GNSS_FIXES[code] if code >= 0 else self._odd_fix.get(v, "")
+        return online_ekf.gnss_usable(fix, int(self.VI[v, VI_G_SATS]), float(self.VF[v, VF_G_PDOP]),
+                                      float(self.VF[v, VF_G_SPEED]), self.online.ekf)[1]
 
 
 # ---- warm-up ----------------------------------------------------------------------------------------------------

@@ -117,6 +117,9 @@ class Calibration(Service):
 
         warm()  # compile (or load from numba's disk cache) before serving: never on a sample
         self._by_name: dict[str, VehicleSlot] = {}
+        self._vcache: list | None = None  # on_frame: the last frame's vehicle list and their slots
+        self._unusable = np.zeros(0, np.int64)  # on_frame: rows without a usable set per sensor slot (to count)
+        self._vgen = 0
         self.last_msgs: dict[str, dict] = {}  # cal/params key → last message published
         self.dirty: set[tuple[str, str]] = set()
         self.saved = self._load_saved()
@@ -130,6 +133,7 @@ class Calibration(Service):
                 self.state_for(vehicle)  # publishes the saved sets now: a late joiner need not wait for data
 
     def on_stop(self) -> None:
+        self._flush_unusable()
         self._persist()
 
     # ---- per vehicle ------------------------------------------------------------------------
@@ -151,9 +155,11 @@ class Calibration(Service):
         online = self.online_settings.enabled and (kind is None or kind in kinds)
         old = self._by_name.pop(vehicle, None)
         if old is not None:  # the runtime dropped its state (a group hand-over): start the vehicle afresh
+            self._flush_unusable(list(self.fleet.sensors(old.vslot).values()))
             self.fleet.free_vehicle(old.vslot)
         vs = VehicleSlot(vehicle, self.fleet.add_vehicle(vehicle, online, decl, initial))
         self._by_name[vehicle] = vs
+        self._vgen += 1
         self.log.info("vehicle %s (kind %s): online EKF %s", vehicle, kind or "unknown", "on" if online else "off")
         for sid in initial:
             self._publish_params(vehicle, sid, self.fleet.records[self.fleet.sensors(vs.vslot)[sid]],
@@ -163,7 +169,9 @@ class Calibration(Service):
     def evict_vehicle(self, vehicle: str, state: VehicleSlot) -> None:
         if self._by_name.get(vehicle) is state:
             del self._by_name[vehicle]
+            self._flush_unusable(list(self.fleet.sensors(state.vslot).values()))
             self.fleet.free_vehicle(state.vslot)
+            self._vgen += 1
 
     def on_message(self, info, msg, state: VehicleSlot) -> None:
         """One sample (contract v1, or the runtime's per-sample hand-out): the fleet core with one row."""
@@ -200,16 +208,7 @@ class Calibration(Service):
         ``cal`` frame."""
         fc = self.fleet
         names = fr.vehicles
-        present = np.zeros(len(names), bool)
-        for st in fr.streams.values():
-            present[st.vi] = True
-        vmap = np.full(len(names), -1, np.int64)
-        states = self.vehicle_states
-        for i in np.flatnonzero(present).tolist():
-            vs = states.get(names[i])
-            if vs is None:
-                vs = self.state_for(names[i])
-            vmap[i] = vs.vslot
+        vmap = self._vehicle_slots(names, fr.streams.values())
         inputs, mags, new = [], [], []
         for j, (name, st) in enumerate(fr.streams.items()):
             head, _, sid = name.partition("/")
@@ -241,23 +240,41 @@ class Calibration(Service):
         out = {}
         for i, (x, st) in enumerate(mags):
             use = step.usable[i]
-            if not use.all():
-                bad_vi, n_bad = np.unique(st.vi[~use], return_counts=True)
-                for vi, n in zip(bad_vi.tolist(), n_bad.tolist(), strict=True):
-                    self.count_drop(keys.clean_mag(names[vi], x.sid), "no_usable_params", n)
+            if not use.all():  # counted per sensor slot here, handed to the drop counts at the tick
+                if self._unusable.shape[0] < fc.SF.shape[0]:
+                    self._unusable = np.concatenate([self._unusable,
+                                                     np.zeros(fc.SF.shape[0] - self._unusable.shape[0], np.int64)])
+                np.add.at(self._unusable, x.slots[~use], 1)
             rows = np.flatnonzero(use)
             if not rows.size:
                 continue
             pids = step.param_ids(i)
             pids = [pids[r] for r in rows.tolist()] if rows.size < len(pids) else pids
             cols = {"sensor": x.sid, "b_nt": step.h[i][rows], "calibrated": np.ones(rows.size, np.uint8),
-                    "param_id": pids[0] if all(p == pids[0] for p in pids) else pids}
+                    "param_id": pids[0] if pids.count(pids[0]) == len(pids) else pids}
             temp = st.cols.get("temp_c")
             if isinstance(temp, np.ndarray):
                 cols["temp_c"] = temp[rows]
             out[f"mag/{x.sid}"] = fleetframe.Stream(f"mag/{x.sid}", "mag", st.vi[rows], st.t_s[rows], None, cols)
         if out:
             self.publish_frame("cal", names, out)
+
+    def _vehicle_slots(self, names: list[str], streams) -> np.ndarray:
+        """Each frame vehicle's slot (−1: no rows seen yet), kept while the frame's vehicle list and the runtime's
+        vehicle states stay the same (any new state goes through new_vehicle, any dropped one shrinks the table)."""
+        states = self.vehicle_states
+        c = self._vcache
+        if c is None or c[1] != len(states) or c[2] != self._vgen or c[0] != names:
+            c = self._vcache = [names, len(states), self._vgen, np.full(len(names), -1, np.int64)]
+        vmap = c[3]
+        for st in streams:
+            miss = vmap[st.vi] < 0
+            if miss.any():
+                for i in np.unique(st.vi[miss]).tolist():
+                    vs = states.get(names[i])
+                    vmap[i] = (vs if vs is not None else self.state_for(names[i])).vslot
+                c[1], c[2] = len(states), self._vgen
+        return vmap
 
     def _handle(self, events) -> None:
         """Publish what the fleet core decided: fitted sets, refusals while nothing usable is in use, EKF sets."""
@@ -299,7 +316,19 @@ class Calibration(Service):
 
     def on_tick(self) -> None:
         self._handle(self.fleet.run_queued())  # fits that waited for the budget
+        self._flush_unusable()
         self._persist()
+
+    def _flush_unusable(self, slots=None) -> None:
+        """Frame rows that had no usable set, counted as drops (``no_usable_params``) on their clean key."""
+        u = self._unusable
+        fc = self.fleet
+        for s in (np.flatnonzero(u) if slots is None else [s for s in slots if s < u.shape[0] and u[s]]):
+            s = int(s)
+            v = fc.vnames[fc.vslot_of(s)]
+            if v is not None and fc.sids[s] is not None:
+                self.count_drop(keys.clean_mag(v, fc.sids[s]), "no_usable_params", int(u[s]))
+            u[s] = 0
 
     def _dir(self):
         return paths.state_dir() / _safe(self.settings.state_subdir)
