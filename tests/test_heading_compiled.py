@@ -94,6 +94,7 @@ def run_both(settings, rows, every: int = 1) -> dict:
     seen["transitions"] = list(ref.transitions)
     seen["mag_delay_s"] = ref.mag_delay_s
     seen["n_rebases"] = ref.n_rebases
+    seen["reference"] = ref
     return seen
 
 
@@ -236,7 +237,7 @@ def drive_rows(seed: int, layout: str, duration_s: float, dmc_flip_frac: float =
 
 # ---- BROAD --------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("prefix,start,n", [("07_", 7000, 5500), ("10_", 9800, 2500), ("30_", 35500, 4500),
-                                            ("36_", 9900, 3000)])
+                                            ("36_", 9900, 6000)])
 def test_broad_excerpts_agree_with_the_reference(prefix, start, n):
     rows = broad_rows(prefix, start, n)
     seen = run_both(profiles.settings(profiles.IMU_ONLY), rows, every=23)
@@ -419,6 +420,37 @@ def test_lag_estimate_on_a_board_turned_every_way():
         rows.append(_row(MAG, math.nan, mag[i]))
     seen = run_both(profiles.settings(profiles.IMU_ONLY), rows, every=11)
     assert seen["mag_delay_s"] > 0.005  # the estimate ran: its value is test_heading_lag.py's subject
+
+
+def test_hard_iron_from_rotation_on_a_board_turned_every_way():
+    """A magnet fixed to the board from t = 8 s (6 µT): the field leaves its reference, the magnet is estimated
+    from the rotation alone and the field without it steers the heading (imu_only's hard_iron_from_rotation)."""
+    from scipy.spatial.transform import Rotation
+
+    rate = 200.0
+    t = np.arange(int(30.0 * rate)) / rate
+
+    def att(tt):
+        a = np.column_stack([2.0 * np.sin(0.3 * tt) + 0.5 * np.sin(1.7 * tt), 0.5 * np.sin(0.7 * tt + 1),
+                             0.6 * np.sin(0.5 * tt + 2) + 0.3 * np.sin(2.3 * tt)])
+        return Rotation.from_euler("ZYX", a)
+
+    h = 1e-5
+    rng = np.random.default_rng(4)
+    magnet = np.array([2000.0, -3000.0, 4800.0])
+    gyro = (att(t - h).inv() * att(t + h)).as_rotvec() / (2 * h) + rng.normal(0, 0.002, (len(t), 3))
+    acc = att(t).inv().apply([0.0, 0.0, maths.G0]) + rng.normal(0, 0.05, (len(t), 3))
+    mag = att(t).inv().apply([100.0, 15800.0, -40800.0]) + np.outer(t >= 8.0, magnet) + rng.normal(0, 300.0, (len(t), 3))
+    rows = []
+    for i in range(len(t)):
+        rows.append(_row(IMU, math.nan, gyro[i], acc[i], 0.0 if i == 0 else 1.0 / rate))
+        rows.append(_row(MAG, math.nan, mag[i]))
+    s = profiles.settings(profiles.IMU_ONLY, mag_delay_online=False)
+    assert s.hard_iron_from_rotation
+    seen = run_both(s, rows, every=13)
+    assert "gyro_only" in seen["modes"]
+    est = seen["reference"]._hi_rot.estimate()
+    assert est is not None and np.linalg.norm(est - magnet) < 600.0, est
 
 
 def test_explicit_align_and_the_service_api():

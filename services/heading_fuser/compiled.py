@@ -103,12 +103,14 @@ DISTURBED_GATE_RAD = 49
 HARD_IRON_TRACKING = 50
 HARD_IRON_TAU_S = 51
 HARD_IRON_NOISE_GAIN = 52
-RECOVERY_EXIT_RAD = 53
-HOLDS_SCALE_WITH_OUTAGE = 54
-MIN_HOLD_S = 55
-REJECTION_TIMEOUT_S = 56
-HEADING_ALARM_STD_RAD = 57
-N_SETTINGS = 58
+HARD_IRON_FROM_ROTATION = 53
+HARD_IRON_MIN_INFO = 54
+RECOVERY_EXIT_RAD = 55
+HOLDS_SCALE_WITH_OUTAGE = 56
+MIN_HOLD_S = 57
+REJECTION_TIMEOUT_S = 58
+HEADING_ALARM_STD_RAD = 59
+N_SETTINGS = 60
 
 SETTING_NAMES = tuple(f.name for f in fields(core.Settings))
 assert len(SETTING_NAMES) == N_SETTINGS and all(globals()[n.upper()] == i for i, n in enumerate(SETTING_NAMES)), (
@@ -164,7 +166,10 @@ X_LLAST_T = 76
 X_LDELAY = 77
 X_LOFF = 78  # 3
 X_TR_T = 81  # time of the last mode change
-N_X = 84
+X_HR_A = 84  # 9: HardIronFromRotation's information matrix
+X_HR_B = 93  # 3
+X_HR_LAST = 96  # its last sample time (−inf: none)
+N_X = 100
 
 # ---- int state columns per slot ----------------------------------------------------------------------------
 I_MODE = 0
@@ -196,6 +201,8 @@ I_TR_TO = 25
 I_TR_REASON = 26
 I_NTR = 27  # mode changes since reset
 I_USED = 28
+I_HRH = 29  # HardIronFromRotation's sample ring head, count
+I_HRN = 30
 N_I = 32
 
 # ---- layout of the per-slot buffers (offsets into the float state row) -------------------------------------
@@ -214,9 +221,11 @@ L_C = 11
 L_COST = 12
 L_MAGS = 13
 L_TOTAL = 14
-N_L = 15
+L_HIR = 15
+N_L = 16
 
 HIST_LEN = 1024  # the reference's deque(maxlen=1024)
+HIR_LEN = 16  # HardIronFromRotation's samples (one per 50 ms over 0.2–0.4 s: at most 6 kept)
 LAG_NBUF = 512  # MagLagEstimator's n_buf
 
 # ---- per-row outputs ---------------------------------------------------------------------------------------
@@ -844,7 +853,8 @@ def _attitude_at(x, iv, L, t):
     """(q, gyro yaw) at an earlier time t: the current estimate turned back by the gyro's motion since t."""
     n = iv[I_HN]
     if n == 0:
-        return x[X_Q], x[X_Q + 1], x[X_Q + 2], x[X_Q + 3], x[X_GYAW]
+        return (x[X_Q], x[X_Q + 1], x[X_Q + 2], x[X_Q + 3], x[X_GYAW], x[X_QG], x[X_QG + 1], x[X_QG + 2],
+                x[X_QG + 3])
     oh = L[L_HIST]
     head = iv[I_HH]
     e = head  # the oldest, unless a later one is at or before t
@@ -856,7 +866,90 @@ def _attitude_at(x, iv, L, t):
     o = oh + 6 * e
     rel = _qmul(x[X_QG], -x[X_QG + 1], -x[X_QG + 2], -x[X_QG + 3], x[o + 1], x[o + 2], x[o + 3], x[o + 4])
     q = _qmul(x[X_Q], x[X_Q + 1], x[X_Q + 2], x[X_Q + 3], rel[0], rel[1], rel[2], rel[3])
-    return q[0], q[1], q[2], q[3], x[o + 5]
+    return q[0], q[1], q[2], q[3], x[o + 5], x[o + 1], x[o + 2], x[o + 3], x[o + 4]
+
+
+@njit(cache=True, error_model="numpy")
+def min_eig_sym3(a00, a01, a02, a11, a12, a22):
+    """core.min_eig_sym3: the smallest eigenvalue of a symmetric 3×3 matrix (closed form)."""
+    p1 = a01 * a01 + a02 * a02 + a12 * a12
+    q = (a00 + a11 + a22) / 3.0
+    p2 = (a00 - q) * (a00 - q) + (a11 - q) * (a11 - q) + (a22 - q) * (a22 - q) + 2.0 * p1
+    p = math.sqrt(p2 / 6.0)
+    if p == 0.0:
+        return q
+    b00, b11, b22 = (a00 - q) / p, (a11 - q) / p, (a22 - q) / p
+    b01, b02, b12 = a01 / p, a02 / p, a12 / p
+    r = 0.5 * (b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02))
+    r = max(-1.0, min(1.0, r))
+    return q + 2.0 * p * math.cos(math.acos(r) / 3.0 + 2.0 * math.pi / 3.0)
+
+
+@njit(cache=True, error_model="numpy")
+def _hir_add(s, x, iv, L, t, m0, m1, m2, qw, qx, qy, qz):
+    """core.HardIronFromRotation.add (spacing 0.05 s, baseline 0.2 s, turn ≥ 0.05 rad)."""
+    if t - x[X_HR_LAST] < 0.05 - 1e-9:
+        return
+    last = x[X_HR_LAST]
+    a = min(1.0, (t - last) / s[HARD_IRON_TAU_S]) if math.isfinite(last) else 0.0
+    x[X_HR_LAST] = t
+    o = L[L_HIR]
+    if iv[I_HRN] == HIR_LEN:  # (never: at most 6 samples are kept)
+        iv[I_HRH] = (iv[I_HRH] + 1) % HIR_LEN
+        iv[I_HRN] -= 1
+    j = o + 8 * ((iv[I_HRH] + iv[I_HRN]) % HIR_LEN)
+    x[j] = t
+    x[j + 1] = m0
+    x[j + 2] = m1
+    x[j + 3] = m2
+    x[j + 4] = qw
+    x[j + 5] = qx
+    x[j + 6] = qy
+    x[j + 7] = qz
+    iv[I_HRN] += 1
+    while iv[I_HRN] > 1 and x[o + 8 * ((iv[I_HRH] + 1) % HIR_LEN)] <= t - 0.2:
+        iv[I_HRH] = (iv[I_HRH] + 1) % HIR_LEN
+        iv[I_HRN] -= 1
+    k = o + 8 * iv[I_HRH]
+    if t - x[k] < 0.8 * 0.2:
+        return
+    c = 1.0 - a
+    for i in range(9):
+        x[X_HR_A + i] = c * x[X_HR_A + i]
+    for i in range(3):
+        x[X_HR_B + i] = c * x[X_HR_B + i]
+    w, rx, ry, rz = _qmul(qw, -qx, -qy, -qz, x[k + 4], x[k + 5], x[k + 6], x[k + 7])
+    if 2.0 * math.acos(min(1.0, abs(w))) < 0.05:
+        return
+    D00 = 1 - 2 * (ry * ry + rz * rz)
+    D01 = 2 * (rx * ry - w * rz)
+    D02 = 2 * (rx * rz + w * ry)
+    D10 = 2 * (rx * ry + w * rz)
+    D11 = 1 - 2 * (rx * rx + rz * rz)
+    D12 = 2 * (ry * rz - w * rx)
+    D20 = 2 * (rx * rz - w * ry)
+    D21 = 2 * (ry * rz + w * rx)
+    D22 = 1 - 2 * (rx * rx + ry * ry)
+    p0, p1, p2 = x[k + 1], x[k + 2], x[k + 3]
+    r0 = m0 - (D00 * p0 + D01 * p1 + D02 * p2)
+    r1 = m1 - (D10 * p0 + D11 * p1 + D12 * p2)
+    r2 = m2 - (D20 * p0 + D21 * p1 + D22 * p2)
+    M00, M01, M02 = 1.0 - D00, -D01, -D02
+    M10, M11, M12 = -D10, 1.0 - D11, -D12
+    M20, M21, M22 = -D20, -D21, 1.0 - D22
+    A = X_HR_A
+    x[A + 0] = x[A + 0] + (M00 * M00 + M10 * M10 + M20 * M20)
+    x[A + 1] = x[A + 1] + (M00 * M01 + M10 * M11 + M20 * M21)
+    x[A + 2] = x[A + 2] + (M00 * M02 + M10 * M12 + M20 * M22)
+    x[A + 3] = x[A + 3] + (M01 * M00 + M11 * M10 + M21 * M20)
+    x[A + 4] = x[A + 4] + (M01 * M01 + M11 * M11 + M21 * M21)
+    x[A + 5] = x[A + 5] + (M01 * M02 + M11 * M12 + M21 * M22)
+    x[A + 6] = x[A + 6] + (M02 * M00 + M12 * M10 + M22 * M20)
+    x[A + 7] = x[A + 7] + (M02 * M01 + M12 * M11 + M22 * M21)
+    x[A + 8] = x[A + 8] + (M02 * M02 + M12 * M12 + M22 * M22)
+    x[X_HR_B] = x[X_HR_B] + (M00 * r0 + M10 * r1 + M20 * r2)
+    x[X_HR_B + 1] = x[X_HR_B + 1] + (M01 * r0 + M11 * r1 + M21 * r2)
+    x[X_HR_B + 2] = x[X_HR_B + 2] + (M02 * r0 + M12 * r1 + M22 * r2)
 
 
 @njit(cache=True, error_model="numpy")
@@ -949,24 +1042,39 @@ def _window_full(x, iv, L, t, length_s):
 
 
 @njit(cache=True, error_model="numpy")
-def _hard_iron_innovation(s, x, Rm, m0, m1, m2, dt):
+def _hard_iron_innovation(s, x, Rm, m0, m1, m2, dt, W):
     """The heading innovation of the field without the tracked hard iron, or NaN (None)."""
     D, dip = s[DECLINATION_RAD], x[X_REF_DIP]
     B = x[X_REF_B]
-    b0 = B * (math.cos(dip) * math.sin(D))
-    b1 = B * (math.cos(dip) * math.cos(D))
-    b2 = B * -math.sin(dip)
-    a = min(1.0, dt / s[HARD_IRON_TAU_S])
-    e0 = Rm[0, 0] * b0 + Rm[1, 0] * b1 + Rm[2, 0] * b2
-    e1 = Rm[0, 1] * b0 + Rm[1, 1] * b1 + Rm[2, 1] * b2
-    e2 = Rm[0, 2] * b0 + Rm[1, 2] * b1 + Rm[2, 2] * b2
-    x[X_HI] = (1.0 - a) * x[X_HI] + a * (m0 - e0)
-    x[X_HI + 1] = (1.0 - a) * x[X_HI + 1] + a * (m1 - e1)
-    x[X_HI + 2] = (1.0 - a) * x[X_HI + 2] + a * (m2 - e2)
-    x[X_HI_T] += dt
-    if x[X_HI_T] < s[HARD_IRON_TAU_S]:
-        return NAN
-    c0, c1, c2 = m0 - x[X_HI], m1 - x[X_HI + 1], m2 - x[X_HI + 2]
+    if s[HARD_IRON_FROM_ROTATION]:  # from the rotation alone
+        A = x[X_HR_A:X_HR_A + 9]
+        if min_eig_sym3(A[0], A[1], A[2], A[4], A[5], A[8]) < s[HARD_IRON_MIN_INFO]:
+            return NAN
+        S3, B31, X31 = W.s3, W.b31, W.x31
+        for i in range(3):
+            for j in range(3):
+                S3[i, j] = A[3 * i + j]
+            B31[i, 0] = x[X_HR_B + i]
+        _solve3(S3, B31, X31)
+        h0, h1, h2 = X31[0, 0], X31[1, 0], X31[2, 0]
+        if math.sqrt(h0 * h0 + h1 * h1 + h2 * h2) < s[FIELD_STRENGTH_TOL_FRAC] * B:
+            return NAN
+    else:  # the slow mean of measured − expected field
+        b0 = B * (math.cos(dip) * math.sin(D))
+        b1 = B * (math.cos(dip) * math.cos(D))
+        b2 = B * -math.sin(dip)
+        a = min(1.0, dt / s[HARD_IRON_TAU_S])
+        e0 = Rm[0, 0] * b0 + Rm[1, 0] * b1 + Rm[2, 0] * b2
+        e1 = Rm[0, 1] * b0 + Rm[1, 1] * b1 + Rm[2, 1] * b2
+        e2 = Rm[0, 2] * b0 + Rm[1, 2] * b1 + Rm[2, 2] * b2
+        x[X_HI] = (1.0 - a) * x[X_HI] + a * (m0 - e0)
+        x[X_HI + 1] = (1.0 - a) * x[X_HI + 1] + a * (m1 - e1)
+        x[X_HI + 2] = (1.0 - a) * x[X_HI + 2] + a * (m2 - e2)
+        x[X_HI_T] += dt
+        if x[X_HI_T] < s[HARD_IRON_TAU_S]:
+            return NAN
+        h0, h1, h2 = x[X_HI], x[X_HI + 1], x[X_HI + 2]
+    c0, c1, c2 = m0 - h0, m1 - h1, m2 - h2
     mn0 = Rm[0, 0] * c0 + Rm[0, 1] * c1 + Rm[0, 2] * c2
     mn1 = Rm[1, 0] * c0 + Rm[1, 1] * c1 + Rm[1, 2] * c2
     mn2 = Rm[2, 0] * c0 + Rm[2, 1] * c1 + Rm[2, 2] * c2
@@ -1029,11 +1137,14 @@ def _mag(s, x, iv, L, m0, m1, m2, dmc, t_in, W):
     _qmat(x[X_Q], x[X_Q + 1], x[X_Q + 2], x[X_Q + 3], R)
     t_att = t - x[X_DELAY]
     if t_att < x[X_T] - 1e-9:
-        qm0, qm1, qm2, qm3, gyaw_m = _attitude_at(x, iv, L, t_att)
+        qm0, qm1, qm2, qm3, gyaw_m, g0, g1, g2, g3 = _attitude_at(x, iv, L, t_att)
     else:
         qm0, qm1, qm2, qm3, gyaw_m = x[X_Q], x[X_Q + 1], x[X_Q + 2], x[X_Q + 3], x[X_GYAW]
+        g0, g1, g2, g3 = x[X_QG], x[X_QG + 1], x[X_QG + 2], x[X_QG + 3]
     Rm = W.rm3
     _qmat(qm0, qm1, qm2, qm3, Rm)
+    if s[HARD_IRON_FROM_ROTATION]:
+        _hir_add(s, x, iv, L, t_att, m0, m1, m2, g0, g1, g2, g3)
     mn0 = Rm[0, 0] * m0 + Rm[0, 1] * m1 + Rm[0, 2] * m2
     mn1 = Rm[1, 0] * m0 + Rm[1, 1] * m1 + Rm[1, 2] * m2
     mn2 = Rm[2, 0] * m0 + Rm[2, 1] * m1 + Rm[2, 2] * m2
@@ -1162,9 +1273,11 @@ def _mag(s, x, iv, L, m0, m1, m2, dmc, t_in, W):
             x[X_CLEAR_SINCE] = NAN
             gain_weak = s[DISTURBED_NOISE_GAIN]
             if s[HARD_IRON_TRACKING] and dmc_valid:
-                nu_c = _hard_iron_innovation(s, x, Rm, m0, m1, m2, dt_mag)
+                nu_c = _hard_iron_innovation(s, x, Rm, m0, m1, m2, dt_mag, W)
                 if not math.isnan(nu_c):
                     nu, gain_weak = nu_c, s[HARD_IRON_NOISE_GAIN]
+                    if s[HARD_IRON_FROM_ROTATION]:  # the compensated field: the sensor's own noise
+                        r = max(var_m, s[MAG_HEADING_NOISE_FLOOR_RAD] ** 2) + leak
             if gain_weak > 0.0 and dmc_valid and abs(nu) < s[DISTURBED_GATE_RAD]:
                 S = HPH + r * gain_weak
                 fused_weak = True
@@ -1455,7 +1568,7 @@ def _layout(wcap: int, mcap: int, gmax: int) -> np.ndarray:
     o = N_X
     for key, size in ((L_P, 36), (L_HIST, 6 * HIST_LEN), (L_WIN, 4 * wcap), (L_GT, LAG_NBUF), (L_GQ, 4 * LAG_NBUF),
                       (L_GRID, gmax), (L_A, 9 * gmax), (L_B, 3 * gmax), (L_C, gmax), (L_COST, gmax),
-                      (L_MAGS, 4 * mcap)):
+                      (L_MAGS, 4 * mcap), (L_HIR, 8 * HIR_LEN)):
         L[key] = o
         o += size
     L[L_TOTAL] = o
@@ -1563,6 +1676,7 @@ class FleetHeading:
         x[X_NAV] = s.rest_accel_noise_m_s2**2
         x[X_GAIN] = 1.0
         x[X_LLAST_T] = -math.inf
+        x[X_HR_LAST] = -math.inf
         x[L[L_GT]:L[L_GT] + LAG_NBUF] = -math.inf
         grid = _lag_grid(s)
         x[L[L_GRID]:L[L_GRID] + len(grid)] = grid
@@ -1578,7 +1692,8 @@ class FleetHeading:
         X = np.zeros((cap, int(nL[L_TOTAL])))
         n = self._cap
         X[:n, :N_X] = self.X[:, :N_X]
-        for key, size in ((L_P, 36), (L_HIST, 6 * HIST_LEN), (L_GT, LAG_NBUF), (L_GQ, 4 * LAG_NBUF)):
+        for key, size in ((L_P, 36), (L_HIST, 6 * HIST_LEN), (L_GT, LAG_NBUF), (L_GQ, 4 * LAG_NBUF),
+                          (L_HIR, 8 * HIR_LEN)):
             X[:n, nL[key]:nL[key] + size] = self.X[:, oL[key]:oL[key] + size]
         og = int(oL[L_GMAX])
         for key, per in ((L_GRID, 1), (L_A, 9), (L_B, 3), (L_C, 1), (L_COST, 1)):

@@ -130,6 +130,12 @@ class Settings:
     hard_iron_tracking: bool = False  # in gyro_only without a DMC veto: track a new body-fixed magnet
     hard_iron_tau_s: float = 10.0  # its averaging time constant
     hard_iron_noise_gain: float = 10.0  # R_m multiplier for the field with the tracked magnet removed
+    # ... the magnet estimated from the sensor's own rotation instead (HardIronFromRotation: the gyro-integrated
+    # rotation between two field samples 0.2 s apart carries the older into the newer once the body-fixed
+    # field is removed; least squares forgetting over hard_iron_tau_s), used once the rotation seen makes it
+    # observable about every axis (the information matrix's smallest eigenvalue ≥ hard_iron_min_info)
+    hard_iron_from_rotation: bool = False
+    hard_iron_min_info: float = 2.0
     recovery_exit_rad: float = 0.035  # back to magnetic once |innovation| stays below this for recovery_hold_s
     # a gyro_only stretch that only the DMC verdict caused (the field checks never failed in it) is judged over
     # by that independent detector: both holds after it last as long as the stretch did, within
@@ -184,6 +190,73 @@ class Flags:
     dmc_valid: bool = True  # last DMC verdict (true when no DMC)
     accel_ignored: bool = False
     heading_uncertain: bool = False  # heading σ above heading_alarm_std_rad while not magnetic
+
+
+def min_eig_sym3(a00: float, a01: float, a02: float, a11: float, a12: float, a22: float) -> float:
+    """Smallest eigenvalue of a symmetric 3×3 matrix (closed form; the compiled filter uses the same)."""
+    p1 = a01 * a01 + a02 * a02 + a12 * a12
+    q = (a00 + a11 + a22) / 3.0
+    p2 = (a00 - q) * (a00 - q) + (a11 - q) * (a11 - q) + (a22 - q) * (a22 - q) + 2.0 * p1
+    p = math.sqrt(p2 / 6.0)
+    if p == 0.0:
+        return q
+    b00, b11, b22 = (a00 - q) / p, (a11 - q) / p, (a22 - q) / p
+    b01, b02, b12 = a01 / p, a02 / p, a12 / p
+    r = 0.5 * (b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02))
+    r = max(-1.0, min(1.0, r))
+    return q + 2.0 * p * math.cos(math.acos(r) / 3.0 + 2.0 * math.pi / 3.0)
+
+
+class HardIronFromRotation:
+    """A body-fixed field (a magnet that moves with the sensor) from the sensor's rotation alone.
+
+    Field samples are kept one per ``spacing_s``; each new one is paired with the oldest kept one at least
+    0.8 ``baseline_s`` older. With ``M`` the gyro-integrated rotation between their times, a constant field
+    seen from the turning body satisfies ``m₁ − h = M (m₀ − h)``, so ``(I − M) h = m₁ − M m₀``: the normal
+    equations are accumulated with forgetting over ``tau_s`` (pairs that turned less than ``min_turn_rad``
+    only decay them). ``h`` is observable about the axes the body turned about: :meth:`estimate` gives it once
+    the smallest eigenvalue of the information matrix reaches ``min_info``, else None. A homogeneous field that
+    changes (the sensor carried elsewhere) is not body-fixed and leaves ``h`` near zero.
+    """
+
+    def __init__(self, tau_s: float, min_info: float, baseline_s: float = 0.2, spacing_s: float = 0.05,
+                 min_turn_rad: float = 0.05):
+        self.tau_s, self.min_info = tau_s, min_info
+        self.baseline_s, self.spacing_s, self.min_turn_rad = baseline_s, spacing_s, min_turn_rad
+        self.A = np.zeros((3, 3))
+        self.b = np.zeros(3)
+        self.items: deque = deque()  # (t, m, qg)
+        self._last_t = -math.inf
+
+    def add(self, t: float, m: np.ndarray, qg: tuple) -> None:
+        if t - self._last_t < self.spacing_s - 1e-9:
+            return
+        a = min(1.0, (t - self._last_t) / self.tau_s) if math.isfinite(self._last_t) else 0.0
+        self._last_t = t
+        items = self.items
+        items.append((t, m, qg))
+        while len(items) > 1 and items[1][0] <= t - self.baseline_s:
+            items.popleft()
+        t0, m0, q0 = items[0]
+        if t - t0 < 0.8 * self.baseline_s:
+            return
+        self.A = (1.0 - a) * self.A
+        self.b = (1.0 - a) * self.b
+        w1, x1, y1, z1 = qg
+        rel = _qmul((w1, -x1, -y1, -z1), q0)  # q₁* ⊗ q₀: M = R(q₁)ᵀ R(q₀)
+        if 2.0 * math.acos(min(1.0, abs(rel[0]))) < self.min_turn_rad:
+            return
+        Md = _qmat(rel)
+        M = np.eye(3) - Md
+        r0 = m - Md @ m0
+        self.A = self.A + M.T @ M
+        self.b = self.b + M.T @ r0
+
+    def estimate(self) -> np.ndarray | None:
+        A = self.A
+        if min_eig_sym3(A[0, 0], A[0, 1], A[0, 2], A[1, 1], A[1, 2], A[2, 2]) < self.min_info:
+            return None
+        return np.linalg.solve(A, self.b)
 
 
 def _skew(v) -> np.ndarray:
@@ -283,6 +356,7 @@ class HeadingFilter:
         self._qg = (1.0, 0.0, 0.0, 0.0)  # attitude integrated from the gyro alone (never corrected)
         self._hard_iron = np.zeros(3)  # tracked extra hard iron while the field is off its reference
         self._hard_iron_t = 0.0
+        self._hi_rot = HardIronFromRotation(s.hard_iron_tau_s, s.hard_iron_min_info) if s.hard_iron_from_rotation else None
         self._gyro_yaw = 0.0  # integrated gyro heading (CCW yaw), for the §2 heading-change test
         self._last_accel_t = -1e9
         self._last_mag_t = -1e9
@@ -596,8 +670,11 @@ class HeadingFilter:
         # a delayed sample is levelled with the attitude at its own time (PX4 EKF2_MAG_DELAY); the
         # heading error about the nav vertical is the same then and now, so H below uses R of now
         t_att = t - self.mag_delay_s  # the attitude at the sample's own time (late or lagging samples)
-        q_m, gyro_yaw_m = self._attitude_at(t_att) if t_att < self.t_s - 1e-9 else (self.q, self._gyro_yaw)
+        q_m, gyro_yaw_m, qg_m = (self._attitude_at(t_att) if t_att < self.t_s - 1e-9
+                                 else (self.q, self._gyro_yaw, self._qg))
         R_m = _qmat(q_m)
+        if self._hi_rot is not None:
+            self._hi_rot.add(t_att, m, qg_m)
         mn = R_m @ m
         x, y = mn[0], mn[1]
         h2 = x * x + y * y
@@ -684,6 +761,11 @@ class HeadingFilter:
                     nu_c = self._hard_iron_innovation(m, R_m, dt_mag)
                     if nu_c is not None:
                         nu, gain_weak = nu_c, s.hard_iron_noise_gain
+                        if self._hi_rot is not None:
+                            # the window's tests judged the raw field, whose strength and dip the magnet
+                            # removed here makes vary as the body turns: the compensated field has the
+                            # sensor's own noise, not the adaptive multiple
+                            r = max(var_m, s.mag_heading_noise_floor_rad**2) + leak
                 weak = gain_weak > 0.0 and fl.dmc_valid and abs(nu) < s.disturbed_gate_rad
                 if weak:
                     r_weak = r * gain_weak
@@ -790,13 +872,22 @@ class HeadingFilter:
         compensated field is not yet consistent with the reference."""
         s = self.settings
         D, dip = s.declination_rad, self.ref_dip_rad
-        b_ref = self.ref_field_nt * np.array([math.cos(dip) * math.sin(D), math.cos(dip) * math.cos(D), -math.sin(dip)])
-        a = min(1.0, dt / s.hard_iron_tau_s)
-        self._hard_iron = (1.0 - a) * self._hard_iron + a * (m - R_m.T @ b_ref)
-        self._hard_iron_t += dt
-        if self._hard_iron_t < s.hard_iron_tau_s:
-            return None
-        mn = R_m @ (m - self._hard_iron)
+        if self._hi_rot is not None:  # from the rotation alone
+            hard_iron = self._hi_rot.estimate()
+            # a body-fixed field weaker than the strength tolerance cannot be what put the field off its
+            # reference (a homogeneous field that changed, the sensor carried elsewhere, leaves it small)
+            if hard_iron is None or math.sqrt(float(hard_iron @ hard_iron)) < s.field_strength_tol_frac * self.ref_field_nt:
+                return None
+        else:  # the slow mean of measured − expected field
+            b_ref = self.ref_field_nt * np.array([math.cos(dip) * math.sin(D), math.cos(dip) * math.cos(D),
+                                                  -math.sin(dip)])
+            a = min(1.0, dt / s.hard_iron_tau_s)
+            self._hard_iron = (1.0 - a) * self._hard_iron + a * (m - R_m.T @ b_ref)
+            self._hard_iron_t += dt
+            if self._hard_iron_t < s.hard_iron_tau_s:
+                return None
+            hard_iron = self._hard_iron
+        mn = R_m @ (m - hard_iron)
         h = math.hypot(mn[0], mn[1])
         strength = math.sqrt(h * h + mn[2] * mn[2])
         if (abs(strength / self.ref_field_nt - 1.0) > s.sample_strength_tol_frac
@@ -805,18 +896,18 @@ class HeadingFilter:
         return math.remainder(math.atan2(mn[0], mn[1]) - D, 2 * math.pi)
 
     def _attitude_at(self, t: float) -> tuple:
-        """(quaternion, integrated gyro yaw) at an earlier time t: the current estimate (with every
-        correction so far) turned back by the gyro's own motion since t, q_t = q ⊗ q_g,now⁻¹ ⊗ q_g,t."""
+        """(quaternion, integrated gyro yaw, gyro-only attitude) at an earlier time t: the current estimate
+        (with every correction so far) turned back by the gyro's own motion since t, q_t = q ⊗ q_g,now⁻¹ ⊗ q_g,t."""
         entry = self._history[0] if self._history else None
         for e in reversed(self._history):
             if e[0] <= t + 1e-9:
                 entry = e
                 break
         if entry is None:
-            return self.q, self._gyro_yaw
+            return self.q, self._gyro_yaw, self._qg
         gw, gx, gy_, gz = self._qg
         rel = _qmul((gw, -gx, -gy_, -gz), entry[1])
-        return _qmul(self.q, rel), entry[2]
+        return _qmul(self.q, rel), entry[2], entry[1]
 
     def _slew(self, nu: float, Hr: np.ndarray, dt: float) -> None:
         """Rate-limited heading correction towards a consistent magnetometer outside the gate."""

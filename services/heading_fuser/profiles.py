@@ -50,6 +50,10 @@ _IMU_ONLY = dict(
     disturbed_noise_gain=30.0,
     hard_iron_tracking=True,
     hard_iron_noise_gain=2.0,
+    # the magnet that moves with the sensor estimated from the sensor's own rotation (not from the attitude,
+    # which a field off its reference has already made uncertain), used once observable and stronger than the
+    # strength tolerance
+    hard_iron_from_rotation=True,
 )
 
 PROFILES: dict[str, dict] = {ROAD_VEHICLE: {}, IMU_ONLY: _IMU_ONLY}
