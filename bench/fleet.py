@@ -39,21 +39,27 @@ def _publish_v2_windows(s, args, ids: list[str], d, opts, start_at: float) -> tu
     (:func:`publish_time`). Each vehicle replays the drive from its own offset. Returns (sent per stream, wall
     time, windows)."""
     import msgspec
+    import numpy as np
     import zenoh
 
     from schemas import keys, streams
 
     enc = msgspec.msgpack.Encoder().encode
+    binary = args.wire == "v3"
     W = max(2, round(args.window / 0.01))
     W += W % 2  # an even number of ticks: whole magnetometer epochs per window
-    mag1, mag2 = d.mag_b_nt["1"].tolist(), d.mag_b_nt["2"].tolist()
-    gyro, acc = d.gyro_rad_s.tolist(), d.accel_m_s2.tolist()
+    if binary:  # the drive as little-endian bytes, sliced per vehicle and window (contract v2's binary form)
+        mag1, mag2 = (np.ascontiguousarray(d.mag_b_nt[s], "<f8").tobytes() for s in ("1", "2"))
+        gyro, acc = (np.ascontiguousarray(x, "<f8").tobytes() for x in (d.gyro_rad_s, d.accel_m_s2))
+    else:
+        mag1, mag2 = d.mag_b_nt["1"].tolist(), d.mag_b_nt["2"].tolist()
+        gyro, acc = d.gyro_rad_s.tolist(), d.accel_m_s2.tolist()
     g = d.gnss
     gn = [{"lat_deg": float(g.lat_deg[j]), "lon_deg": float(g.lon_deg[j]), "alt_m": float(g.alt_m[j]),
            "pos_enu_m": g.pos_enu_m[j].tolist(), "vel_enu_m_s": g.vel_enu_m_s[j].tolist(),
            "course_rad": float(g.course_rad[j]), "speed_m_s": float(g.speed_m_s[j]), "fix_type": str(g.fix_type[j]),
            "num_sats": int(g.num_sats[j]), "pdop": float(g.pdop[j])} for j in range(len(g.t_s))]
-    n_mag, n_imu, n_g = len(mag1), len(gyro), len(gn)
+    n_mag, n_imu, n_g = len(d.mag_b_nt["1"]), len(d.gyro_rad_s), len(gn)
     bk = [keys.raw_batch(v).replace("/raw/", f"/{args.stream}/") for v in ids]
     pubs = [s.declare_publisher(k, encoding=zenoh.Encoding(streams.encoding_name("batch")), **opts) for k in bk]
     time.sleep(1.0)  # let declarations settle
@@ -80,30 +86,39 @@ def _publish_v2_windows(s, args, ids: list[str], d, opts, start_at: float) -> tu
         t_mag = [start_at + k * 0.01 for k in mticks]
         s_mag = [k // 2 for k in mticks]
         gticks = [k for k in ticks if k % 20 == 0]
+        nm = len(mticks)
+        if binary:
+            t_imu, t_mag = (np.asarray(x, "<f8").tobytes() for x in (t_imu, t_mag))
+            s_imu, s_mag = (np.asarray(x, "<i8").tobytes() for x in (ticks, s_mag))
+        else:
+            s_imu = ticks
         for vi in range(len(ids)):
             o_imu = (tick0 + vi * 74) % n_imu
             o_mag = (tick0 // 2 + vi * 37) % n_mag
-            if o_imu + W <= n_imu:
+            if o_imu + W > n_imu:
+                o_imu = 0  # (the drive loops: a window never straddles its end)
+            if o_mag + nm > n_mag:
+                o_mag = 0
+            if binary:
+                gy, ac = gyro[o_imu * 24:(o_imu + W) * 24], acc[o_imu * 24:(o_imu + W) * 24]
+                m1, m2 = mag1[o_mag * 24:(o_mag + nm) * 24], mag2[o_mag * 24:(o_mag + nm) * 24]
+            else:
                 gy, ac = gyro[o_imu:o_imu + W], acc[o_imu:o_imu + W]
-            else:
-                ix = [(o_imu + j) % n_imu for j in range(W)]
-                gy, ac = [gyro[j] for j in ix], [acc[j] for j in ix]
-            nm = len(mticks)
-            if o_mag + nm <= n_mag:
                 m1, m2 = mag1[o_mag:o_mag + nm], mag2[o_mag:o_mag + nm]
-            else:
-                ix = [(o_mag + j) % n_mag for j in range(nm)]
-                m1, m2 = [mag1[j] for j in ix], [mag2[j] for j in ix]
             st = {"mag/1": {"n": nm, "t_s": t_mag, "seq": s_mag, "cols": {"sensor": "1", "b_nt": m1}},
                   "mag/2": {"n": nm, "t_s": t_mag, "seq": s_mag, "cols": {"sensor": "2", "b_nt": m2}},
-                  "imu": {"n": W, "t_s": t_imu, "seq": ticks, "cols": {"gyro_rad_s": gy, "accel_m_s2": ac}}}
+                  "imu": {"n": W, "t_s": t_imu, "seq": s_imu, "cols": {"gyro_rad_s": gy, "accel_m_s2": ac}}}
             if gticks:
                 rows = [gn[(k // 20 + vi) % n_g] for k in gticks]
-                st["gnss"] = {"n": len(gticks), "t_s": [start_at + k * 0.01 for k in gticks],
-                              "seq": [k // 20 for k in gticks],
-                              "cols": {f: [r[f] for r in rows] for f in rows[0]}}
-            pubs[vi].put(enc({"type": "batch", "version": 2, "vehicle": ids[vi], "t_s": t_last, "seq": w,
-                              "streams": st}))
+                gt, gs = [start_at + k * 0.01 for k in gticks], [k // 20 for k in gticks]
+                gcols = {f: [r[f] for r in rows] for f in rows[0]}
+                if binary:
+                    gt, gs = np.asarray(gt, "<f8").tobytes(), np.asarray(gs, "<i8").tobytes()
+                    gcols = {f: (v if f == "fix_type" else np.asarray(v, "<i8" if f == "num_sats" else "<f8").tobytes())
+                             for f, v in gcols.items()}
+                st["gnss"] = {"n": len(gticks), "t_s": gt, "seq": gs, "cols": gcols}
+            pubs[vi].put(enc({"type": "batch", "version": 3 if binary else 2, "vehicle": ids[vi], "t_s": t_last,
+                              "seq": w, "streams": st}))
         sent["imu"] += W * len(ids)
         sent["mag"] += 2 * len(mticks) * len(ids)
         sent["gnss"] += len(gticks) * len(ids)
@@ -134,12 +149,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max", action="store_true", help="as fast as possible instead of real-time rates")
     p.add_argument("--stream", default="raw", help="key stream to publish on (raw)")
     p.add_argument("--start-at", type=float, default=0.0, help="wall time to start at (time.time())")
-    p.add_argument("--wire", choices=("v1", "v2"), default="v1", help="single samples (v1) or batches (v2)")
+    p.add_argument("--wire", choices=("v1", "v2", "v3"), default="v1",
+                   help="single samples (v1), batches with list columns (v2) or with binary columns (v3)")
     p.add_argument("--window", type=float, default=0.02, help="v2: seconds of samples per vehicle batch")
     args = p.parse_args(argv)
     from schemas import streams
 
-    v2 = args.wire == "v2"
+    v2 = args.wire in ("v2", "v3")
     d = load_drive()
     ids = vehicle_ids(args.vehicles)
     opts = dict(congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)

@@ -121,7 +121,8 @@ class Sink:
                     continue
                 self.n += st["n"]
                 if self.latency:
-                    ts.extend(st["t_s"])
+                    t = st["t_s"]
+                    ts.extend(np.frombuffer(t, "<f8").tolist() if isinstance(t, bytes) else t)
                     tr.extend([now] * st["n"])
                 continue
             self.n += 1
@@ -181,7 +182,7 @@ def _status(session, role: str, inst: str) -> dict:
 
 
 def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple[str, ...], tmp: Path,
-             wire: str = "v2", window_s: float = 0.05, frame_s: float = 0.02) -> dict:
+             wire: str = "v3", window_s: float = 0.05, frame_s: float = 0.02) -> dict:
     """One run: ``kind`` is "pipeline", "limit" or "ingest" (ingest alone, clean batches out). ``window_s``: each
     v2 vehicle's batch window; ``frame_s``: ingest's frame window (the pipeline with v2 runs on fleet frames)."""
     import zenoh
@@ -195,7 +196,7 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
     ingest_args = ["-m", "services.ingest", "--instance", "b-ingest"]
     if kind == "ingest":
         ingest_args += ["--set", "output=batches", "--set", f"batch_window_s={frame_s}"]
-    elif wire == "v2":
+    elif wire in ("v2", "v3"):
         ingest_args += ["--set", "output=frames", "--set", f"batch_window_s={frame_s}"]
     if kind == "ingest":
         procs["ingest"] = _spawn(ingest_args, port, tmp / "ingest.log")
@@ -223,7 +224,7 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
                                  port, tmp / "relay2.log")
         tokens += [keys.svc_token("relay", "r1"), keys.svc_token("relay", "r2")]
         sink_key = "magmesh/*/benchout/mag/2"
-        if wire == "v2":
+        if wire in ("v2", "v3"):
             sink_key, batch_stream = f"magmesh/*/benchout/{keys.BATCH}", "mag/2"
     try:
         if not wait_tokens(router, tokens):
@@ -277,12 +278,12 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
             lost += max(0, fl["total"] - ing_in)
         # latency only means something when paced: from the batch's publication (the goal's measure) and from
         # the sample's own time (which adds the vehicle's batching window)
-        v2_fleet = wire == "v2" and kind != "ingest"
+        v2_fleet = wire in ("v2", "v3") and kind != "ingest"
         lat, age = sink.latencies_ms(fl.get("start_at") if v2_fleet else None, window_s) if not max_mode else (None, None)
         samples_done = fl["total"] * min(1.0, sink.n / max(expected, 1))
         return {
             "kind": kind, "vehicles": n, "max_mode": max_mode, "duration_s": duration_s, "wire": wire,
-            "window_s": window_s if (wire == "v2" or kind == "ingest") else None,
+            "window_s": window_s if (wire in ("v2", "v3") or kind == "ingest") else None,
             "offered_samples_s": fl["offered_rate"], "published_samples_s": round(fl["rate"], 1),
             "sustained_samples_s": round(samples_done / wall, 1),
             "outputs": sink.n, "expected_outputs": expected, "drained": drained, "lost": int(lost), "drops": drops,
@@ -290,7 +291,7 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
             "latency_ms_p99": round(float(np.percentile(lat, 99)), 2) if lat is not None else None,
             "age_ms_p99": round(float(np.percentile(age, 99)), 2) if age is not None else None,
             "vehicle_window_s": window_s if v2_fleet else None,
-            "frame_window_s": frame_s if (kind == "pipeline" and wire == "v2") else None,
+            "frame_window_s": frame_s if (kind == "pipeline" and wire in ("v2", "v3")) else None,
             "cpu_pct": {k: round(100 * (cpu1[k] - cpu0[k]) / wall, 1) for k in procs}
                        | {"fleet": round(100 * (cpu_fleet - cpu0["fleet"]) / (duration_s * 0.8), 1)},
             "rss_mb": {k: round(v, 1) for k, v in rss.items()},
@@ -300,7 +301,7 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         router.close()
 
 
-def _median_case(kind, n, duration_s, max_mode, stages, repeat, tmp, wire="v2", window_s=0.05, frame_s=0.02) -> dict:
+def _median_case(kind, n, duration_s, max_mode, stages, repeat, tmp, wire="v3", window_s=0.05, frame_s=0.02) -> dict:
     runs = [run_case(kind, n, duration_s, max_mode, stages, tmp, wire, window_s, frame_s) for _ in range(repeat)]
     out = dict(runs[0])
     for k in ("sustained_samples_s", "published_samples_s", "latency_ms_p50", "latency_ms_p99", "age_ms_p99"):
@@ -328,7 +329,7 @@ def _sustained(r: dict, p99_ms: float) -> bool:
 
 
 def bench(vehicles: list[int], duration_s: float = 8.0, repeat: int = 1, stages: tuple[str, ...] | None = None,
-          limit_vehicles: int | None = None, progress=None, wire: str = "v2", window_s: float = 0.05,
+          limit_vehicles: int | None = None, progress=None, wire: str = "v3", window_s: float = 0.05,
           p99_ms: float = 100.0, v1_ingest: bool = True, frame_s: float = 0.02) -> dict:
     stages = stages or available_stages()
     tmp = Path(tempfile.mkdtemp(prefix="magmesh-bench-"))
@@ -389,7 +390,8 @@ def format_text(res: dict) -> str:
             "per stage | RSS MB | sustained |", "|---|---|---|---|---|---|---|---|---|---|"]
     wire = res.get("wire", "v1")
     lines = [f"stages: {' → '.join(res['stages'])}; wire {wire}"
-             + (f" (a batch per vehicle per {res['window_s'] * 1000:g} ms)" if wire == "v2" else ""),
+             + (f" (a batch per vehicle per {res['window_s'] * 1000:g} ms"
+                + (", binary columns)" if wire == "v3" else ")") if wire in ("v2", "v3") else ""),
              f"saturation ({p['vehicles']} vehicles, as fast as possible): pipeline {p['sustained_samples_s']:.0f} "
              f"samples/s, no-processing limit {lim['sustained_samples_s']:.0f} samples/s → ratio "
              f"{res['ratio_to_limit']:.2f}", "", *head]

@@ -1332,11 +1332,12 @@ class Runner:
                 self._wants[key] = w
         return w
 
-    def decode_batch(self, key: str, info: KeyInfo, payload: bytes, check: bool) -> Any:
+    def decode_batch(self, key: str, info: KeyInfo, payload: bytes, check: bool, deferred: bool = False) -> Any:
         """A batch message of ``info.vehicle``, or None once it is rejected (bad payload, or another vehicle's);
-        ``check=False`` for batches a service already validated (clean/batch from ingest)."""
+        ``check=False`` for batches a service already validated (clean/batch from ingest); ``deferred``: a binary
+        batch's values are left to the caller (schemas.batch.binary_problems)."""
         try:
-            b = batches.decode(payload, where=key, check=check)
+            b = batches.decode(payload, where=key, check=check, deferred=deferred)
         except SchemaError as e:
             self.reject(key, reject_code(e), str(e), e.field, len(payload), info.vehicle, None, "batch")
             return None

@@ -38,6 +38,9 @@ from . import keys
 from .messages import MAX_STR, MESSAGES, SchemaError
 
 VERSION = 2
+#: the binary form of a batch: the same map, with ``t_s``, ``seq`` and numeric columns as little-endian bytes
+BINARY_VERSION = 3
+VERSIONS = (VERSION, BINARY_VERSION)
 #: samples per stream in one batch at most
 MAX_SAMPLES = 65536
 #: streams one batch may carry
@@ -227,13 +230,196 @@ def _decode_typed(payload: bytes) -> Batch:
     return out
 
 
-def decode(payload: bytes, where: str = "", check: bool = True) -> Batch:
+@cache
+def _envelope3_decoder() -> msgspec.msgpack.Decoder:
+    from .streams import Finite
+
+    stream = msgspec.defstruct("batch3_stream", [
+        ("n", Annotated[int, msgspec.Meta(ge=0, le=MAX_SAMPLES)]), ("t_s", bytes), ("seq", bytes),
+        ("cols", dict[str, Any])])
+    env = msgspec.defstruct("batch3_envelope", [
+        ("type", Literal["batch"]), ("version", Literal[BINARY_VERSION]),
+        ("vehicle", Annotated[str, msgspec.Meta(max_length=MAX_STR)]), ("t_s", Finite),
+        ("seq", Annotated[int, msgspec.Meta(ge=0)]),
+        ("streams", Annotated[dict[str, stream], msgspec.Meta(max_length=MAX_STREAMS)])])
+    return msgspec.msgpack.Decoder(env)
+
+
+@lru_cache(maxsize=256)
+def _list_column_type(msg_type: str, name: str) -> Any:
+    """The v2 (list) column type of a field, for the columns a binary batch sends as lists."""
+    from .streams import _field_type
+
+    f = {f.name: f for f in MESSAGES[msg_type].fields}[name]
+    col = Annotated[list[_field_type(f)], msgspec.Meta(max_length=MAX_SAMPLES)]
+    return Union[_field_type(f), col] if f.kind == "str" else col  # noqa: UP007
+
+
+@lru_cache(maxsize=16)
+def _required(msg_type: str) -> frozenset:
+    return frozenset(f.name for f in MESSAGES[msg_type].fields if f.required)
+
+
+@lru_cache(maxsize=16)
+def _binary_spec(msg_type: str) -> dict:
+    """Per field of a message type: (field, numpy dtype, row width) for the binary kinds, (field, None, 0) else."""
+    from .frame import _layout
+
+    out = {}
+    for f in MESSAGES[msg_type].fields:
+        lay = _layout(f)
+        out[f.name] = (f, lay[0], lay[1]) if lay is not None else (f, None, 0)
+    return out
+
+
+@dataclass
+class RawColumns:
+    """A binary batch's stream with its structure checked but its values not yet: ``t_s``, ``seq`` and the
+    binary fields are the payload's bytes (little-endian); :func:`binary_problems` checks the values, on a
+    whole window of them at once (ingest's frames)."""
+
+    name: str
+    msg_type: str
+    n: int
+    t_s: bytes
+    seq: bytes
+    cols: dict[str, Any]
+
+
+def _decode_binary(payload: bytes, where: str, arrays: bool, deferred: bool = False) -> Batch:
+    """A batch of version 3: numeric columns (and ``t_s``, ``seq``) as little-endian bytes. The structure
+    (lengths, required fields, string columns, the magnetometer's sensor) is checked here; the values (finite,
+    in bounds) here too unless ``deferred`` — then the streams are :class:`RawColumns` and the caller checks
+    the values with :func:`binary_problems`."""
+    try:
+        e = _envelope3_decoder().decode(payload)
+    except (msgspec.ValidationError, msgspec.DecodeError) as ex:
+        raise _bad("<payload>", f"is not a valid binary batch: {ex}", where) from None
+    out = Batch(e.vehicle, float(e.t_s), e.seq)
+    for sname, s in e.streams.items():
+        st = _TYPES_SEEN.get(sname) or stream_type(sname)
+        n = s.n
+        if len(s.t_s) != 8 * n or len(s.seq) != 8 * n:
+            raise _bad(f"{sname}.t_s", f"t_s and seq must hold n = {n} little-endian 8-byte values", where)
+        spec = _binary_spec(st)
+        cols: dict[str, Any] = {}
+        for name, v in s.cols.items():
+            fs = spec.get(name)
+            if fs is None:
+                continue  # a field this version does not know: ignored (forward compatible)
+            f, dt, w = fs
+            if dt is not None and type(v) is bytes:
+                if len(v) != n * w * (1 if dt == "u1" else 8):
+                    raise _bad(f"{sname}.{name}", f"must hold n = {n} rows of {w} {dt} values", where)
+                cols[name] = v
+                continue
+            if f.kind == "str":
+                if type(v) is str:
+                    ok = len(v) <= MAX_STR and (not f.choices or v in f.choices)
+                else:
+                    ok = type(v) is list and len(v) == n and all(
+                        type(x) is str and len(x) <= MAX_STR and (not f.choices or x in f.choices) for x in v)
+                if not ok:
+                    raise _bad(f"{sname}.{name}", "must be one string or n strings" + (
+                        f" of {', '.join(f.choices)}" if f.choices else ""), where)
+                cols[name] = v
+                continue
+            try:
+                v = msgspec.convert(v, _list_column_type(st, name), strict=True)
+            except msgspec.ValidationError as ex:
+                raise _bad(f"{sname}.{name}", f"is not valid: {ex}", where) from None
+            if len(v) != n:
+                raise _bad(f"{sname}.{name}", f"must hold n = {n} values", where)
+            cols[name] = v
+        missing = _required(st) - cols.keys()
+        if missing:
+            raise _bad(f"{sname}.{sorted(missing)[0]}", "is missing (a required field)", where)
+        if st == "mag":
+            sensor = cols.get("sensor")
+            want = sname.partition("/")[2]
+            if (isinstance(sensor, str) and sensor != want) or (isinstance(sensor, list) and any(x != want for x in sensor)):
+                raise _bad(f"{sname}.sensor", f"must be {want!r} (the stream's sensor)", where)
+        if deferred:
+            out.streams[sname] = RawColumns(sname, st, n, s.t_s, s.seq, cols)
+            continue
+        t = np.frombuffer(s.t_s, "<f8")
+        sq = np.frombuffer(s.seq, "<i8")
+        arrs = {}
+        for name, v in cols.items():
+            f, dt, w = spec[name]
+            if type(v) is bytes:
+                a = np.frombuffer(v, dt)
+                arrs[name] = a.reshape(n, w) if (w > 1 or f.kind in ("vec3", "floats", "mat3")) else a
+        for fld, _rows, sentence in binary_problems(st, t, sq, arrs):
+            raise _bad(f"{sname}.{fld}", sentence, where)
+        for name, a in arrs.items():
+            if spec[name][0].kind == "bool":
+                a = a.view(bool)
+            cols[name] = a if arrays else a.tolist()
+        out.streams[sname] = Columns(sname, st, t if arrays else t.tolist(), sq if arrays else sq.tolist(), cols)
+    return out
+
+
+def binary_problems(msg_type: str, t_s: np.ndarray, seq: np.ndarray, cols: dict[str, np.ndarray]
+                    ) -> list[tuple[str, np.ndarray, str]]:
+    """The value checks of a binary batch's columns, on any number of rows at once: ``[(field, bad rows,
+    sentence)]`` for each check some row fails (``t_s`` finite, ``seq`` ≥ 0, numbers finite — NaN is a null of
+    a nullable field —, bounds, booleans 0 or 1)."""
+    out = []
+    if t_s.size and not math.isfinite(float(np.add.reduce(t_s))):
+        out.append(("t_s", ~np.isfinite(t_s), "must be finite numbers"))
+    if seq.size and int(seq.min()) < 0:
+        out.append(("seq", seq < 0, "must be integers ≥ 0"))
+    spec = _binary_spec(msg_type)
+    for name, a in cols.items():
+        f, dt, w = spec[name]
+        if not a.size:
+            continue
+        rows = a if a.ndim == 1 else a.reshape(a.shape[0], -1)
+        if dt == "<f8":
+            if not math.isfinite(float(np.add.reduce(rows, axis=None))):
+                bad = np.isinf(rows) if f.nullable else ~np.isfinite(rows)
+                bad = bad if bad.ndim == 1 else bad.any(axis=1)
+                if bad.any():
+                    out.append((name, bad, "must be finite numbers" + (" (or NaN for null)" if f.nullable else "")))
+            if f.lo is not None or f.hi is not None:
+                with np.errstate(invalid="ignore"):
+                    lo = (rows < f.lo) if f.lo is not None else np.zeros(rows.shape, bool)
+                    hi = (rows > f.hi) if f.hi is not None else np.zeros(rows.shape, bool)
+                lo = lo if lo.ndim == 1 else lo.any(axis=1)
+                hi = hi if hi.ndim == 1 else hi.any(axis=1)
+                if lo.any():
+                    out.append((name, lo, f"must be ≥ {f.lo:g}"))
+                if hi.any():
+                    out.append((name, hi, f"must be ≤ {f.hi:g}"))
+        elif f.kind == "bool":
+            bad = rows > 1
+            if bad.any():
+                out.append((name, bad if bad.ndim == 1 else bad.any(axis=1), "must be booleans (bytes 0 or 1)"))
+        elif dt == "<i8":
+            lo = (rows < f.lo) if f.lo is not None else np.zeros(rows.shape, bool)
+            hi = (rows > f.hi) if f.hi is not None else np.zeros(rows.shape, bool)
+            if lo.any():
+                out.append((name, lo, f"must be ≥ {f.lo:g}"))
+            if hi.any():
+                out.append((name, hi, f"must be ≤ {f.hi:g}"))
+    return out
+
+
+def decode(payload: bytes, where: str = "", check: bool = True, arrays: bool = False,
+           deferred: bool = False) -> Batch:
     """Decode and check a batch; raise :class:`SchemaError` naming the stream and field that is wrong.
 
     ``check=False`` (a trusted ``clean/batch`` from ingest) reads the structure only. A valid batch is decoded
     in one typed pass (about 4 µs for a vehicle's 50 ms window against 13 µs decoding then converting); one
-    that fails it goes through the checking path, which finds the field and says what is wrong.
+    that fails it goes through the checking path, which finds the field and says what is wrong. A binary batch
+    (version 3) has its columns checked whole; with ``arrays`` they stay numpy arrays over the payload, else
+    they become lists as version 2's; with ``deferred`` its streams are :class:`RawColumns` whose values the
+    caller checks (ingest's frames: a window at once).
     """
+    if isinstance(payload, (bytes, bytearray, memoryview)) and len(payload) > 24 \
+            and bytes(payload[:64]).find(b"\xa7version\x03") >= 0:
+        return _decode_binary(bytes(payload), where, arrays, deferred)
     if check and isinstance(payload, (bytes, bytearray, memoryview)) and len(payload):
         try:
             return _decode_typed(payload)
@@ -252,8 +438,11 @@ def decode(payload: bytes, where: str = "", check: bool = True) -> Batch:
     if m.get("type") != "batch":
         raise _bad("type", f"must be 'batch' on this key, got {str(m.get('type'))[:64]!r}", where)
     ver = m.get("version")
-    if type(ver) is not int or ver != VERSION:
-        raise _bad("version", f"is {str(ver)[:20]}; this decoder reads batch version {VERSION}", where)
+    if type(ver) is not int or ver not in VERSIONS:
+        raise _bad("version", f"is {str(ver)[:20]}; this decoder reads batch versions {VERSION} (lists) and "
+                   f"{BINARY_VERSION} (binary columns)", where)
+    if ver == BINARY_VERSION:
+        return _decode_binary(bytes(payload), where, arrays, deferred)
     vehicle, t_s, seq = m.get("vehicle"), m.get("t_s"), m.get("seq")
     if not isinstance(vehicle, str) or len(vehicle) > MAX_STR:
         raise _bad("vehicle", "must be a string", where)
@@ -306,9 +495,12 @@ def _plain_col(v: Any) -> Any:
     return list(v)
 
 
-def encode(vehicle: str, seq: int, streams: dict[str, Columns | dict]) -> bytes:
+def encode(vehicle: str, seq: int, streams: dict[str, Columns | dict], binary: bool = False) -> bytes:
     """Encode a batch. ``streams`` maps stream names to :class:`Columns` or to dicts with ``t_s``, ``seq``
-    and ``cols`` (lists or numpy arrays); empty streams are left out."""
+    and ``cols`` (lists or numpy arrays); empty streams are left out. ``binary``: version 3 (numeric columns
+    as little-endian bytes)."""
+    if binary:
+        return _encode_binary(vehicle, seq, streams)
     body = {}
     t_max = float("-inf")
     for sname, c in streams.items():
@@ -324,6 +516,29 @@ def encode(vehicle: str, seq: int, streams: dict[str, Columns | dict]) -> bytes:
         stream_type(sname)
         body[sname] = {"n": n, "t_s": t, "seq": _plain_col(s), "cols": {k: _plain_col(v) for k, v in cols.items()}}
     return _enc.encode({"type": "batch", "version": VERSION, "vehicle": vehicle,
+                        "t_s": t_max if body else 0.0, "seq": int(seq), "streams": body})
+
+
+def _encode_binary(vehicle: str, seq: int, streams: dict[str, Columns | dict]) -> bytes:
+    from .frame import _bin_col
+
+    body = {}
+    t_max = float("-inf")
+    for sname, c in streams.items():
+        if isinstance(c, Columns):
+            t, s, cols = c.t_s, c.seq, c.cols
+        else:
+            t, s, cols = c["t_s"], c["seq"], c["cols"]
+        t = np.ascontiguousarray(t, "<f8")
+        n = t.shape[0]
+        if n == 0:
+            continue
+        t_max = max(t_max, float(t.max()))
+        st = stream_type(sname)
+        fields = {f.name: f for f in MESSAGES[st].fields}
+        body[sname] = {"n": n, "t_s": t.tobytes(), "seq": np.ascontiguousarray(s, "<i8").tobytes(),
+                       "cols": {k: _bin_col(v, fields[k]) for k, v in cols.items() if k in fields}}
+    return _enc.encode({"type": "batch", "version": BINARY_VERSION, "vehicle": vehicle,
                         "t_s": t_max if body else 0.0, "seq": int(seq), "streams": body})
 
 

@@ -42,7 +42,7 @@ from hypothesis import strategies as st
 
 from magmesh.paths import DEPLOY_DIR
 from magmesh.runtime import MAX_EXTRA_BYTES, Runner
-from schemas import keys, messages
+from schemas import frame, keys, messages
 from schemas.messages import MESSAGES, SchemaError
 
 # ---- the services under test ------------------------------------------------------------------
@@ -176,6 +176,16 @@ class Harness:
             return self._fail(key, payload, spoil, f"handler failed: {r.last_error}")
         new = self.session.sent[n_sent:]
         for k, b in new:
+            if keys.parse(k).kind == keys.FLEET:  # a fleet frame (the dmc rows mirrored): every row valid
+                try:
+                    fr = frame.decode(b, where=k)
+                    for st in fr.streams.values():
+                        for i in range(st.n):
+                            for m in st.messages(fr.vehicles[int(st.vi[i])], i, i + 1):
+                                messages.validate(m, k, m["type"])
+                except (SchemaError, keys.KeyError_) as e:
+                    return self._fail(key, payload, spoil, f"published an invalid frame on {k}: {e}")
+                continue
             try:
                 out = messages.decode(b, where=k, expected_type=messages.type_for_key(k))
             except (SchemaError, keys.KeyError_) as e:

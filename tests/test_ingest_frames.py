@@ -37,7 +37,7 @@ def _ingest(tmp_path, monkeypatch, name, **settings):
 
 
 def _inputs(seed: int):
-    """A shuffled mix of v1 singles and v2 batches of three vehicles, with bad samples of every kind."""
+    """A shuffled mix of v1 singles and v2/v3 batches of three vehicles, with bad samples of every kind."""
     rng = np.random.default_rng(seed)
     out = []
     for vi, v in enumerate(["car-1", "car-2", "bus-7"]):
@@ -64,7 +64,8 @@ def _inputs(seed: int):
                 out.append((keys.raw_batch(v), batch.encode(v, bseq, {
                     "mag/1": {"t_s": t[sl], "seq": np.arange(40)[sl], "cols": {"sensor": "1", "b_nt": b[sl]}},
                     "imu": {"t_s": imu_t[sl], "seq": np.arange(40)[sl],
-                            "cols": {"gyro_rad_s": g[sl], "accel_m_s2": np.tile([0.0, 0.0, 9.8], (sl.stop - i, 1))}}})))
+                            "cols": {"gyro_rad_s": g[sl], "accel_m_s2": np.tile([0.0, 0.0, 9.8], (sl.stop - i, 1))}}},
+                    binary=bool(rng.random() < 0.5))))  # list (v2) or binary (v3) columns
                 bseq += 1
             i += k
     order = rng.permutation(len(out))

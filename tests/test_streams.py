@@ -228,3 +228,91 @@ def _checking_decode(p):
         return sb.decode(p, check=True)
     finally:
         sb._decode_typed = real
+
+
+def _gnss_cols(n):
+    return {"lat_deg": [32.0] * n, "lon_deg": [118.8] * n, "alt_m": [10.0] * n,
+            "vel_enu_m_s": [[1.0, 0.0, 0.0]] * n, "course_rad": [1.0] * n, "speed_m_s": [1.0] * n,
+            "fix_type": ["3d"] * n, "num_sats": [9] * n, "pdop": [1.2] * n}
+
+
+def test_binary_batch_decodes_as_the_list_form():
+    streams = {"mag/1": {"t_s": [1.0, 1.02], "seq": [7, 8], "cols": {"sensor": "1", "b_nt": _field(2),
+                                                                     "temp_c": [20.5, 20.6]}},
+               "imu": {"t_s": [1.0, 1.01, 1.02], "seq": [1, 2, 3],
+                       "cols": {"gyro_rad_s": _field(3) * 1e-4, "accel_m_s2": _field(3) * 1e-4}},
+               "gnss": {"t_s": [1.0], "seq": [0], "cols": _gnss_cols(1)}}
+    v2 = batch.decode(batch.encode("car-1", 4, streams))
+    p3 = batch.encode("car-1", 4, streams, binary=True)
+    assert msgpack.unpackb(p3)["version"] == 3
+    v3 = batch.decode(p3)
+    arr = batch.decode(p3, arrays=True)
+    assert (v3.vehicle, v3.seq, v3.t_s) == (v2.vehicle, v2.seq, v2.t_s)
+    for name, c in v2.streams.items():
+        c3 = v3.streams[name]
+        assert (c3.t_s, c3.seq, c3.cols) == (c.t_s, c.seq, c.cols), name
+        assert isinstance(arr.streams[name].t_s, np.ndarray)
+    np.testing.assert_array_equal(arr.streams["imu"].cols["gyro_rad_s"], np.asarray(v2.streams["imu"].cols["gyro_rad_s"]))
+
+
+@pytest.mark.parametrize("change,field", [
+    (lambda s: s["mag/1"]["cols"].__setitem__("b_nt", np.array([[1.0, np.nan, 0.0], [1.0, 2.0, 3.0]])), "mag/1.b_nt"),
+    (lambda s: s["gnss"]["cols"].__setitem__("lat_deg", [95.0]), "gnss.lat_deg"),
+    (lambda s: s["gnss"]["cols"].__setitem__("fix_type", ["4d"]), "gnss.fix_type"),
+    (lambda s: s["gnss"]["cols"].pop("pdop"), "gnss.pdop"),
+    (lambda s: s["mag/1"]["cols"].__setitem__("sensor", "2"), "mag/1.sensor"),
+    (lambda s: s["mag/1"].__setitem__("seq", [7]), "mag/1.t_s"),
+])
+def test_binary_batch_refused_whole_with_the_field_named(change, field):
+    streams = {"mag/1": {"t_s": [1.0, 1.02], "seq": [7, 8], "cols": {"sensor": "1", "b_nt": _field(2)}},
+               "gnss": {"t_s": [1.0], "seq": [0], "cols": _gnss_cols(1)}}
+    change(streams)
+    with pytest.raises(messages.SchemaError) as e:
+        batch.decode(batch.encode("car-1", 0, streams, binary=True))
+    assert e.value.field == field
+
+
+def test_ingest_frames_take_binary_batches(tmp_path, monkeypatch):
+    from schemas import frame
+
+    r, s = _ingest(tmp_path, monkeypatch, output="frames", batch_window_s=0.05)
+    t = 1.0 + np.arange(6) * 0.02
+    b1 = _field(6)
+    b1[2] = [3e6, 0, 0]  # beyond what a magnetometer reads: refused, the rest goes out
+    r.handle_sample(keys.raw_batch("car-1"), batch.encode("car-1", 0, {
+        "mag/1": {"t_s": t, "seq": np.arange(6), "cols": {"sensor": "1", "b_nt": b1}}}, binary=True))
+    r.handle_sample(keys.raw_batch("car-2"), batch.encode("car-2", 0, {
+        "mag/1": {"t_s": t[:2], "seq": [0, 1], "cols": {"sensor": "1", "b_nt": b1[:2]}}}))  # a list batch beside it
+    r.svc.frame_flush(force=True)
+    (f,) = [frame.decode(p) for k, p in s.out if k.startswith("magmesh/fleet/")]
+    st = f.streams["mag/1"]
+    assert [f.vehicles[i] for i in st.vi.tolist()] == ["car-1"] * 5 + ["car-2"] * 2
+    np.testing.assert_array_equal(st.cols["b_nt"][:5], np.delete(b1, 2, axis=0))
+    assert r.drops[keys.raw_mag("car-1", "1")]["rejected:range"] == 1
+
+
+def test_ingest_frames_refuse_a_binary_batch_whole_at_the_window(tmp_path, monkeypatch):
+    """A binary batch's values are checked with the whole window; one bad value refuses that batch — all its
+    streams — with the field named, as a list batch is refused at decoding; other batches go out."""
+    from schemas import frame
+
+    r, s = _ingest(tmp_path, monkeypatch, output="frames", batch_window_s=0.05)
+    t = 1.0 + np.arange(4) * 0.02
+    good = {"mag/1": {"t_s": t, "seq": np.arange(4), "cols": {"sensor": "1", "b_nt": _field(4)}},
+            "imu": {"t_s": t, "seq": np.arange(4), "cols": {"gyro_rad_s": _field(4) * 1e-4,
+                                                            "accel_m_s2": _field(4) * 1e-4}}}
+    bad_b = _field(4)
+    bad_b[1, 0] = np.inf
+    bad = {"mag/1": {"t_s": t + 1, "seq": np.arange(4, 8), "cols": {"sensor": "1", "b_nt": bad_b}},
+           "imu": dict(good["imu"], t_s=t + 1, seq=np.arange(4, 8))}
+    r.handle_sample(keys.raw_batch("car-1"), batch.encode("car-1", 0, good, binary=True))
+    r.handle_sample(keys.raw_batch("car-1"), batch.encode("car-1", 1, bad, binary=True))
+    r.handle_sample(keys.raw_batch("car-2"), batch.encode("car-2", 0, good, binary=True))
+    r.svc.frame_flush(force=True)
+    (f,) = [frame.decode(p) for k, p in s.out if k.startswith("magmesh/fleet/")]
+    for name in ("mag/1", "imu"):
+        st = f.streams[name]
+        assert [f.vehicles[i] for i in st.vi.tolist()] == ["car-1"] * 4 + ["car-2"] * 4, name
+    rej = [msgpack.unpackb(p) for k, p in s.out if k == keys.rejects("car-1")]
+    assert [(m["code"], m["field"], m["key"]) for m in rej] == [("schema", "mag/1.b_nt", keys.raw_batch("car-1"))]
+    assert "must be finite" in rej[0]["reason"]

@@ -18,9 +18,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--saturation-vehicles", type=int, default=None,
                    help="vehicles for the pipeline-vs-limit throughput run (default: the smallest count, ≥ 10)")
     m.add_argument("--stages", default=None, help="comma-separated stages (default: all available)")
-    m.add_argument("--wire", choices=("v1", "v2"), default="v2",
-                   help="v2 (default): each vehicle publishes one batch per window and ingest emits clean batches; "
-                        "v1: every sample alone on its key, end to end")
+    m.add_argument("--wire", choices=("v1", "v2", "v3"), default="v3",
+                   help="v3 (default): each vehicle publishes one batch per window with binary columns, ingest "
+                        "emits fleet frames; v2: the same with list columns; v1: every sample alone on its key, end "
+                        "to end")
     m.add_argument("--window", type=float, default=0.05,
                    help="v2: seconds of samples per vehicle batch (default 0.05)")
     m.add_argument("--frame-window", type=float, default=0.02,

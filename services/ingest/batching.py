@@ -81,11 +81,12 @@ class BatchingIngest:
     def on_batch_input(self, info: Any, payload: bytes, state: Any) -> None:
         key = info.key
         self._rt.batches_in += 1
-        b = self._rt.decode_batch(key, info, payload, check=True)
+        frames = self.frame_output
+        b = self._rt.decode_batch(key, info, payload, check=True, deferred=frames)
         if b is None:
             return
-        if self.frame_output:  # decided with the whole window (framing.py)
-            self.frame_batch(info.vehicle, b)
+        if frames:  # decided with the whole window (framing.py), a binary batch's values checked there too
+            self.frame_batch(key, info.vehicle, b, len(payload))
             return
         now = time.monotonic()
         for name, c in b.streams.items():

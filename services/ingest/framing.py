@@ -31,81 +31,150 @@ FLUSH_ROWS = 200_000
 
 
 class _Acc:
-    """One stream's rows of the open window as flat lists, extended per input (no object per sample)."""
+    """One stream's rows of the open window. Rows of list inputs (v1 singles, v2 batches) extend flat lists;
+    rows of binary batches (version 3) come as numpy arrays and are kept as they are: one concatenation per
+    column at the flush, no object per sample either way."""
 
-    __slots__ = ("msg_type", "vi", "slot", "t", "seq", "now", "cols", "n", "fields", "shared")
+    __slots__ = ("msg_type", "p_vi", "p_slot", "p_n", "p_now", "p_bid", "t", "seq", "cols", "n", "fields", "shared",
+                 "binary")
 
     def __init__(self, msg_type: str):
         self.msg_type = msg_type
-        self.vi: list[int] = []
-        self.slot: list[int] = []
-        self.t: list[float] = []
-        self.seq: list[int] = []
-        self.now: list[float] = []
-        self.cols: dict[str, list] = {}
+        self.p_vi: list[int] = []  # per input: vehicle index, stream slot, rows, receive time
+        self.p_slot: list[int] = []
+        self.p_n: list[int] = []
+        self.p_now: list[float] = []
+        self.p_bid: list[int] = []  # the window's batch the input came in (-1: a single sample)
+        self.binary = False  # some input's values are still to be checked (binary batches: binary_problems)
+        self.t: list = []  # parts: flat lists (extended while list inputs follow each other) or arrays
+        self.seq: list = []
+        self.cols: dict[str, list] = {}  # field -> parts, each covering the same rows as t's
         self.n = 0
         self.fields = {f.name: f for f in MESSAGES[msg_type].fields}
         self.shared: dict[str, str | None] = {}  # a str field's one value over every row so far (None: they differ)
 
-    def add(self, vi: int, slot: int, t: list, seq: list, cols: dict, now: float) -> None:
-        n = len(t)
+    def add(self, vi: int, slot: int, t: Any, seq: Any, cols: dict, now: float, n: int, bid: int) -> None:
+        """One input's rows: ``t``/``seq`` and the columns as lists (v1, v2) or bytes (a binary batch); a
+        string column may be one string for every row (kept as such: no list is built for it)."""
+        self.p_vi.append(vi)
+        self.p_slot.append(slot)
+        self.p_n.append(n)
+        self.p_now.append(now)
+        self.p_bid.append(bid)
         n0 = self.n
-        self.vi.extend([vi] * n)
-        self.slot.extend([slot] * n)
-        self.t.extend(t)
-        self.seq.extend(seq)
-        self.now.extend([now] * n)
-        if n0 and len(cols) == len(self.cols) and all(k in self.cols for k in cols):
-            # the same fields as the rows before (the common case): extend them, no blanks to fill
-            shared = self.shared
-            for name, v in cols.items():
-                if isinstance(v, str):
-                    if shared.get(name, v) != v:
-                        shared[name] = None
-                    self.cols[name].extend([v] * n)
-                else:
+        self.n = n0 + n
+        if type(t) is bytes:
+            self.binary = True
+            self.t.append(t)
+            self.seq.append(seq)
+        else:
+            _extend(self.t, t)
+            _extend(self.seq, seq)
+        mine = self.cols
+        shared = self.shared
+        known = 0
+        for name, v in cols.items():
+            parts = mine.get(name)
+            if parts is None:
+                f = self.fields.get(name)
+                if f is None:
+                    continue
+                parts = mine[name] = [(_blank(f), n0)] if n0 else []  # the earlier rows lack it: blanks
+                if f.kind == "str":
+                    shared[name] = None if n0 else v if type(v) is str else None
+            known += 1
+            tv = type(v)
+            if tv is str:
+                if name in shared and shared[name] != v:
+                    shared[name] = None
+                parts.append((v, n))
+            elif tv is bytes:
+                parts.append(v)
+            else:
+                if name in shared:
+                    shared[name] = None
+                _extend(parts, v)
+        if known != len(mine):
+            for name, parts in mine.items():  # a field these rows lack: blanks
+                if name not in cols:
+                    parts.append((_blank(self.fields[name]), n))
                     if name in shared:
                         shared[name] = None
-                    self.cols[name].extend(v)
-            self.n = n0 + n
-            return
-        for name, v in cols.items():
-            f = self.fields.get(name)
-            if f is None:
-                continue
-            col = self.cols.get(name)
-            if col is None:  # a field the earlier rows lack: blanks for them
-                col = self.cols[name] = [_blank(f)] * n0
-                if f.kind == "str":
-                    self.shared[name] = None if n0 else (v if isinstance(v, str) else None)
-            if isinstance(v, str):
-                if self.shared.get(name) != v:
-                    self.shared[name] = None
-                col.extend([v] * n)
-            else:
-                self.shared[name] = None
-                col.extend(v)
-        self.n = n0 + n
-        for name, col in self.cols.items():  # a field these rows lack: blanks
-            if len(col) < self.n:
-                col.extend([_blank(self.fields[name])] * (self.n - len(col)))
-                self.shared[name] = None
+
+    def rows(self) -> tuple[np.ndarray, ...]:
+        """(vehicle index, slot, receive time, batch, t_s, seq) per row."""
+        ns = np.array(self.p_n, np.int64)
+        return (np.repeat(np.array(self.p_vi, np.uint32), ns), np.repeat(np.array(self.p_slot, np.int32), ns),
+                np.repeat(np.array(self.p_now, float), ns), np.repeat(np.array(self.p_bid, np.int64), ns),
+                _cat(self.t, "<f8", 1), _cat(self.seq, "<i8", 1))
 
     def column(self, name: str) -> Any:
         """The window's column: an array for the numeric kinds, one string when every row shares it, else a list."""
         f = self.fields[name]
-        col = self.cols[name]
+        parts = self.cols[name]
         if f.kind == "str":
             s = self.shared.get(name)
-            return s if s is not None else col
+            if s is not None:
+                return s
+            return _flat(parts)
         if f.kind == "bool":
-            return col if any(x is None for x in col) else np.asarray(col, np.uint8)
+            parts = [np.frombuffer(part, "u1").astype(bool).tolist() if type(part) is bytes else part
+                     for part in parts]
+            flat = _flat(parts)
+            return flat if any(x is None for x in flat) else np.asarray(flat, np.uint8)
+        w = {"vec3": 3, "mat3": 9, "floats": f.length}.get(f.kind, 1)
         if f.kind in ("float", "vec3", "mat3") or (f.kind == "floats" and f.length):
             if f.nullable:
                 blank = _blank(f)
-                col = [blank if x is None else x for x in col]
-            return np.asarray(col, float)
-        return col
+                parts = [[blank if x is None else x for x in part] if type(part) is list else
+                         (blank if part[0] is None else part[0], part[1]) if type(part) is tuple else part
+                         for part in parts]
+            return _cat(parts, "<f8", w)
+        if f.kind == "int" and not any(type(p) is tuple and p[0] is None for p in parts):
+            return _cat(parts, "<i8", 1).tolist()
+        return _flat(parts)
+
+
+def _extend(parts: list, v: list) -> None:
+    """Rows of a list input: extend the last part when it is a flat list, else start one."""
+    if parts and type(parts[-1]) is list:
+        parts[-1].extend(v)
+    else:
+        parts.append(list(v))
+
+
+def _flat(parts: list) -> list:
+    """A column's parts as one flat list of row values."""
+    out: list = []
+    for p in parts:
+        tp = type(p)
+        if tp is tuple:
+            out.extend([p[0]] * p[1])
+        elif tp is list:
+            out.extend(p)
+        else:
+            out.extend(p.tolist())
+    return out
+
+
+def _cat(parts: list, dtype: str, width: int) -> np.ndarray:
+    """One array from parts that are flat lists (rows), arrays, little-endian bytes or (value, count) runs."""
+    def arr(p: Any) -> np.ndarray:
+        tp = type(p)
+        if tp is bytes:
+            a = np.frombuffer(p, dtype)
+            return a.reshape(-1, width) if width > 1 else a
+        if tp is tuple:
+            return np.asarray([p[0]] * p[1], dtype).reshape((p[1], width) if width > 1 else p[1])
+        return np.asarray(p, dtype)
+
+    if not parts:
+        return np.zeros((0, width) if width > 1 else 0, dtype)
+    if all(type(p) is bytes for p in parts):
+        return arr(b"".join(parts))
+    if len(parts) == 1:
+        return arr(parts[0])
+    return np.concatenate([arr(p) for p in parts])
 
 
 def _blank(f: Any) -> Any:
@@ -129,7 +198,7 @@ class FramingIngest:
         if d is None:
             d = self.__dict__["_fr_d"] = {
                 "fs": fleet.FleetStreams(self.settings), "slot": {}, "vehicles": [], "vidx": {}, "window": {},
-                "rows": 0, "since": None}
+                "rows": 0, "since": None, "batches": []}
         return d
 
     def _frame_slot(self, fr: dict, vehicle: str, raw_key: str) -> tuple[int, int]:
@@ -149,28 +218,31 @@ class FramingIngest:
         vi, s = self._frame_slot(fr, info.vehicle, info.key)
         cols = {f.name: [msg[f.name]] for f in MESSAGES[msg["type"]].fields if f.name in msg}
         self._frame_add(fr, batches.stream_name(info), msg["type"], vi, s, [msg["t_s"]], [msg["seq"]], cols,
-                        time.monotonic())
+                        time.monotonic(), 1, -1)
 
-    def frame_batch(self, vehicle: str, b: Any) -> None:
-        """A decoded, checked v2 batch into the window, stream by stream."""
+    def frame_batch(self, key: str, vehicle: str, b: Any, payload_len: int) -> None:
+        """A decoded v2 batch, or a binary one with its structure checked, into the window, stream by stream."""
         fr = self._fr()
         now = time.monotonic()
         count_in = self._rt.count_in
+        bid = len(fr["batches"])
+        fr["batches"].append((key, vehicle, payload_len, b.t_s))
         for name, c in b.streams.items():
-            if not c.n:
+            n = c.n
+            if not n:
                 continue
             raw_key = batches.stream_key("raw", vehicle, name)
-            count_in[raw_key].n += c.n
+            count_in[raw_key].n += n
             vi, s = self._frame_slot(fr, vehicle, raw_key)
-            self._frame_add(fr, name, c.msg_type, vi, s, c.t_s, c.seq, c.cols, now)
+            self._frame_add(fr, name, c.msg_type, vi, s, c.t_s, c.seq, c.cols, now, n, bid)
 
-    def _frame_add(self, fr: dict, name: str, msg_type: str, vi: int, slot: int, t: list, seq: list, cols: dict,
-                   now: float) -> None:
+    def _frame_add(self, fr: dict, name: str, msg_type: str, vi: int, slot: int, t: Any, seq: Any, cols: dict,
+                   now: float, n: int, bid: int) -> None:
         acc = fr["window"].get(name)
         if acc is None:
             acc = fr["window"][name] = _Acc(msg_type)
-        acc.add(vi, slot, t, seq, cols, now)
-        fr["rows"] += len(t)
+        acc.add(vi, slot, t, seq, cols, now, n, bid)
+        fr["rows"] += n
         if fr["since"] is None:
             fr["since"] = now
         if fr["rows"] >= FLUSH_ROWS:
@@ -182,15 +254,31 @@ class FramingIngest:
         if fr["since"] is None or (not force and time.monotonic() - fr["since"] < self.settings.batch_window_s):
             return
         window, fr["window"], fr["rows"], fr["since"] = fr["window"], {}, 0, None
+        blist, fr["batches"] = fr["batches"], []
         out: dict[str, fleetframe.Stream] = {}
+        rows = {}
+        refused: dict[int, tuple[str, str]] = {}  # batch -> (field, sentence): a binary batch with a bad value
+        for name, acc in window.items():
+            rows[name] = r = acc.rows()
+            cols = {k: acc.column(k) for k in acc.cols}
+            rows[name] = (*r, cols)
+            if acc.binary:
+                arrs = {k: v for k, v in cols.items() if isinstance(v, np.ndarray)}
+                for fld, bad, sentence in batches.binary_problems(acc.msg_type, r[4], r[5], arrs):
+                    for b in np.unique(r[3][bad]).tolist():
+                        if b >= 0 and b not in refused:
+                            refused[b] = (f"{name}.{fld}", sentence)
+        for b, (fld, sentence) in refused.items():  # refused whole, as a list batch would be at decoding
+            key, vehicle, plen, t_b = blist[b]
+            self.reject(key, "schema", f"field '{fld}' of {key} {sentence}", fld, plen, vehicle, None, "batch")
         for name, acc in window.items():
             try:
-                st = self._decide(fr, name, acc)
+                st = self._decide(fr, name, acc, rows[name], refused)
             except Exception as e:  # noqa: BLE001 - the window's samples of this stream are lost, and counted so
                 self._rt.last_error = f"{type(e).__name__}: {e}"[:500]
                 self._rt.log_limited("frame-decide", "deciding a window of %s failed: %s", name, e)
                 vs = fr["vehicles"]
-                for i, k in zip(*np.unique(np.asarray(acc.vi), return_counts=True), strict=True):
+                for i, k in zip(acc.p_vi, acc.p_n, strict=True):
                     self.count_drop(batches.stream_key("raw", vs[int(i)], name), "handler_error", int(k))
                 continue
             if st is not None and st.n:
@@ -198,15 +286,18 @@ class FramingIngest:
         if out:
             self.publish_frame("clean", fr["vehicles"], out)
 
-    def _decide(self, fr: dict, name: str, acc: _Acc) -> fleetframe.Stream | None:
+    def _decide(self, fr: dict, name: str, acc: _Acc, rows: tuple, refused: dict) -> fleetframe.Stream | None:
         mt = acc.msg_type
-        n = acc.n
-        t = np.array(acc.t, float)
-        seq = np.array(acc.seq, np.int64)
-        slot = np.array(acc.slot, np.int32)
-        vi = np.array(acc.vi, np.uint32)
-        now = np.array(acc.now, float)
-        cols = {k: acc.column(k) for k in acc.cols}
+        vi, slot, now, bid, t, seq, cols = rows
+        if refused:  # the rows of batches refused whole are no samples of their streams
+            keep = ~np.isin(bid, np.fromiter(refused, np.int64, len(refused)))
+            if not keep.all():
+                vi, slot, now, t, seq = vi[keep], slot[keep], now[keep], t[keep], seq[keep]
+                cols = {k: (v[keep] if isinstance(v, np.ndarray) else v if isinstance(v, str)
+                            else [x for x, k_ in zip(v, keep.tolist(), strict=True) if k_]) for k, v in cols.items()}
+        n = t.shape[0]
+        if not n:
+            return None
         ok = fleet.range_ok_mask(mt, t, {k: v for k, v in cols.items() if isinstance(v, np.ndarray)}, self.settings)
         if mt == "mag":  # the sensor must be the key's (a v1 single says it itself)
             want = name.partition("/")[2]
