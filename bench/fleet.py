@@ -61,7 +61,8 @@ def _publish_v2_windows(s, args, ids: list[str], d, opts, start_at: float) -> tu
            "num_sats": int(g.num_sats[j]), "pdop": float(g.pdop[j])} for j in range(len(g.t_s))]
     n_mag, n_imu, n_g = len(d.mag_b_nt["1"]), len(d.gyro_rad_s), len(gn)
     bk = [keys.raw_batch(v).replace("/raw/", f"/{args.stream}/") for v in ids]
-    pubs = [s.declare_publisher(k, encoding=zenoh.Encoding(streams.encoding_name("batch")), **opts) for k in bk]
+    enc_name = streams.encoding_name("batch", 3 if binary else 2)
+    pubs = [s.declare_publisher(k, encoding=zenoh.Encoding(enc_name), **opts) for k in bk]
     time.sleep(1.0)  # let declarations settle
     while time.time() < start_at:
         time.sleep(0.005)

@@ -37,7 +37,8 @@ A subscriber outside this repository needs nothing but this page and a msgpack d
 - **Contract version {CONTRACT}.** Version 1: one sample per message. Version 2 adds batches (below) beside the
   single samples, which stay valid on every key. Version 3 adds fleet frames (below): the services' own hop
   between ingest and the stages, many vehicles per message; it reserves the chunk `fleet` (no vehicle may be
-  named `fleet`). Everything outside users subscribe to per vehicle stays on the per-vehicle keys.
+  named `fleet`) and adds the binary form of batches (version 3). Everything outside users subscribe to per vehicle
+  stays on the per-vehicle keys.
 
 ## Keys
 
@@ -76,8 +77,9 @@ def _stream_rows() -> str:
     rows = []
     for st in streams.STREAMS.values():
         rows.append(f"| `{st.template}` | {st.msg_type} | `{st.encoding}` | {st.publisher} | {st.meaning} |\n")
-    rows.append(f"| `magmesh/{{vehicle}}/raw/batch` | batch | `{streams.encoding_name('batch')}` | vehicles' on-board "
-                "agents | many samples of the vehicle's streams (contract v2) |\n")
+    rows.append(f"| `magmesh/{{vehicle}}/raw/batch` | batch | `{streams.encoding_name('batch')}`, "
+                f"`{streams.encoding_name('batch', 3)}` | vehicles' on-board agents | many samples of the vehicle's "
+                "streams (contract v2; binary form v3) |\n")
     rows.append(f"| `magmesh/{{vehicle}}/clean/batch` | batch | `{streams.encoding_name('batch')}` | ingest "
                 "(output = batches) | validated batches |\n")
     return "".join(rows)
@@ -113,7 +115,7 @@ def render() -> str:
                 rng = f" (range {'' if f.lo is None else f'{f.lo:g}'}..{'' if f.hi is None else f'{f.hi:g}'})"
             out.append(f"| `{f.name}` | {_kind(f)} | {'yes' if f.required else 'no'} | {f.doc}{rng} |\n")
     out.append(_limits())
-    out.append("\n## Batches (contract version 2)\n\n" + batch.__doc__.split("\n\n", 1)[1].rsplit("\n\n", 1)[0].replace("``", "`") + "\n")
+    out.append("\n## Batches (contract version 2; binary form version 3)\n\n" + batch.__doc__.split("\n\n", 1)[1].rsplit("\n\n", 1)[0].replace("``", "`") + "\n")
     out.append("\n## Fleet frames (contract version 3)\n\n" + frame.__doc__.split("\n\n", 1)[1].rsplit("\n\n", 1)[0].replace("``", "`") + "\n")
     out.append("""
 ## Status replies

@@ -181,7 +181,7 @@ def type_for_key(key: str) -> str:
 
 def encoding_name(msg_type: str, version: int | None = None) -> str:
     """``application/msgpack;magmesh/{type}/v{version}``: what every put of this type carries."""
-    if msg_type == "batch":
+    if msg_type == "batch":  # (the binary form: version 3)
         v = BATCH_VERSION if version is None else version
     elif msg_type == "frame":
         v = FRAME_VERSION if version is None else version
