@@ -472,3 +472,14 @@ def test_service_frames_and_single_samples_give_the_same_outputs(tmp_path, monke
                 e["current_param_id"] = _pid(e["current_param_id"])
         assert a == b
     assert st2["fits"]["fits"] > 0 and st2["fits"]["fit_lag_s"]["max"] == 0.0
+
+
+def test_bench_row_runs_small(tmp_path, monkeypatch):
+    """The ``magmesh bench cores`` row on a tiny fleet (the figures come from the full row, not from here)."""
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
+    from bench import cores_bench
+
+    r = cores_bench.calibration_service(vehicles=4, warm_s=1.0, frames=20, repeats=1, singles_frames=2,
+                                        cold_frames=10, full_window_s=40.0)
+    assert r["frame_us_per_sample"] > 0 and r["singles_us_per_sample"] > 0 and r["fit_ms_full_window"] > 0
+    assert r["samples_per_s"] == 4 * 205 and r["expected_core_share"] > r["fit_budget_frac"]

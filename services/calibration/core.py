@@ -235,14 +235,15 @@ def sensor_states(window_samples: int, fits: int, refused: int, replaced: int, c
     }
 
 
-def choose_model(m: np.ndarray, st: CalibrationSettings) -> tuple[str, sufficiency.Verdict]:
+def choose_model(m: np.ndarray, st: CalibrationSettings, centre=None) -> tuple[str, sufficiency.Verdict]:
+    """The model to fit and the sufficiency verdict (``centre``: the window's rough centre, if known)."""
     suf = st.sufficiency
     if st.model != "auto":
-        return st.model, sufficiency.check_samples(m, st.model, suf)
-    v3 = sufficiency.check_samples(m, "3d", suf)
+        return st.model, sufficiency.check_samples(m, st.model, suf, centre)
+    v3 = sufficiency.check_samples(m, "3d", suf, centre)
     if v3.ok:
         return "3d", v3
-    return "2d", sufficiency.check_samples(m, "2d", suf)
+    return "2d", sufficiency.check_samples(m, "2d", suf, centre)
 
 
 def fit_window(sensor: str, m_all: np.ndarray, t_s: float, current: ParamRecord | None,
@@ -250,10 +251,12 @@ def fit_window(sensor: str, m_all: np.ndarray, t_s: float, current: ParamRecord 
     """One fit attempt on a window of samples (N×3, oldest first): sufficiency, Two-Step LS or ARLS on the
     balanced subset, the fit checks, and whether the candidate is better than ``current``. Pure: the caller
     keeps the window, the counters and the set in use (:class:`SensorCalibrator`, and the fleet form)."""
-    model, verdict = choose_model(m_all, st)
+    # the window's rough centre once (the sufficiency checks and the balanced subset each took it again)
+    rough = sufficiency.rough_centre(m_all) if len(m_all) >= max(st.min_samples, 1) else None
+    model, verdict = choose_model(m_all, st, rough)
     if not verdict.ok:
         return _refused(sensor, current, st, t_s, model, verdict.reason, verdict.coverage_frac, len(m_all))
-    centre = current.params.offset if current is not None and current.status == "ok" else None
+    centre = current.params.offset if current is not None and current.status == "ok" else rough
     idx = sufficiency.balanced_subset(m_all, model, st.sufficiency, centre=centre)
     m = m_all[idx]
     radius = st.field_radius_nt if st.field_radius_nt > 0 else None

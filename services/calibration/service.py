@@ -47,7 +47,7 @@ class Settings:
     window_s: float = 600.0  # fit window, s of sample time
     sample_interval_s: float = 0.05  # decimation of the fit window, s
     refit_interval_s: float = 5.0  # fit attempt period, s of sample time
-    fit_budget_frac: float = 0.05  # share of one core fits may take (CPU time); 0: no limit (fit when due)
+    fit_budget_frac: float = 0.04  # share of one core fits may take (CPU time); 0: no limit (fit when due)
     window_max_samples: int = 0  # fit window bound, samples; 0: what window_s / sample_interval_s allows
     field_radius_nt: float = 0.0  # > 0: scale |h| to this; 0: the fitted radius
     improve_ratio: float = 0.95  # a new set must have a residual below this × the current one's

@@ -67,13 +67,15 @@ def rough_centre(m: np.ndarray) -> np.ndarray:
     return 0.5 * (lo + hi)
 
 
-def coverage(m_nt: np.ndarray, model: str, st: SufficiencySettings, params: magcal.MagParams | None = None) -> float:
+def coverage(m_nt: np.ndarray, model: str, st: SufficiencySettings, params: magcal.MagParams | None = None,
+             centre=None) -> float:
     """Share of direction bins holding ≥ min_per_bin samples (directions of the compensated field
-    when ``params`` is given, else of the samples around their rough centre)."""
+    when ``params`` is given, else of the samples around their rough centre; ``centre``: that centre, when the
+    caller has it already)."""
     m = np.asarray(m_nt, float)
     if len(m) == 0:
         return 0.0
-    d = params.apply(m) if params is not None else m - rough_centre(m)
+    d = params.apply(m) if params is not None else m - (rough_centre(m) if centre is None else centre)
     d = d[:, :2] if model == "2d" else d
     idx, nb = direction_bins(d, model, st)
     counts = np.bincount(idx, minlength=nb)
@@ -105,12 +107,13 @@ class Verdict:
     reason: str = ""
 
 
-def check_samples(m_nt: np.ndarray, model: str, st: SufficiencySettings) -> Verdict:
-    """Before fitting: enough samples, enough spread around a rough centre."""
+def check_samples(m_nt: np.ndarray, model: str, st: SufficiencySettings, centre=None) -> Verdict:
+    """Before fitting: enough samples, enough spread around a rough centre (``centre``: ``rough_centre(m_nt)``
+    when the caller has it already)."""
     n = len(m_nt)
     if n < st.min_samples:
         return Verdict(False, 0.0, f"only {n} samples, need at least {st.min_samples}")
-    cov = coverage(m_nt, model, st)
+    cov = coverage(m_nt, model, st, centre=centre)
     need = st.min_coverage_2d if model == "2d" else st.min_coverage_3d
     if cov < need:
         what = "heading (turn through a full circle)" if model == "2d" else "attitude (tumble the sensor)"
