@@ -11,6 +11,9 @@
   alternative for the stateless part, and the two compasses' pairing (TimeAligner per sample vs one call per frame);
 - calibration fit: LS and ARLS on 10,000 samples (3-D, 20 % gross errors) vs ``scipy.optimize.least_squares``
   fitting the same ellipsoid geometrically;
+- calibration service work per sample at 500 vehicles: the service fed fleet frames built like ingest's (decode,
+  fleet core, cal frame out; CPU µs per sample, fits apart), the CPU share that makes at 500 vehicles with the fit
+  budget, one fit on a full window, beside the same service on v1 singles and the per-vehicle reference;
 - FCM on 10,000 × 2 samples vs scikit-fuzzy's ``cmeans`` (same start);
 - EKF update: the heading fuser vs the ``ahrs`` EKF and x-io ``imufusion`` (C) on the same BROAD slice, µs/sample;
 - heading EKF, per sample: the reference, the compiled filter (one call per sample, a whole slice per call, and a
@@ -383,6 +386,202 @@ def calibration_fit(repeats: int = 5) -> dict:
             "scipy_least_squares_ms": round(t_geo * 1e3, 2), "arls_speedup_vs_scipy": round(t_geo / t_arls, 2)}
 
 
+def calibration_service(vehicles: int = 500, warm_s: float = 12.0, frames: int = 250, repeats: int = 5,
+                        singles_frames: int = 10, cold_frames: int = 250, full_window_s: float = 620.0) -> dict:
+    """Calibration service work per sample at ``vehicles`` vehicles (two magnetometers at 50 Hz, IMU 100 Hz, GNSS
+    5 Hz each; a car turning through full circles now and then): the service in process (no Zenoh) fed fleet
+    frames built like ingest's (20 ms, rows sorted by vehicle then time, binary columns), each decoded, cut to
+    its streams, seq-tracked, handled by ``on_frame`` (the fleet core: windows, compensation, GNSS EKF) and its
+    ``cal`` frame encoded. CPU µs per sample, medians of ``repeats`` blocks of ``frames`` frames after ``warm_s``
+    s of sample time, every vehicle starting with a parameter set (the steady state of a fleet whose sets were
+    saved), with the fits' own CPU time apart (they take ``fit_budget_frac`` of a core, the default, whenever
+    more are due than that pays for); ``cold_start``: no set anywhere, every sensor's EKF publishing a
+    converging set every 5 s. Beside it: one fit on a full 600 s window of a simulated car, what fits at every
+    ``refit_interval_s`` would cost at this fleet size and how often each sensor is refitted within the budget;
+    the same service fed the same samples as v1 singles, and the per-vehicle reference (VehicleCalibration,
+    no publishing) per sample. ``expected_core_share``: the frame work at the fleet's sample rate plus the fit
+    budget."""
+    import math
+    import os
+    import tempfile
+
+    from magmesh.runtime import Runner
+    from schemas import frame, keys, messages
+    from services.calibration import fleet as cfleet
+    from services.calibration.core import CalibrationSettings, OnlineSettings, SensorCalibrator, VehicleCalibration
+    from services.calibration.service import Calibration, Settings
+
+    os.environ.setdefault("MAGMESH_STATE_DIR", tempfile.mkdtemp(prefix="magmesh-cores-"))
+    first = cfleet.warm()
+
+    class _Pub:
+        def put(self, payload, **kw):
+            pass
+
+    class _Session:
+        def declare_publisher(self, key, **kw):
+            return _Pub()
+
+    rng = np.random.default_rng(11)
+    V = vehicles
+    names = [f"bench-{v:04d}" for v in range(V)]
+    b_earth = np.array([0.0, 33_000.0, -38_000.0])  # body-level field at heading 0 (north, down), nT
+    offs = rng.uniform(-3000.0, 3000.0, (2, V, 3))
+    offs[:, :, 2] = 0.0
+    soft = np.eye(3) + rng.normal(0.0, 0.03, (2, V, 3, 3))
+    soft = 0.5 * (soft + np.swapaxes(soft, 2, 3))
+    phase = rng.uniform(0, 2 * math.pi, V)
+    period = rng.uniform(40.0, 90.0, V)
+    lat0, lon0 = 32.0 + rng.uniform(0, 0.3, V), 118.7 + rng.uniform(0, 0.3, V)
+
+    def heading(t):  # a drive that turns through full circles now and then: yaw rate 0.3 sin(2π t / period)
+        return (0.3 * period / (2 * math.pi)) * (1 - np.cos(2 * math.pi * t / period + phase)) + phase
+
+    def frame_payload(k: int) -> tuple[bytes, int]:
+        t = 0.02 * k
+        vi = np.arange(V, dtype=np.uint32)
+        psi = heading(t)
+        c, s = np.cos(psi), np.sin(psi)
+        # body-frame field of a level car heading psi (FLU, clockwise from north)
+        bb = np.stack([c * b_earth[1], s * b_earth[1], np.full(V, b_earth[2])], axis=1)
+        streams = {}
+        for j, sid in enumerate(("1", "2")):
+            m = np.einsum("vij,vj->vi", np.linalg.inv(soft[j]), bb) + offs[j] + rng.normal(0, 30.0, (V, 3))
+            streams[f"mag/{sid}"] = frame.Stream(f"mag/{sid}", "mag", vi, np.full(V, t), np.full(V, k, np.int64),
+                                                 {"sensor": sid, "b_nt": m})
+        vi2 = np.repeat(vi, 2)
+        ti = np.tile([t, t + 0.01], V)
+        yaw = 0.3 * np.sin(2 * math.pi * ti / np.repeat(period, 2) + np.repeat(phase, 2))
+        gyro = np.stack([np.zeros(2 * V), np.zeros(2 * V), yaw], axis=1) + rng.normal(0, 1e-3, (2 * V, 3))
+        acc = np.tile([0.0, 0.0, 9.81], (2 * V, 1)) + rng.normal(0, 0.02, (2 * V, 3))
+        streams["imu"] = frame.Stream("imu", "imu", vi2, ti, np.repeat(2 * k, 2 * V) + np.tile([0, 1], V),
+                                      {"gyro_rad_s": gyro, "accel_m_s2": acc})
+        g = np.flatnonzero((np.arange(V) + k) % 10 == 0)  # 5 Hz, staggered over the fleet
+        n = 2 * V + 2 * V
+        if g.size:
+            sp = 12.0 + rng.normal(0, 0.05, g.size)
+            crs = heading(t)[g] % (2 * math.pi)
+            streams["gnss"] = frame.Stream("gnss", "gnss", g.astype(np.uint32), np.full(g.size, t),
+                                           np.full(g.size, k // 10, np.int64), {
+                "lat_deg": lat0[g] + 1e-6 * k, "lon_deg": lon0[g], "alt_m": np.full(g.size, 20.0),
+                "vel_enu_m_s": np.stack([sp * np.sin(crs), sp * np.cos(crs), np.zeros(g.size)], axis=1),
+                "course_rad": crs, "speed_m_s": sp, "fix_type": "3d", "num_sats": np.full(g.size, 12, np.int64),
+                "pdop": np.full(g.size, 1.2)})
+            n += g.size
+        return frame.encode("bench-ingest", "clean", k, names, streams), n
+
+    import zenoh
+
+    fkey = keys.fleet_frame("bench-ingest", "clean")
+
+    def service(trusted: bool):
+        """The service in process; ``trusted``: every vehicle starts with a parameter set (a fleet whose sets
+        were saved or come from the manifest: the EKF then publishes only on a clear change)."""
+        cfg = {}
+        if trusted:
+            for v, name in enumerate(names):
+                cfg[name] = {"mag_params": {sid: {"offset_nt": offs[j, v].tolist(), "matrix": soft[j, v].ravel().tolist(),
+                                                  "field_radius_nt": float(np.linalg.norm(b_earth)), "model": "2d",
+                                                  "observable": [True, True, False]}
+                                            for j, sid in enumerate(("1", "2"))}}
+        svc = Calibration(Settings(persist=False), instance="cores-cal", vehicles_config=cfg)
+        r = Runner(svc, _Session())
+        r._sub_exprs = [zenoh.KeyExpr(x) for x in svc.subscriptions()]  # what Runner.run declares
+        svc.on_start()
+        return svc, r
+
+    def timed(svc, r, k0: int, n_frames: int) -> tuple[float, float]:
+        data = [frame_payload(k0 + i) for i in range(n_frames)]
+        fit0 = svc.fleet.fit_cpu_s
+        t0 = time.process_time()
+        for p, _n in data:
+            r.handle_sample(fkey, p)
+        cpu = time.process_time() - t0
+        n = sum(x[1] for x in data)
+        return (cpu - (svc.fleet.fit_cpu_s - fit0)) / n * 1e6, cpu / n * 1e6
+
+    # cold start: no set anywhere, every sensor's EKF publishing a converging set every 5 s (timed after the first
+    # second: every vehicle and slot created)
+    svc, r = service(False)
+    for k in range(50):
+        r.handle_sample(fkey, frame_payload(k)[0])
+    cold_us = timed(svc, r, 50, cold_frames)[0]
+    # steady state: sets in use, windows filling, fits within the budget
+    svc, r = service(True)
+    n_warm = int(warm_s / 0.02)
+    for k in range(n_warm):
+        r.handle_sample(fkey, frame_payload(k)[0])
+    blocks = []
+    k = n_warm
+    for _ in range(repeats):
+        blocks.append(timed(svc, r, k, frames))
+        k += frames
+    stream_us = statistics.median(b[0] for b in blocks)
+    total_us = statistics.median(b[1] for b in blocks)
+    rate = V * (2 * 50 + 100 + 5)  # samples/s
+    sched = svc.fleet.scheduler_status()
+
+    # one fit on a full window (a simulated car, 600 s at the default decimation)
+    from sim_publishers.car.core import simulate
+
+    d = simulate(seed=1, duration_s=full_window_s)
+    cal = SensorCalibrator("1", CalibrationSettings())
+    for t, b in zip(d.t_mag_s, d.mag_b_nt["1"], strict=True):
+        cal.update(t, b)
+    cal.fit(d.t_mag_s[-1])
+    full = cal.window()
+    fit_s = _median_time(lambda: cfleet.fit_window("1", full, 700.0, cal.current, CalibrationSettings()), 5)
+    sensors = 2 * V
+    budget = Settings().fit_budget_frac
+
+    # the same service on v1 singles, and the per-vehicle reference core, per sample
+    msgs = []
+    for i in range(singles_frames):
+        f = frame.decode(frame_payload(k + i)[0])
+        for name, st in f.streams.items():
+            g_vi, a, b = st.groups()
+            for v, x, y in zip(g_vi.tolist(), a.tolist(), b.tolist(), strict=True):
+                key = keys.clean_mag(names[v], name[4:]) if name.startswith("mag/") else \
+                    (keys.clean_imu(names[v]) if name == "imu" else keys.clean_gnss(names[v]))
+                msgs += [(key, m) for m in st.messages(names[v], x, y)]
+    enc = [(key, messages.encode(m)) for key, m in msgs]
+    t0 = time.process_time()
+    for key, p in enc:
+        r.handle_sample(key, p)
+    singles_us = (time.process_time() - t0) / len(enc) * 1e6
+    # the reference with the declination the service found (its IGRF lookups are not what is timed)
+    ref = {v: VehicleCalibration(v, CalibrationSettings(), OnlineSettings(), declination_rad=-0.1) for v in names}
+    t0 = time.process_time()
+    for key, m in msgs:
+        vc = ref[m["vehicle"]]
+        if m["type"] == "mag":
+            sc = vc.on_mag(m["sensor"], m["t_s"], m["b_nt"])
+            cur = sc.current
+            if cur is not None:
+                cur.params.apply(m["b_nt"])
+        elif m["type"] == "imu":
+            vc.on_imu(m["t_s"], m["gyro_rad_s"], m["accel_m_s2"])
+        else:
+            vc.on_gnss(m["t_s"], m)
+    ref_us = (time.process_time() - t0) / len(msgs) * 1e6
+    return {"vehicles": V, "samples_per_s": rate, "frames_timed": frames * repeats,
+            "frame_us_per_sample": round(stream_us, 3), "frame_us_per_sample_with_fits": round(total_us, 3),
+            "frame_us_per_sample_cold_start": round(cold_us, 3),
+            "core_share_of_one_core_without_fits": round(stream_us * rate / 1e6, 3),
+            "fit_budget_frac": budget,
+            "expected_core_share": round(stream_us * rate / 1e6 + budget, 3),
+            "fit_ms_full_window": round(fit_s * 1e3, 2), "window_samples": len(full),
+            "fits_due_per_s": round(sensors / CalibrationSettings().refit_interval_s, 1),
+            "fit_demand_core_share": round(sensors / CalibrationSettings().refit_interval_s * fit_s, 2),
+            "refit_interval_within_budget_s": round(max(CalibrationSettings().refit_interval_s,
+                                                        sensors * fit_s / budget), 1),
+            "fit_lag_s_in_run": sched["fit_lag_s"], "fits_in_run": sched["fits"],
+            "singles_us_per_sample": round(singles_us, 2), "reference_core_us_per_sample": round(ref_us, 2),
+            "frame_speedup_vs_singles": round(singles_us / stream_us, 1),
+            "kernels_first_call_s": first["first_call_s"], "kernels_from_cache": bool(first["cache_hits"]),
+            "load_average_1min": round(os.getloadavg()[0], 2)}
+
+
 def fcm() -> dict:
     from bench.eval_dmc import fcm_speed
 
@@ -487,7 +686,8 @@ def run_all(progress=None) -> dict:
     for name, fn in (("ingest_validation", ingest_validation), ("ingest_wire", ingest_wire),
                      ("ingest_rules_per_sample", ingest_rules),
                      ("dmc_detector_per_epoch", dmc_detector),
-                     ("calibration_fit", calibration_fit), ("fcm", fcm),
+                     ("calibration_fit", calibration_fit),
+                     ("calibration_service_per_sample_500_vehicles", calibration_service), ("fcm", fcm),
                      ("ekf_update", ekf_update), ("heading_ekf", heading_ekf), ("hausdorff_match", hausdorff)):
         say(f"cores: {name}")
         out[name] = fn()
