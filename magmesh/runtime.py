@@ -835,6 +835,7 @@ class Runner:
         if mirror:
             self.mirrors[msg_type] = mirror
         names = list(cols)
+        given, t_given = cols, t_s  # (numpy columns stay as they are for the mirrored frame)
         colv = [c.tolist() if isinstance(c, np.ndarray) else ([c] * n if isinstance(c, str) else c)
                 for c in (cols[f] for f in names)]
         t_s = t_s.tolist() if isinstance(t_s, np.ndarray) else t_s
@@ -862,12 +863,18 @@ class Runner:
                 _ROW_ENC = msgspec.msgpack.Encoder()
             enc = _ROW_ENC.encode
             ver = messages.MESSAGES[msg_type].version
-            seq, cache, j = self.seq, self._row_cache, self.journal
+            cache, j = self._row_cache, self.journal
+            seq = self.seq.d  # (per-vehicle output keys never have an array slot: see below)
             arr = j.array() if j is not None else None
             new = [k for k in dict.fromkeys(keys_) if k not in cache]
             if new:  # first rows of these keys: publishers and journal slots (the index written once)
                 js = j.slots_of(["o" + k for k in new]) if j is not None else [-1] * len(new)
                 for k, jslot in zip(new, js, strict=True):
+                    if k in self.seq.slot:  # a key numbered in frames too: back into the dict
+                        v = self.seq.get(k)
+                        self.seq.free_slot(k)
+                        if v is not None:
+                            seq[k] = v
                     cache[k] = [self._publisher(k), jslot, self.count_out[k]]
             for i in rows:
                 k = keys_[i]
@@ -886,14 +893,16 @@ class Runner:
             if j is not None:
                 j.sent(self.n_sent)
         if mirror:
-            self._mirror_rows(mirror, msg_type, vehicles, t_s, cols, out)
+            self._mirror_rows(mirror, msg_type, vehicles, t_given, given, out)
         return out
 
     def _mirror_rows(self, kind: str, msg_type: str, vehicles: list[str], t_s: list, cols: dict,
                      seqs: list[int]) -> None:
-        idx = [i for i, s in enumerate(seqs) if s >= 0]
-        if not idx:
+        sq = np.asarray(seqs, np.int64)
+        sent = sq >= 0
+        if not sent.any():
             return
+        idx = np.flatnonzero(sent).tolist()
         names: dict[str, int] = {}
         vi = np.fromiter((names.setdefault(vehicles[i], len(names)) for i in idx), np.uint32, len(idx))
         order = np.argsort(vi, kind="stable")
@@ -907,8 +916,7 @@ class Runner:
             else:
                 vals = [c[i] for i in idx_a.tolist()]
                 fcols[f] = vals[0] if vals and all(isinstance(x, str) and x == vals[0] for x in vals) else vals
-        st = fleetframe.Stream(msg_type, msg_type, vi[order], np.asarray(t_s, float)[idx_a],
-                               np.asarray(seqs, np.int64)[idx_a], fcols)
+        st = fleetframe.Stream(msg_type, msg_type, vi[order], np.asarray(t_s, float)[idx_a], sq[idx_a], fcols)
         self.publish_frame(kind, list(names), {msg_type: st}, gated=True)
 
     def _release_held(self, held: list) -> int:

@@ -165,6 +165,7 @@ class _FakeRuntime:
 
     def publish_rows(self, msg_type, keys_, vehicles, t_s, cols, mirror=None):
         t_s = list(t_s)
+        cols = {f: (c.tolist() if isinstance(c, np.ndarray) else c) for f, c in cols.items()}
         return [self.publish(k, msg_type, v, float(t_s[i]),
                              {f: (c if isinstance(c, str) else c[i]) for f, c in cols.items()})["seq"]
                 for i, (k, v) in enumerate(zip(keys_, vehicles, strict=True))]

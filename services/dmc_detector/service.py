@@ -134,6 +134,9 @@ class DmcDetectorService(Service):
                 self.sensors, float(getattr(s, "pair_tolerance_s", 0.005)), float(getattr(s, "pair_max_wait_s", 10.0)))
             self.__dict__["_slot_vehicle"] = {}  # slot -> vehicle
             self.__dict__["_slot_state"] = {}  # slot -> its VehicleState
+            self.__dict__["_slot_key"] = {}  # slot -> the vehicle's dmc key
+            self.__dict__["_slots_cache"] = (None, -1, None)  # (vehicles list, generation, vehicle index -> slot)
+            self.__dict__["_slots_gen"] = 0
             self.__dict__["_slot_source"] = {}  # slot -> param_source of its parameters
             self.__dict__["_alarm_seen"] = -1
         return f
@@ -154,6 +157,8 @@ class DmcDetectorService(Service):
             self._slot_of[vehicle] = st.slot
             self._slot_vehicle[st.slot] = vehicle
             self._slot_state[st.slot] = st
+            self._slot_key[st.slot] = keys.dmc(vehicle)
+            self.__dict__["_slots_gen"] += 1
         self._load_manifest_params(vehicle, cfg, st)
         self._apply_params(st)
         self._adopt_published_alarm(vehicle, st)
@@ -171,6 +176,8 @@ class DmcDetectorService(Service):
         self.__dict__["_pairer"].free(slot)
         self._slot_vehicle.pop(slot, None)
         self._slot_state.pop(slot, None)
+        self._slot_key.pop(slot, None)
+        self.__dict__["_slots_gen"] += 1
         self._slot_source.pop(slot, None)
 
     def evict_vehicle(self, vehicle: str, state: VehicleState) -> None:
@@ -324,16 +331,23 @@ class DmcDetectorService(Service):
         return epochs
 
     def _frame_slots(self, fr, streams_: list) -> np.ndarray:
-        """Slot of each vehicle index of the frame that has rows here (-1 elsewhere)."""
-        vi2slot = np.full(len(fr.vehicles), -1, np.int32)
+        """Slot of each vehicle index of the frame that has rows here (-1 elsewhere); kept while the frame's
+        vehicle list and this instance's vehicles stay the same."""
+        vs, gen, cached = self._slots_cache
         present = np.unique(np.concatenate([s.vi for s in streams_])) if streams_ else np.zeros(0, np.uint32)
+        if cached is not None and gen == self._slots_gen and vs == fr.vehicles and (cached[present] >= 0).all():
+            return cached
+        vi2slot = np.full(len(fr.vehicles), -1, np.int32) if cached is None or vs != fr.vehicles or \
+            gen != self._slots_gen else cached
         slot_of = self._slot_of
+        states = self.vehicle_states
         for i in present.tolist():
             v = fr.vehicles[i]
             s = slot_of.get(v)
-            if s is None or self.vehicle_states.get(v) is None:
+            if s is None or states.get(v) is None:
                 s = self.state_for(v).slot
             vi2slot[i] = s
+        self.__dict__["_slots_cache"] = (fr.vehicles, self._slots_gen, vi2slot)
         return vi2slot
 
     def _count_given_up(self, g) -> None:
@@ -351,15 +365,15 @@ class DmcDetectorService(Service):
         """Epochs (rows of slots in time order) through the fleet core; every decision published."""
         f = self.fleet
         out = f.step(slot, t_s, b_a, b_b)
-        sv = self._slot_vehicle
+        sv, sk = self._slot_vehicle, self._slot_key
         slots = out.slot.tolist()
         vehicles = [sv[s] for s in slots]
         src = self._slot_source
-        cols = {"dm_nt": out.dm_nt.tolist(), "ddm_nt_s": out.ddm_nt_s.tolist(), "dh_rad": out.dh_rad.tolist(),
-                "ddh_rad_s": out.ddh_rad_s.tolist(), "heading_rad": out.heading_rad.tolist(),
-                "stage1_pass": out.stage1_pass.tolist(), "credibility": np.clip(out.credibility, 0.0, 1.0).tolist(),
-                "valid": out.valid.tolist(), "impl": self.impl, "param_source": [src.get(s, "manifest") for s in slots]}
-        self.publish_rows("dmc", [keys.dmc(v) for v in vehicles], vehicles, out.t_s, cols, mirror="dmc")
+        cols = {"dm_nt": out.dm_nt, "ddm_nt_s": out.ddm_nt_s, "dh_rad": out.dh_rad, "ddh_rad_s": out.ddh_rad_s,
+                "heading_rad": out.heading_rad, "stage1_pass": out.stage1_pass,
+                "credibility": np.clip(out.credibility, 0.0, 1.0), "valid": out.valid, "impl": self.impl,
+                "param_source": [src.get(s, "manifest") for s in slots]}
+        self.publish_rows("dmc", [sk[s] for s in slots], vehicles, out.t_s, cols, mirror="dmc")
         stats = self._slot_state
         for s, ok in zip(slots, out.valid.tolist(), strict=True):
             st = stats[s]
