@@ -876,13 +876,13 @@ class Runner:
                         if v is not None:
                             seq[k] = v
                     cache[k] = [self._publisher(k), jslot, self.count_out[k]]
+            hdr = ("type", "version", "vehicle", "t_s", "seq", *names)
+            vals = list(zip(*colv))  # each row's field values, in names' order
             for i in rows:
                 k = keys_[i]
                 c = cache[k]
                 s = seq.get(k, -1) + 1
-                m = {"type": msg_type, "version": ver, "vehicle": vehicles[i], "t_s": t_s[i], "seq": s}
-                for f, cv in zip(names, colv, strict=True):
-                    m[f] = cv[i]
+                m = dict(zip(hdr, (msg_type, ver, vehicles[i], t_s[i], s, *vals[i])))
                 if arr is not None and c[1] >= 0:
                     arr[c[1]] = s  # before the put, as _send journals (a kill between never repeats a seq)
                 c[0].put(enc(m))
