@@ -317,7 +317,19 @@ class Calibration(Service):
     def on_tick(self) -> None:
         self._handle(self.fleet.run_queued())  # fits that waited for the budget
         self._flush_unusable()
+        self._free_dropped()
         self._persist()
+
+    def _free_dropped(self) -> None:
+        """Give back the slots of vehicles whose state the runtime dropped without evicting them (a group member
+        that handed a vehicle over forgets it)."""
+        states = self.vehicle_states
+        for name, vs in list(self._by_name.items()):
+            if states.get(name) is not vs:
+                del self._by_name[name]
+                self._flush_unusable(list(self.fleet.sensors(vs.vslot).values()))
+                self.fleet.free_vehicle(vs.vslot)
+                self._vgen += 1
 
     def _flush_unusable(self, slots=None) -> None:
         """Frame rows that had no usable set, counted as drops (``no_usable_params``) on their clean key."""
