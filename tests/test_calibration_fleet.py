@@ -483,3 +483,33 @@ def test_bench_row_runs_small(tmp_path, monkeypatch):
                                         cold_frames=10, full_window_s=40.0)
     assert r["frame_us_per_sample"] > 0 and r["singles_us_per_sample"] > 0 and r["fit_ms_full_window"] > 0
     assert r["samples_per_s"] == 4 * 205 and r["expected_core_share"] > r["fit_budget_frac"]
+
+
+def _tiny_frame(n: int, vehicles: list[str]) -> bytes:
+    vi = np.arange(len(vehicles), dtype=np.uint32)
+    m = frame.Stream("mag/1", "mag", vi, np.full(len(vi), 0.02 * n), np.full(len(vi), n, np.int64),
+                     {"sensor": "1", "b_nt": np.tile([2e4, 1e3, -4e4], (len(vi), 1))})
+    return frame.encode("ingest-1", "clean", n, vehicles, {"mag/1": m})
+
+
+def test_service_gives_back_the_slots_of_vehicles_it_no_longer_holds(tmp_path):
+    r, _ = _service(tmp_path, "cal-3")
+    svc = r.svc
+    fkey = keys.fleet_frame("ingest-1", "clean")
+    r.handle_sample(fkey, _tiny_frame(0, ["car-1", "car-2", "car-3"]))
+    held = {v: s.vslot for v, s in svc.vehicle_states.items()}
+    assert sorted(held) == ["car-1", "car-2", "car-3"] and not r.last_error
+    r.vehicle_state.pop("car-2")  # a group member forgets a vehicle it handed over
+    svc.on_tick()
+    assert held["car-2"] in svc.fleet._free_v and svc.fleet.vnames[held["car-2"]] is None
+    svc.evict_vehicle("car-3", r.vehicle_state.pop("car-3"))  # the runtime evicts an idle one
+    assert held["car-3"] in svc.fleet._free_v
+    r.handle_sample(fkey, _tiny_frame(1, ["car-1", "car-2", "car-3"]))  # they come back: fresh slots, fresh state
+    assert sorted(svc.vehicle_states) == ["car-1", "car-2", "car-3"] and not r.last_error
+    for v in ("car-2", "car-3"):
+        s = svc.fleet.sensors(svc.vehicle_states[v].vslot)["1"]
+        assert svc.fleet.SI[s, F.I_W_N] == 1 and svc.fleet.n_fits[s] == 1
+    s1 = svc.fleet.sensors(svc.vehicle_states["car-1"].vslot)["1"]
+    assert svc.fleet.SI[s1, F.I_W_N] == 1  # 20 ms apart: decimated (0.05 s), the first sample stays alone
+    svc.on_tick()
+    assert r.drops[keys.clean_mag("car-1", "1")]["no_usable_params"] == 2  # no set yet: counted at the tick
