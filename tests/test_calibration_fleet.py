@@ -472,6 +472,8 @@ def test_service_frames_and_single_samples_give_the_same_outputs(tmp_path, monke
                 e["current_param_id"] = _pid(e["current_param_id"])
         assert a == b
     assert st2["fits"]["fits"] > 0 and st2["fits"]["fit_lag_s"]["max"] == 0.0
+    # frames (read-only columns) and single samples run one compiled specialisation: the warm-up covers both
+    assert len(F._run.signatures) == 1 and len(F._merge.signatures) == 1
 
 
 def test_bench_row_runs_small(tmp_path, monkeypatch):

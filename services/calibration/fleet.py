@@ -891,10 +891,13 @@ _EG = np.zeros((0, N_G))
 
 
 def _cat(xs: list, f: str, dt, empty: np.ndarray) -> np.ndarray:
+    """One input column over the inputs, contiguous and writable (a frame's columns are read-only views of its
+    payload: the kernel would be compiled once more for read-only arrays)."""
     if not xs:
         return empty
     if len(xs) == 1:
-        return np.ascontiguousarray(getattr(xs[0], f), dt)
+        a = np.ascontiguousarray(getattr(xs[0], f), dt)
+        return a if a.flags.writeable else a.copy()
     return np.ascontiguousarray(np.concatenate([np.asarray(getattr(x, f), dt) for x in xs]))
 
 
