@@ -1490,6 +1490,13 @@ class Runner:
             self.drops[key][f"rejected:{reject_code(e)}"] += 1
             self.log_limited("frame-refused", "refused a frame on %s: %s", key[:200], e)
             return
+        if fr.kind != kind or fr.shard != info.rest[0]:
+            self.rejects_total += 1
+            self.count_in[key].n += 1
+            self.drops[key]["rejected:key"] += 1
+            self.log_limited("frame-refused", "refused a frame on %s: it says shard %r, kind %r", key[:200],
+                             fr.shard[:64], fr.kind)
+            return
         self.frames_in += 1
         last = self.frame_seq_in.get(key)
         if last is not None and fr.seq > last + 1:

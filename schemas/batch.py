@@ -373,6 +373,12 @@ def binary_problems(msg_type: str, t_s: np.ndarray, seq: np.ndarray, cols: dict[
     """The value checks of a binary batch's columns, on any number of rows at once: ``[(field, bad rows,
     sentence)]`` for each check some row fails (``t_s`` finite, ``seq`` ≥ 0, numbers finite — NaN is a null of
     a nullable field —, bounds, booleans 0 or 1)."""
+    with np.errstate(all="ignore"):
+        return _binary_problems(msg_type, t_s, seq, cols)
+
+
+def _binary_problems(msg_type: str, t_s: np.ndarray, seq: np.ndarray, cols: dict[str, np.ndarray]
+                     ) -> list[tuple[str, np.ndarray, str]]:
     out = []
     if t_s.size and not math.isfinite(float(np.add.reduce(t_s))):
         out.append(("t_s", ~np.isfinite(t_s), "must be finite numbers"))

@@ -233,6 +233,8 @@ def _col(v: Any, f, n: int, sname: str, where: str) -> Any:
     if isinstance(v, list):
         if len(v) != n:
             raise _bad(f"{sname}.{f.name}", f"must hold n = {n} values", where)
+        if lay is not None and any(x is None for x in v):
+            return v  # rows without an optional field: kept as a list (None where a row lacks it)
         if lay is not None:  # a binary kind sent as a list (a tool's frame): read it as an array
             try:
                 a = np.asarray(v, dtype=np.dtype(lay[0]).newbyteorder("="))
@@ -292,6 +294,9 @@ def decode(payload: bytes, where: str = "") -> Frame:
         if not isinstance(sname, str):
             raise _bad("streams", "has a non-string stream name", where)
         st = stream_type(sname)
+        if (kind == "dmc") != (st == "dmc") or (kind == "cal" and st != "mag"):
+            raise _bad("streams", f"a {kind} frame cannot carry stream {sname!r} (clean: sample streams, cal: "
+                       "mag/<sensor>, dmc: dmc)", where)
         if type(s) is not dict:
             raise _bad(sname, "must be a map with n, vi, t_s, seq and cols", where)
         n, vi, ts, sq, cols = s.get("n"), s.get("vi"), s.get("t_s"), s.get("seq"), s.get("cols")
@@ -325,8 +330,11 @@ def _bin_col(v: Any, f) -> Any:
     lay = _layout(f)
     if lay is None:
         return v.tolist() if isinstance(v, np.ndarray) else list(v)
-    if f.kind == "float" and not isinstance(v, np.ndarray):
-        v = [math.nan if x is None else x for x in v]
+    if not isinstance(v, np.ndarray):
+        if f.kind == "float":
+            v = [math.nan if x is None else x for x in v]
+        elif any(x is None for x in v):  # rows without this optional field: a list keeps them apart
+            return list(v)
     return np.ascontiguousarray(v, dtype=lay[0]).tobytes()
 
 

@@ -36,12 +36,15 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import msgpack
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, seed, settings
 from hypothesis import strategies as st
 
 from magmesh.paths import DEPLOY_DIR
 from magmesh.runtime import MAX_EXTRA_BYTES, Runner
+from magmesh.runtime import frame_kinds_for as runtime_frame_kinds
+from schemas import batch as batch_codec
 from schemas import frame, keys, messages
 from schemas.messages import MESSAGES, SchemaError
 
@@ -998,3 +1001,155 @@ def test_memory_flat_under_vehicle_churn_quick(tmp_path, capsys):
 @pytest.mark.mesh
 def test_memory_flat_under_vehicle_churn_20k(tmp_path, capsys):
     _churn(2000, 20_000, tmp_path, capsys, rounds=3, warm=2)
+
+
+# ---- fleet frames (contract v3) and binary batches --------------------------------------------------
+
+def _frame_stream(r: random.Random, name: str, nv: int) -> frame.Stream:
+    """A well-formed frame stream of random rows (vehicle indices sorted, times increasing per vehicle)."""
+    mt = frame.stream_type(name)
+    n = r.randint(0, 12)
+    vi = np.sort(np.array([r.randrange(max(nv, 1)) for _ in range(n)], np.uint32))
+    t = np.cumsum([r.uniform(0.001, 0.05) for _ in range(n)]) + 100.0
+    cols: dict = {}
+    for f in MESSAGES[mt].fields:
+        if not f.required and r.random() < 0.5:
+            continue
+        if f.kind == "str":
+            cols[f.name] = r.choice(f.choices) if f.choices else (name.partition("/")[2] or "x")
+        elif f.kind == "bool":
+            cols[f.name] = np.array([r.random() < 0.5 for _ in range(n)], np.uint8)
+        elif f.kind == "int":
+            cols[f.name] = np.array([r.randint(0, 30) for _ in range(n)], np.int64)
+        elif f.kind == "float":
+            lo = f.lo if f.lo is not None else -1e4
+            hi = f.hi if f.hi is not None else 1e4
+            cols[f.name] = np.array([r.uniform(lo, hi) for _ in range(n)])
+        elif f.kind in ("vec3", "mat3") or (f.kind == "floats" and f.length):
+            w = {"vec3": 3, "mat3": 9}.get(f.kind, f.length)
+            cols[f.name] = np.array([[r.uniform(-5e4, 5e4) for _ in range(w)] for _ in range(n)]).reshape(n, w)
+    return frame.Stream(name, mt, vi, t, np.arange(n, dtype=np.int64), cols)
+
+
+def _spoil_bytes(r: random.Random, p: bytes) -> tuple[bytes, str]:
+    how = r.choice(["none", "none", "bitflip", "truncate", "trailing", "garbage", "splice"])
+    if how == "bitflip":
+        b = bytearray(p)
+        for _ in range(r.randint(1, 6)):
+            b[r.randrange(len(b))] ^= 1 << r.randrange(8)
+        p = bytes(b)
+    elif how == "truncate":
+        p = p[: r.randrange(len(p))]
+    elif how == "trailing":
+        p = p + r.randbytes(r.randint(1, 20))
+    elif how == "garbage":
+        p = r.randbytes(r.randint(1, 200))
+    elif how == "splice":  # a valid envelope around a changed map
+        m = msgpack.unpackb(p, strict_map_key=False)
+        k = r.choice(["version", "vehicles", "streams", "shard", "kind", "seq", "t_s", "vehicle"])
+        m[k] = r.choice([None, 3, 2, -1, "x", [], {}, [None], {"mag/1": {"n": 5}}, 1e300, ["fleet"], ["car 1"]])
+        p = msgpack.packb(m, use_bin_type=True)
+    return p, how
+
+
+def _spoiled_frame(r: random.Random) -> tuple[bytes, str]:
+    vehicles = r.sample(VEHICLES[:-1] + ["bench-0001", "x-2"], r.randint(1, 4))
+    kind = r.choice(frame.KINDS)
+    allowed = {"clean": ["mag/1", "mag/2", "imu", "gnss", "ins", "attitude", "route"], "cal": ["mag/1", "mag/2"],
+               "dmc": ["dmc"]}[kind]
+    if r.random() < 0.1:  # a stream its kind cannot carry
+        allowed = ["mag/1", "imu", "dmc"]
+    names = r.sample(allowed, r.randint(1, min(3, len(allowed))))
+    streams_ = {nm: _frame_stream(r, nm, len(vehicles)) for nm in names}
+    p = frame.encode("fuzz-shard", kind, r.randint(0, 10), vehicles, streams_)
+    return _spoil_bytes(r, p)
+
+
+def _spoiled_binary_batch(r: random.Random, vehicle: str) -> tuple[bytes, str]:
+    names = r.sample(["mag/1", "mag/2", "imu", "gnss"], r.randint(1, 3))
+    st = {}
+    for nm in names:
+        s = _frame_stream(r, nm, 1)
+        if r.random() < 0.2 and s.n:  # a value outside the contract, checked on the whole column
+            k = r.choice([k for k, v in s.cols.items() if isinstance(v, np.ndarray) and v.dtype.kind == "f"] or ["t_s"])
+            if k == "t_s":
+                s.t_s[r.randrange(s.n)] = math.nan
+            else:
+                s.cols[k].reshape(-1)[r.randrange(s.cols[k].size)] = r.choice([math.nan, math.inf, 1e9])
+        st[nm] = {"t_s": s.t_s, "seq": s.seq, "cols": s.cols}
+    return _spoil_bytes(r, batch_codec.encode(vehicle, r.randint(0, 9), st, binary=True))
+
+
+def test_fuzz_frames_and_binary_batches_quick(capsys):
+    """The v3 decoders (fleet frames, binary batches) on seeded spoiled inputs: each refuses with a SchemaError
+    naming the field or returns what re-encodes to itself; every service fed spoiled frames on its fleet keys,
+    and ingest (frames out) fed spoiled binary batches, never fails on one (a failure is a crash here)."""
+    r = random.Random(20261202)
+    fig = Figures()
+    t0 = time.monotonic()
+    for _ in range(1500):
+        p, how = _spoiled_frame(r)
+        fig.inputs += 1
+        fig.by_spoil[how] += 1
+        try:
+            f = frame.decode(p, where="magmesh/fleet/fuzz/clean")
+        except SchemaError as e:
+            assert e.field and str(e).startswith(f"field '{e.field}'")
+            fig.rejected += 1
+            continue
+        except Exception as e:  # noqa: BLE001
+            fig.crashes += 1
+            fig.failures.append(f"frame {how}: {type(e).__name__}: {e}")
+            continue
+        again = frame.decode(frame.encode(f.shard, f.kind, f.seq, f.vehicles, f.streams))
+        assert again.vehicles == f.vehicles and {k: s.n for k, s in again.streams.items()} == \
+            {k: s.n for k, s in f.streams.items()}
+        fig.accepted += 1
+    for _ in range(1500):
+        p, how = _spoiled_binary_batch(r, r.choice(VEHICLES))
+        fig.inputs += 1
+        for deferred in (False, True):
+            try:
+                batch_codec.decode(p, where="magmesh/car-1/raw/batch", deferred=deferred)
+            except SchemaError as e:
+                assert e.field
+            except Exception as e:  # noqa: BLE001
+                fig.crashes += 1
+                fig.failures.append(f"binary batch {how}: {type(e).__name__}: {e}")
+    for name in SERVICE_NAMES:  # the services on frames (each one's fleet keys)
+        h = Harness(name, Figures())
+        kinds = runtime_frame_kinds(h.svc.subscriptions())
+        for _ in range(60 if kinds else 0):
+            p, how = _spoiled_frame(r)
+            try:  # mostly the kind and shard the frame says, sometimes another key
+                m = msgpack.unpackb(p, strict_map_key=False)
+                kind = m["kind"] if m.get("kind") in kinds and r.random() < 0.9 else r.choice(kinds)
+            except Exception:  # noqa: BLE001
+                kind = r.choice(kinds)
+            key = keys.fleet_frame(r.choice(["fuzz-shard"] * 9 + ["other"]), kind)
+            n_err = _handler_errors(h.runner)
+            try:
+                h.runner.handle_sample(key, p)
+            except BaseException as e:  # noqa: BLE001
+                fig.crashes += 1
+                fig.failures.append(f"{name} frame {how}: {type(e).__name__}: {e}")
+                continue
+            if _handler_errors(h.runner) != n_err:
+                fig.crashes += 1
+                fig.failures.append(f"{name} frame {how}: handler failed: {h.runner.last_error}")
+    h = Harness("ingest", Figures())  # ingest with frames out, on binary batches
+    h.svc.settings = type(h.svc.settings)(output="frames")
+    for _ in range(400):
+        v = r.choice(VEHICLES)
+        p, how = _spoiled_binary_batch(r, v)
+        n_err = _handler_errors(h.runner)
+        h.runner.handle_sample(keys.raw_batch(v), p)
+        if r.random() < 0.1:
+            h.svc.frame_flush(force=True)
+        if _handler_errors(h.runner) != n_err:
+            fig.crashes += 1
+            fig.failures.append(f"ingest binary batch {how}: handler failed: {h.runner.last_error}")
+    h.svc.frame_flush(force=True)
+    _report(fig, "fleet frames and binary batches, quick", capsys, time.monotonic() - t0)
+    assert fig.crashes == 0, fig.failures
+    assert fig.rejected > 100 and fig.accepted > 100
