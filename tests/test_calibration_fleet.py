@@ -17,8 +17,14 @@ from magmesh import magcal, maths
 from magmesh.runtime import Runner
 from schemas import frame, keys, messages
 from services.calibration import fleet as F
-from services.calibration.core import USABLE, CalibrationSettings, OnlineSettings, ParamRecord, SensorCalibrator
-from services.calibration.core import VehicleCalibration
+from services.calibration.core import (
+    USABLE,
+    CalibrationSettings,
+    OnlineSettings,
+    ParamRecord,
+    SensorCalibrator,
+    VehicleCalibration,
+)
 from sim_publishers.car import core as car
 
 STREAMS = ("mag/1", "mag/2", "imu", "gnss")
@@ -515,3 +521,81 @@ def test_service_gives_back_the_slots_of_vehicles_it_no_longer_holds(tmp_path):
     assert svc.fleet.SI[s1, F.I_W_N] == 1  # 20 ms apart: decimated (0.05 s), the first sample stays alone
     svc.on_tick()
     assert r.drops[keys.clean_mag("car-1", "1")]["no_usable_params"] == 2  # no set yet: counted at the tick
+
+
+@pytest.mark.mesh
+def test_mesh_ingest_frames_through_calibration(tmp_path):
+    """Car simulator → ingest (output = frames) → calibration over a real router: the parameters converge on the
+    per-vehicle cal/params keys and the compensated samples arrive as cal frames tagged with a published set."""
+    import subprocess
+    import sys
+    import threading
+    import time
+
+    from meshutil import REPO, free_port, wait_alive
+
+    from magmesh.zconf import build_config
+
+    vehicle = "car-f"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = zenoh.open(build_config(mode="router", listen=[endpoint]))
+    env = {**os.environ, "PYTHONPATH": str(REPO), "MAGMESH_STATE_DIR": str(tmp_path)}
+    params, rows = [], []
+    lock = threading.Lock()
+
+    def on_params(sample):
+        with lock:
+            params.append(messages.decode(bytes(sample.payload.to_bytes())))
+
+    def on_frame(sample):
+        f = frame.decode(bytes(sample.payload.to_bytes()))
+        with lock:
+            for sn, st in f.streams.items():
+                pid = st.cols["param_id"]
+                rows.extend((f.vehicles[st.vi[i]], sn, int(st.seq[i]), pid if isinstance(pid, str) else pid[i])
+                            for i in range(st.n))
+
+    subs = [router.declare_subscriber(keys.cal_params(vehicle, "*"), on_params),
+            router.declare_subscriber(keys.fleet_frame("*", "cal"), on_frame)]
+
+    def spawn(module, *args):
+        return subprocess.Popen([sys.executable, "-m", module, "--connect", endpoint, *args], cwd=REPO, env=env,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+    procs = [spawn("services.ingest", "--instance", "ingest-f", "--set", "output=frames"),
+             spawn("services.calibration", "--instance", "cal-f")]
+    try:
+        for role, inst in (("ingest", "ingest-f"), ("calibration", "cal-f")):
+            assert wait_alive(router, keys.svc_token(role, inst), timeout=60.0), f"{role}/{inst} never came up"
+        procs.append(spawn("sim_publishers.car", "--vehicle", vehicle, "--instance", "sim-f", "--set", "speed=8",
+                           "--set", "duration_s=150", "--set", "truth=false"))
+        deadline = time.monotonic() + 90.0
+        ok: dict[str, dict] = {}
+        while time.monotonic() < deadline and len(ok) < 2:
+            with lock:
+                ok = {m["sensor"]: m for m in params if m["status"] == "ok"}
+            for p in procs[:2]:
+                assert p.poll() is None, p.stderr.read().decode()[-3000:]
+            time.sleep(0.2)
+        assert set(ok) == {"1", "2"}, [(m["sensor"], m["status"], m.get("reason")) for m in params]
+        time.sleep(1.0)
+        with lock:
+            published = {m["param_id"] for m in params}
+            tagged = [r for r in rows if r[3] in published]
+            mine = [r for r in rows if r[0] == vehicle]
+        assert tagged and len(mine) == len(rows) > 1000
+        for sid in ("1", "2"):  # each per-vehicle cal/mag stream numbered from 0 without a gap
+            seqs = sorted(r[2] for r in mine if r[1] == f"mag/{sid}")
+            assert seqs == list(range(len(seqs)))
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.terminate()
+                try:
+                    p.wait(timeout=5)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait(timeout=5)
+        for s in subs:
+            s.undeclare()
+        router.close()
