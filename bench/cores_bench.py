@@ -18,6 +18,8 @@
 - EKF update: the heading fuser vs the ``ahrs`` EKF and x-io ``imufusion`` (C) on the same BROAD slice, µs/sample;
 - heading EKF, per sample: the reference, the compiled filter (one call per sample, a whole slice per call, and a
   fleet of 500 vehicles stepped per call) beside ``vqf``'s batched C++ on the same slice;
+- heading service work per sample at 500 vehicles: the heading fuser in process taking the clean, cal and dmc fleet
+  frames of 500 simulated cars (decode, join, filters, output rules, heading messages), CPU µs per input sample;
 - Hausdorff match: pre-match + SSDA + fine pipeline vs exhaustive search vs naive scipy ``directed_hausdorff``.
 Times are medians (or minima where stated) of repeats in this process; ratios are taken in the same run.
 """
@@ -365,7 +367,8 @@ def dmc_detector(vehicles: tuple[int, ...] = (1, 50, 500), epochs_per_call: int 
 def calibration_fit(repeats: int = 5) -> dict:
     from scipy.optimize import least_squares
 
-    from services.calibration import arls, synthetic, two_step
+    from bench import calibration_synthetic as synthetic
+    from services.calibration import arls, two_step
 
     cloud = synthetic.make_cloud(synthetic.CloudSettings(n_samples=10_000, gross_frac=0.2, seed=99))
     m = cloud.m_nt
@@ -408,7 +411,12 @@ def calibration_service(vehicles: int = 500, warm_s: float = 12.0, frames: int =
     from magmesh.runtime import Runner
     from schemas import frame, keys, messages
     from services.calibration import fleet as cfleet
-    from services.calibration.core import CalibrationSettings, OnlineSettings, SensorCalibrator, VehicleCalibration
+    from services.calibration.core import (
+        CalibrationSettings,
+        OnlineSettings,
+        SensorCalibrator,
+        VehicleCalibration,
+    )
     from services.calibration.service import Calibration, Settings
 
     os.environ.setdefault("MAGMESH_STATE_DIR", tempfile.mkdtemp(prefix="magmesh-cores-"))
@@ -670,6 +678,131 @@ def heading_ekf(n: int = 20_000, n_reference: int = 4_000, repeats: int = 5, slo
     return out
 
 
+def heading_service(vehicles: int = 500, windows: int = 250, warmup_windows: int = 100, repeats: int = 3) -> dict:
+    """The heading service's work per input sample at ``vehicles`` vehicles, in process (no Zenoh; a publisher that
+    drops what it is given): every 20 ms a ``clean`` frame (per vehicle 2 IMU, 1 + 1 magnetometer samples, a GNSS
+    fix every 10th window), then the ``cal`` frame (both magnetometers compensated) and the ``dmc`` frame (one
+    verdict) of the same window, encoded as ingest, calibration and the DMC detector send them. Every vehicle
+    drives a simulated car (the same drive, each from its own starting point; every verdict valid). CPU time of
+    the frames' handling (decode, seq tracking, join, filters, output rules, heading messages) after
+    ``warmup_windows`` windows (alignment); µs per input sample the service takes (IMU, clean and calibrated
+    magnetometer 1, verdicts: 250 a vehicle-second), medians of ``repeats`` runs, and the share of one core
+    that is at 50 windows a second."""
+    import os
+    import tempfile
+    import tomllib
+
+    from magmesh.magcal import MagParams
+    from magmesh.paths import DEPLOY_DIR
+    from magmesh.runtime import Runner
+    from schemas import frame, keys
+    from services.heading_fuser import compiled
+    from services.heading_fuser import fleet as hfleet
+    from services.heading_fuser.service import HeadingFuser, Settings
+    from sim_publishers.car.core import simulate
+
+    os.environ.setdefault("MAGMESH_STATE_DIR", tempfile.mkdtemp(prefix="magmesh-cores-"))
+    with open(DEPLOY_DIR / "mesh.toml", "rb") as f:
+        car = tomllib.load(f)["vehicles"]["car-1"]
+    n_win = warmup_windows + windows
+    spread = 200  # starting points: vehicle v starts (v mod spread) windows into the drive
+    d = simulate(duration_s=(n_win + spread) * 0.02 + 1.0, layout="urban_a", seed=3)
+    p = {s: MagParams.from_message(car["mag_params"][s]) for s in ("1", "2")}
+    names = [f"bench-{v:04d}" for v in range(vehicles)]
+    start = np.arange(vehicles) % spread
+    vi = np.arange(vehicles, dtype=np.uint32)
+
+    def stream(name, msg_type, t, seq, cols, rows_per=1):
+        return frame.Stream(name, msg_type, np.repeat(vi, rows_per), t, seq, cols)
+
+    payloads = []
+    for w in range(n_win):
+        t0 = 0.02 * w
+        im = (2 * (start + w))[:, None] + np.arange(2)[None, :]  # 2 IMU samples per vehicle
+        mg = start + w
+        t_imu = (t0 + 0.01 * np.arange(2))[None, :].repeat(vehicles, 0).ravel()
+        t_mag = np.full(vehicles, t0)
+        seq_imu = (2 * w + np.arange(2))[None, :].repeat(vehicles, 0).ravel()
+        seq_mag = np.full(vehicles, w, np.int64)
+        clean = {"mag/1": stream("mag/1", "mag", t_mag, seq_mag, {"sensor": "1", "b_nt": d.mag_b_nt["1"][mg]}),
+                 "mag/2": stream("mag/2", "mag", t_mag, seq_mag, {"sensor": "2", "b_nt": d.mag_b_nt["2"][mg]}),
+                 "imu": stream("imu", "imu", t_imu, seq_imu, {"gyro_rad_s": d.gyro_rad_s[im.ravel()],
+                                                              "accel_m_s2": d.accel_m_s2[im.ravel()]}, 2)}
+        if w % 10 == 0:
+            g = {"lat_deg": np.full(vehicles, 32.06), "lon_deg": np.full(vehicles, 118.8),
+                 "alt_m": np.full(vehicles, 10.0), "pos_enu_m": np.zeros((vehicles, 3)),
+                 "vel_enu_m_s": np.zeros((vehicles, 3)), "course_rad": np.zeros(vehicles),
+                 "speed_m_s": np.zeros(vehicles), "fix_type": "3d", "num_sats": np.full(vehicles, 9, np.int64),
+                 "pdop": np.ones(vehicles), "horiz_std_m": np.ones(vehicles)}
+            clean["gnss"] = stream("gnss", "gnss", t_mag, np.full(vehicles, w // 10, np.int64), g)
+        cal = {f"mag/{s}": stream(f"mag/{s}", "mag", t_mag, seq_mag, {
+            "sensor": s, "b_nt": p[s].apply(d.mag_b_nt[s][mg]), "calibrated": np.ones(vehicles, np.uint8),
+            "param_id": "manifest"}) for s in ("1", "2")}
+        one = np.ones(vehicles)
+        dmc = {"dmc": stream("dmc", "dmc", t_mag, seq_mag, {
+            "dm_nt": np.zeros((vehicles, 2)), "ddm_nt_s": np.zeros((vehicles, 2)), "dh_rad": np.zeros(vehicles),
+            "ddh_rad_s": np.zeros(vehicles), "heading_rad": np.zeros(vehicles), "stage1_pass": one.astype(np.uint8),
+            "credibility": one, "valid": one.astype(np.uint8), "impl": "threshold", "param_source": "manifest"})}
+        payloads.append([(keys.fleet_frame("ingest-1", "clean"), frame.encode("ingest-1", "clean", w, names, clean)),
+                         (keys.fleet_frame("cal-1", "cal"), frame.encode("cal-1", "cal", w, names, cal)),
+                         (keys.fleet_frame("dmc-1", "dmc"), frame.encode("dmc-1", "dmc", w, names, dmc))])
+    n_in = windows * vehicles * (2 + 1 + 1 + 1)  # what it takes: imu, clean mag/1, cal mag/1, dmc
+
+    class _Pub:
+        def put(self, payload, **kw):
+            pass
+
+    class _Session:
+        def declare_publisher(self, key, **kw):
+            return _Pub()
+
+    def run() -> tuple[float, float, int]:
+        svc = HeadingFuser(Settings(), instance="cores-heading",
+                           vehicles_config={v: car for v in names})
+        r = Runner(svc, _Session())
+        import zenoh
+
+        r._sub_exprs = [zenoh.KeyExpr(k) for k in svc.subscriptions()]
+        svc.on_start()
+        step_cpu = [0.0]
+        fleet_step = compiled.FleetHeading.step
+
+        def timed_step(self, *a, **k):
+            t = time.process_time()
+            try:
+                return fleet_step(self, *a, **k)
+            finally:
+                step_cpu[0] += time.process_time() - t
+
+        spent = 0.0
+        for w, frames in enumerate(payloads):
+            if w == warmup_windows:
+                compiled.FleetHeading.step = timed_step
+                sent0 = sum(c.n for k, c in r.count_out.items() if k.endswith("/heading"))
+            t = time.process_time()
+            for k, pl in frames:
+                r.handle_sample(k, pl)
+            if w >= warmup_windows:
+                spent += time.process_time() - t
+        compiled.FleetHeading.step = fleet_step
+        assert not any("handler_error" in x for x in r.drops.values()), r.last_error
+        sent = sum(c.n for k, c in r.count_out.items() if k.endswith("/heading")) - sent0
+        return spent, step_cpu[0], sent
+
+    hfleet.warm()
+    compiled.warm()
+    runs = [run() for _ in range(repeats)]
+    total = statistics.median(x[0] for x in runs)
+    filt = statistics.median(x[1] for x in runs)
+    us = total / n_in * 1e6
+    return {"vehicles": vehicles, "windows": windows, "input_samples": n_in,
+            "input_samples_per_vehicle_s": 250, "heading_messages": runs[0][2],
+            "us_per_input_sample": round(us, 3),
+            "filter_us_per_input_sample": round(filt / n_in * 1e6, 3),
+            "rest_us_per_input_sample": round((total - filt) / n_in * 1e6, 3),
+            "cpu_share_of_one_core": round(total / (windows * 0.02), 3)}
+
+
 def hausdorff() -> dict:
     from bench.eval_geomag import PAPER_LAMBDA, speed
     from magmesh.geomap import synthetic_paper_map
@@ -688,7 +821,8 @@ def run_all(progress=None) -> dict:
                      ("dmc_detector_per_epoch", dmc_detector),
                      ("calibration_fit", calibration_fit),
                      ("calibration_service_per_sample_500_vehicles", calibration_service), ("fcm", fcm),
-                     ("ekf_update", ekf_update), ("heading_ekf", heading_ekf), ("hausdorff_match", hausdorff)):
+                     ("ekf_update", ekf_update), ("heading_ekf", heading_ekf),
+                     ("heading_service_per_sample", heading_service), ("hausdorff_match", hausdorff)):
         say(f"cores: {name}")
         out[name] = fn()
     return out

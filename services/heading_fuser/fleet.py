@@ -136,6 +136,10 @@ S_PERIOD = 6
 S_CLEAR_STD = 7
 N_S = 8
 
+# ---- event buffer columns: floats (EF) and integers (EI) ---------------------------------------------------
+V_T, V_A, V_B, V_DT, V_GAP, N_V = 0, 1, 4, 7, 8, 9
+W_SLOT, W_KIND, W_DMC, W_RESET, N_W = 0, 1, 2, 3, 4
+
 # ---- what a push call stopped for --------------------------------------------------------------------------
 _DONE, _GROW_PM, _GROW_PI, _GROW_DH, _GROW_EV = 0, 1, 2, 3, 4
 
@@ -145,13 +149,13 @@ M_INIT, M_MAG = 0, 1  # compiled.MODES codes the output rules read
 # =========================================================================================================
 # kernels
 # =========================================================================================================
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _newest_verdict_t(I, DHT, k):
     cap = DHT.shape[1]
     return DHT[k, (I[k, I_DH_HEAD] + I[k, I_DH_N] - 1) % cap]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _verdict_at(I, DHT, DHV, k, t):
     """The validity of the latest-arrived verdict at or before ``t`` (−1: none)."""
     cap = DHT.shape[1]
@@ -163,7 +167,7 @@ def _verdict_at(I, DHT, DHV, k, t):
     return -1
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _verdict_due(I, DHT, PM, k, pm_i, now, S):
     """(still waiting, why not: 0 waits / 1 no verdict stream / 2 detector silent / 3 wall-clock wait over)."""
     if I[k, I_DH_N] == 0:
@@ -175,9 +179,25 @@ def _verdict_due(I, DHT, PM, k, pm_i, now, S):
     return False, 3
 
 
-@njit(cache=True)
-def _drain(F, I, PM, PI, DHT, DHV, C, D, k, now, S, e_slot, e_kind, e_t, e_a, e_b, e_dt, e_dmc, e_reset, e_gap,
-           n_ev):
+@njit(cache=True, inline="always")
+def _event(EF, EI, n_ev, k, kind, t, a0, a1, a2, b0, b1, b2, dt, dmc, reset, gap):
+    EF[n_ev, V_T] = t
+    EF[n_ev, V_A] = a0
+    EF[n_ev, V_A + 1] = a1
+    EF[n_ev, V_A + 2] = a2
+    EF[n_ev, V_B] = b0
+    EF[n_ev, V_B + 1] = b1
+    EF[n_ev, V_B + 2] = b2
+    EF[n_ev, V_DT] = dt
+    EF[n_ev, V_GAP] = gap
+    EI[n_ev, W_SLOT] = k
+    EI[n_ev, W_KIND] = kind
+    EI[n_ev, W_DMC] = dmc
+    EI[n_ev, W_RESET] = reset
+
+
+@njit(cache=True, inline="always")
+def _drain(F, I, PM, PI, DHT, DHV, C, k, now, S, EF, EI, n_ev):
     """The per-sample service's ``_drain`` for slot ``k``: events appended from ``n_ev``; returns the new count."""
     pm_cap, pi_cap = PM.shape[1], PI.shape[1]
     maxp = S[S_MAX_PENDING]
@@ -201,19 +221,8 @@ def _drain(F, I, PM, PI, DHT, DHV, C, D, k, now, S, e_slot, e_kind, e_t, e_a, e_
                     elif why == 2:
                         C[k, C_DMC_SILENT] += 1
             if ready:
-                e_slot[n_ev] = k
-                e_kind[n_ev] = E_MAG
-                e_t[n_ev] = mt
-                e_a[n_ev, 0] = PM[k, mi, 1]
-                e_a[n_ev, 1] = PM[k, mi, 2]
-                e_a[n_ev, 2] = PM[k, mi, 3]
-                e_b[n_ev, 0] = 0.0
-                e_b[n_ev, 1] = 0.0
-                e_b[n_ev, 2] = 0.0
-                e_dt[n_ev] = 0.0
-                e_dmc[n_ev] = dmc
-                e_reset[n_ev] = 0
-                e_gap[n_ev] = 0.0
+                _event(EF, EI, n_ev, k, E_MAG, mt, PM[k, mi, 1], PM[k, mi, 2], PM[k, mi, 3], 0.0, 0.0, 0.0, 0.0, dmc,
+                       0, 0.0)
                 n_ev += 1
                 I[k, I_PM_HEAD] = (mi + 1) % pm_cap
                 I[k, I_PM_N] -= 1
@@ -241,116 +250,144 @@ def _drain(F, I, PM, PI, DHT, DHV, C, D, k, now, S, e_slot, e_kind, e_t, e_a, e_
             reset = 1
             dt = 0.0
         F[k, F_LAST_IMU] = it
-        e_slot[n_ev] = k
-        e_kind[n_ev] = E_IMU
-        e_t[n_ev] = it
-        e_a[n_ev, 0] = PI[k, ii, 1]
-        e_a[n_ev, 1] = PI[k, ii, 2]
-        e_a[n_ev, 2] = PI[k, ii, 3]
-        e_b[n_ev, 0] = PI[k, ii, 4]
-        e_b[n_ev, 1] = PI[k, ii, 5]
-        e_b[n_ev, 2] = PI[k, ii, 6]
-        e_dt[n_ev] = dt
-        e_dmc[n_ev] = -1
-        e_reset[n_ev] = reset
-        e_gap[n_ev] = gap
+        _event(EF, EI, n_ev, k, E_IMU, it, PI[k, ii, 1], PI[k, ii, 2], PI[k, ii, 3], PI[k, ii, 4], PI[k, ii, 5],
+               PI[k, ii, 6], dt, -1, reset, gap)
         n_ev += 1
     return n_ev
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _count(C, D, k, c):
     C[k, c] += 1
     D[k, c] += 1
 
 
+@njit(cache=True, inline="always")
+def _push_row(F, I, PM, PI, DHT, DHV, C, D, k, code, t, v0, v1, v2, w0, w1, w2, now, S, EF, EI, n_ev):
+    """One pushed sample of slot ``k`` and its slot's drain: returns (events written, why stopped) — stopped
+    before the row (nothing changed) when a ring, or the event buffer, has to grow first."""
+    pm_cap, pi_cap, dh_cap = PM.shape[1], PI.shape[1], DHT.shape[1]
+    if n_ev + I[k, I_PM_N] + I[k, I_PI_N] + 1 > EF.shape[0]:
+        return n_ev, _GROW_EV
+    if code == R_IMU:
+        if I[k, I_PI_N] >= pi_cap:
+            return n_ev, _GROW_PI
+        if not math.isnan(F[k, F_NEWEST_IMU]) and t <= F[k, F_NEWEST_IMU]:
+            _count(C, D, k, C_IMU_NOT_AFTER)
+            return n_ev, _DONE
+        F[k, F_NEWEST_IMU] = t
+        j = (I[k, I_PI_HEAD] + I[k, I_PI_N]) % pi_cap
+        PI[k, j, 0] = t
+        PI[k, j, 1] = v0
+        PI[k, j, 2] = v1
+        PI[k, j, 3] = v2
+        PI[k, j, 4] = w0
+        PI[k, j, 5] = w1
+        PI[k, j, 6] = w2
+        I[k, I_PI_N] += 1
+    elif code == R_DMC:
+        n = I[k, I_DH_N]
+        if n >= dh_cap and dh_cap < DMC_HISTORY:
+            return n_ev, _GROW_DH
+        valid = 1 if v0 != 0.0 else 0
+        I[k, I_DMC_VALID] = valid
+        F[k, F_DMC_CRED] = v1
+        F[k, F_DMC_T] = t
+        if n >= dh_cap:  # full: the oldest verdict goes (deque(maxlen))
+            I[k, I_DH_HEAD] = (I[k, I_DH_HEAD] + 1) % dh_cap
+            n -= 1
+        j = (I[k, I_DH_HEAD] + n) % dh_cap
+        DHT[k, j] = t
+        DHV[k, j] = valid
+        I[k, I_DH_N] = n + 1
+        if I[k, I_PM_N] == 0:
+            return n_ev, _DONE  # nothing waits for a verdict: the drain would release nothing new
+    else:
+        if I[k, I_PM_N] >= pm_cap:
+            return n_ev, _GROW_PM
+        b0, b1, b2 = v0, v1, v2
+        if code == R_CAL:
+            F[k, F_LAST_CAL] = t
+            src = 0
+        else:
+            if t - F[k, F_LAST_CAL] <= S[S_CAL_TIMEOUT]:
+                _count(C, D, k, C_CAL_IN_USE)
+                return n_ev, _DONE
+            if I[k, I_HAS_PARAMS] == 0:
+                _count(C, D, k, C_NO_PARAMS)
+                return n_ev, _DONE
+            d0, d1, d2 = v0 - F[k, F_OFF], v1 - F[k, F_OFF + 1], v2 - F[k, F_OFF + 2]
+            m = F_M
+            b0 = F[k, m] * d0 + F[k, m + 1] * d1 + F[k, m + 2] * d2
+            b1 = F[k, m + 3] * d0 + F[k, m + 4] * d1 + F[k, m + 5] * d2
+            b2 = F[k, m + 6] * d0 + F[k, m + 7] * d1 + F[k, m + 8] * d2
+            src = 1
+        if math.isnan(F[k, F_NEWEST_IMU]):
+            _count(C, D, k, C_NO_IMU_CAL if src == 0 else C_NO_IMU_CLEAN)
+            return n_ev, _DONE
+        nm = F[k, F_NEWEST_MAG]
+        F[k, F_NEWEST_MAG] = t if math.isnan(nm) else max(nm, t)
+        j = (I[k, I_PM_HEAD] + I[k, I_PM_N]) % pm_cap
+        PM[k, j, 0] = t
+        PM[k, j, 1] = b0
+        PM[k, j, 2] = b1
+        PM[k, j, 3] = b2
+        PM[k, j, 4] = now
+        PM[k, j, 5] = src
+        I[k, I_PM_N] += 1
+        if I[k, I_PM_N] > S[S_MAX_PENDING]:
+            h = I[k, I_PM_HEAD]
+            _count(C, D, k, C_OVERFLOW_CAL if PM[k, h, 5] == 0 else C_OVERFLOW_CLEAN)
+            I[k, I_PM_HEAD] = (h + 1) % pm_cap
+            I[k, I_PM_N] -= 1
+    return _drain(F, I, PM, PI, DHT, DHV, C, k, now, S, EF, EI, n_ev), _DONE
+
+
 @njit(cache=True)
-def _push(F, I, PM, PI, DHT, DHV, C, D, r_slot, r_code, r_t, r_v, r_w, start, now, S,
-          e_slot, e_kind, e_t, e_a, e_b, e_dt, e_dmc, e_reset, e_gap, n_ev):
+def _push(F, I, PM, PI, DHT, DHV, C, D, r_slot, r_code, r_t, r_v, r_w, start, now, S, EF, EI, n_ev):
     """Push rows start… (each followed by its slot's drain). Returns (rows done, events written, why stopped):
     a call stops before a row whose ring, or the event buffer, has to grow first (the caller grows it and calls
     again from there)."""
-    pm_cap, pi_cap, dh_cap = PM.shape[1], PI.shape[1], DHT.shape[1]
-    e_cap = e_slot.shape[0]
-    maxp = int(S[S_MAX_PENDING])
     for r in range(start, r_slot.shape[0]):
-        k = r_slot[r]
-        code = r_code[r]
-        t = r_t[r]
-        if n_ev + I[k, I_PM_N] + I[k, I_PI_N] + 1 > e_cap:
-            return r, n_ev, _GROW_EV
-        if code == R_IMU:
-            if I[k, I_PI_N] >= pi_cap:
-                return r, n_ev, _GROW_PI
-            if not math.isnan(F[k, F_NEWEST_IMU]) and t <= F[k, F_NEWEST_IMU]:
-                _count(C, D, k, C_IMU_NOT_AFTER)
-                continue
-            F[k, F_NEWEST_IMU] = t
-            j = (I[k, I_PI_HEAD] + I[k, I_PI_N]) % pi_cap
-            PI[k, j, 0] = t
-            PI[k, j, 1] = r_v[r, 0]
-            PI[k, j, 2] = r_v[r, 1]
-            PI[k, j, 3] = r_v[r, 2]
-            PI[k, j, 4] = r_w[r, 0]
-            PI[k, j, 5] = r_w[r, 1]
-            PI[k, j, 6] = r_w[r, 2]
-            I[k, I_PI_N] += 1
-        elif code == R_DMC:
-            n = I[k, I_DH_N]
-            if n >= dh_cap and dh_cap < DMC_HISTORY:
-                return r, n_ev, _GROW_DH
-            valid = 1 if r_v[r, 0] != 0.0 else 0
-            I[k, I_DMC_VALID] = valid
-            F[k, F_DMC_CRED] = r_v[r, 1]
-            F[k, F_DMC_T] = t
-            if n >= dh_cap:  # full: the oldest verdict goes (deque(maxlen))
-                I[k, I_DH_HEAD] = (I[k, I_DH_HEAD] + 1) % dh_cap
-                n -= 1
-            j = (I[k, I_DH_HEAD] + n) % dh_cap
-            DHT[k, j] = t
-            DHV[k, j] = valid
-            I[k, I_DH_N] = n + 1
-        else:
-            if I[k, I_PM_N] >= pm_cap:
-                return r, n_ev, _GROW_PM
-            b0, b1, b2 = r_v[r, 0], r_v[r, 1], r_v[r, 2]
-            if code == R_CAL:
-                F[k, F_LAST_CAL] = t
-                src = 0
-            else:
-                if t - F[k, F_LAST_CAL] <= S[S_CAL_TIMEOUT]:
-                    _count(C, D, k, C_CAL_IN_USE)
-                    continue
-                if I[k, I_HAS_PARAMS] == 0:
-                    _count(C, D, k, C_NO_PARAMS)
-                    continue
-                d0, d1, d2 = b0 - F[k, F_OFF], b1 - F[k, F_OFF + 1], b2 - F[k, F_OFF + 2]
-                m = F_M
-                b0 = F[k, m] * d0 + F[k, m + 1] * d1 + F[k, m + 2] * d2
-                b1 = F[k, m + 3] * d0 + F[k, m + 4] * d1 + F[k, m + 5] * d2
-                b2 = F[k, m + 6] * d0 + F[k, m + 7] * d1 + F[k, m + 8] * d2
-                src = 1
-            if math.isnan(F[k, F_NEWEST_IMU]):
-                _count(C, D, k, C_NO_IMU_CAL if src == 0 else C_NO_IMU_CLEAN)
-                continue
-            nm = F[k, F_NEWEST_MAG]
-            F[k, F_NEWEST_MAG] = t if math.isnan(nm) else max(nm, t)
-            j = (I[k, I_PM_HEAD] + I[k, I_PM_N]) % pm_cap
-            PM[k, j, 0] = t
-            PM[k, j, 1] = b0
-            PM[k, j, 2] = b1
-            PM[k, j, 3] = b2
-            PM[k, j, 4] = now
-            PM[k, j, 5] = src
-            I[k, I_PM_N] += 1
-            if I[k, I_PM_N] > maxp:
-                h = I[k, I_PM_HEAD]
-                _count(C, D, k, C_OVERFLOW_CAL if PM[k, h, 5] == 0 else C_OVERFLOW_CLEAN)
-                I[k, I_PM_HEAD] = (h + 1) % pm_cap
-                I[k, I_PM_N] -= 1
-        n_ev = _drain(F, I, PM, PI, DHT, DHV, C, D, k, now, S, e_slot, e_kind, e_t, e_a, e_b, e_dt, e_dmc, e_reset,
-                      e_gap, n_ev)
+        n_ev, why = _push_row(F, I, PM, PI, DHT, DHV, C, D, r_slot[r], r_code[r], r_t[r], r_v[r, 0], r_v[r, 1],
+                              r_v[r, 2], r_w[r, 0], r_w[r, 1], r_w[r, 2], now, S, EF, EI, n_ev)
+        if why != _DONE:
+            return r, n_ev, why
     return r_slot.shape[0], n_ev, _DONE
+
+
+@njit(cache=True)
+def _push1(F, I, PM, PI, DHT, DHV, C, D, k, code, t, v0, v1, v2, w0, w1, w2, now, S, EF, EI):
+    """One sample (the per-sample path): (events written from 0, why stopped)."""
+    return _push_row(F, I, PM, PI, DHT, DHV, C, D, k, code, t, v0, v1, v2, w0, w1, w2, now, S, EF, EI, 0)
+
+
+@njit(cache=True, inline="always")
+def _decide_row(F, I, S, k, kind, t, reset, mode, unc, hstd):
+    """The output rules after one stepped event of slot ``k``: returns (publish, alarm: −1 none / 1 raised / 0
+    cleared, the cleared alarm's raise time, the mode code the row left)."""
+    if reset:
+        I[k, I_MODE] = M_INIT
+    left = I[k, I_MODE]
+    I[k, I_MODE] = mode
+    if kind != E_IMU or mode == M_INIT:
+        return False, -1, math.nan, left
+    alarm = -1
+    raised_t = math.nan
+    if I[k, I_RAISED] == 0 and unc:
+        I[k, I_RAISED] = 1
+        F[k, F_RAISED_T] = t
+        alarm = 1
+        raised_t = t
+    elif I[k, I_RAISED] != 0 and (mode == M_MAG or hstd < S[S_CLEAR_STD]):
+        I[k, I_RAISED] = 0
+        alarm = 0
+        raised_t = F[k, F_RAISED_T]
+    publish = False
+    if t - F[k, F_LAST_PUB] >= S[S_PERIOD] - 1e-9:
+        F[k, F_LAST_PUB] = t
+        publish = True
+    return publish, alarm, raised_t, left
 
 
 @njit(cache=True)
@@ -358,39 +395,27 @@ def _decide(F, I, S, e_slot, e_kind, e_t, e_reset, o_mode, o_unc, o_hstd, o_reas
             al_raised_t, tr_row, tr_from):
     """The output rules over stepped events (module docstring); returns (published, alarm, transition) counts."""
     n_pub, n_al, n_tr = 0, 0, 0
-    period = S[S_PERIOD] - 1e-9
-    clear = S[S_CLEAR_STD]
     for r in range(e_slot.shape[0]):
-        k = e_slot[r]
-        mode = o_mode[r]
-        if e_reset[r]:
-            I[k, I_MODE] = M_INIT
+        publish, alarm, raised_t, left = _decide_row(F, I, S, e_slot[r], e_kind[r], e_t[r], e_reset[r], o_mode[r],
+                                                     o_unc[r], o_hstd[r])
         if o_reason[r] != 0:
             tr_row[n_tr] = r
-            tr_from[n_tr] = I[k, I_MODE]
+            tr_from[n_tr] = left
             n_tr += 1
-        I[k, I_MODE] = mode
-        if e_kind[r] != E_IMU or mode == M_INIT:
-            continue
-        t = e_t[r]
-        if I[k, I_RAISED] == 0 and o_unc[r]:
-            I[k, I_RAISED] = 1
-            F[k, F_RAISED_T] = t
+        if alarm >= 0:
             al_row[n_al] = r
-            al_state[n_al] = 1
-            al_raised_t[n_al] = t
+            al_state[n_al] = alarm
+            al_raised_t[n_al] = raised_t
             n_al += 1
-        elif I[k, I_RAISED] != 0 and (mode == M_MAG or o_hstd[r] < clear):
-            I[k, I_RAISED] = 0
-            al_row[n_al] = r
-            al_state[n_al] = 0
-            al_raised_t[n_al] = F[k, F_RAISED_T]
-            n_al += 1
-        if t - F[k, F_LAST_PUB] >= period:
-            F[k, F_LAST_PUB] = t
+        if publish:
             pub[n_pub] = r
             n_pub += 1
     return n_pub, n_al, n_tr
+
+
+@njit(cache=True)
+def _decide1(F, I, S, k, kind, t, reset, mode, unc, hstd):
+    return _decide_row(F, I, S, k, kind, t, reset, mode, unc, hstd)
 
 
 # =========================================================================================================
@@ -412,6 +437,13 @@ class Events(NamedTuple):
     dmc: np.ndarray
     reset: np.ndarray
     gap_s: np.ndarray
+
+    def rows(self, idx=None) -> list[tuple]:
+        """Rows ``idx`` (all when None) as :meth:`FleetJoin.push_one` gives them."""
+        idx = range(self.n) if idx is None else idx
+        sl, kd, dm, rs = self.slot.tolist(), self.kind.tolist(), self.dmc.tolist(), self.reset.tolist()
+        t, a, b, dt, gap = self.t_s.tolist(), self.a.tolist(), self.b.tolist(), self.dt_s.tolist(), self.gap_s.tolist()
+        return [(sl[r], kd[r], dm[r], rs[r], t[r], a[r], b[r], dt[r], gap[r]) for r in idx]
 
 
 class Decisions(NamedTuple):
@@ -448,8 +480,8 @@ class FleetJoin:
         self.PI = np.zeros((cap, r0, 7))
         self.DHT = np.zeros((cap, min(_RING0, DMC_HISTORY)))
         self.DHV = np.zeros((cap, min(_RING0, DMC_HISTORY)), np.int8)
-        self._ev = self._event_buffers(256)
-        self._rows1 = (np.zeros(1, np.int64), np.zeros(1, np.int8), np.zeros(1), np.zeros((1, 3)), np.zeros((1, 3)))
+        self.EF = np.zeros((256, N_V))  # released events (floats, integers): see Events
+        self.EI = np.zeros((256, N_W), np.int64)
 
     @property
     def capacity(self) -> int:
@@ -523,9 +555,16 @@ class FleetJoin:
     def pending_imu(self, slot: int) -> int:
         return int(self.I[slot, I_PI_N])
 
-    def take_drops(self) -> tuple[np.ndarray, np.ndarray]:
-        """(slots, counts by counter) of the samples given up since the last call; the report is then cleared."""
+    def take_drops(self, slot: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(slots, counts by counter) of the samples given up since the last call (of one slot, or of all); the
+        report is then cleared."""
         D = self.D
+        if slot is not None:
+            if not D[slot].any():
+                return np.zeros(0, np.int64), D[:0]
+            out = D[slot:slot + 1].copy()
+            D[slot] = 0
+            return np.array([slot]), out
         rows = np.flatnonzero(D.any(axis=1))
         if not len(rows):
             return rows, D[:0]
@@ -573,10 +612,11 @@ class FleetJoin:
             self.DHV = self._unrolled(self.DHV, I[:, I_DH_HEAD], I[:, I_DH_N], new)
             I[:, I_DH_HEAD] = 0
 
-    @staticmethod
-    def _event_buffers(cap: int) -> tuple:
-        return (np.zeros(cap, np.int64), np.zeros(cap, np.int8), np.zeros(cap), np.zeros((cap, 3)),
-                np.zeros((cap, 3)), np.zeros(cap), np.zeros(cap, np.int8), np.zeros(cap, np.int8), np.zeros(cap))
+    def _grow_events(self, n_ev: int, more: int) -> None:
+        cap = max(2 * self.EF.shape[0], n_ev + more)
+        EF, EI = np.zeros((cap, N_V)), np.zeros((cap, N_W), np.int64)
+        EF[:n_ev], EI[:n_ev] = self.EF[:n_ev], self.EI[:n_ev]
+        self.EF, self.EI = EF, EI
 
     # ---- the join ----
     def push(self, slot, code, t_s, v, w, now: float) -> Events:
@@ -585,31 +625,44 @@ class FleetJoin:
         1/0, ``v[:, 1]`` credibility); rows of one slot in the order its samples arrived. ``now``: wall-clock
         (monotonic) seconds. Returns the events released, in order."""
         n = len(slot)
+        slot = np.ascontiguousarray(slot, np.int64)
+        code = np.ascontiguousarray(code, np.int8)
+        t_s = np.ascontiguousarray(t_s, float)
+        v = np.ascontiguousarray(v, float)
+        w = np.ascontiguousarray(w, float)
         done, n_ev = 0, 0
         while True:
-            ev = self._ev
             done, n_ev, why = _push(self.F, self.I, self.PM, self.PI, self.DHT, self.DHV, self.C, self.D, slot, code,
-                                    t_s, v, w, done, float(now), self.S, *ev, n_ev)
+                                    t_s, v, w, done, float(now), self.S, self.EF, self.EI, n_ev)
             if why == _DONE:
                 break
-            if why == _GROW_EV:
-                bigger = self._event_buffers(max(2 * len(ev[0]), n_ev + self.max_pending * 2 + 2 * (n - done) + 2))
-                for a, b in zip(bigger, ev, strict=True):
-                    a[:n_ev] = b[:n_ev]
-                self._ev = bigger
-            else:
-                self._grow_ring(why)
-        ev = self._ev
-        return Events(n_ev, *(a[:n_ev] for a in ev))
+            self._grow(why, n_ev, 2 * self.max_pending + 2 * (n - done) + 2)
+        ef, ei = self.EF[:n_ev], self.EI[:n_ev]
+        return Events(n_ev, ei[:, W_SLOT].copy(), ei[:, W_KIND].astype(np.int8), ef[:, V_T].copy(),
+                      ef[:, V_A:V_A + 3].copy(), ef[:, V_B:V_B + 3].copy(), ef[:, V_DT].copy(),
+                      ei[:, W_DMC].astype(np.int8), ei[:, W_RESET].astype(np.int8), ef[:, V_GAP].copy())
 
-    def push_one(self, slot: int, code: int, t_s: float, v, w, now: float) -> Events:
-        """One row (the per-sample path), without allocating its arrays."""
-        s, c, t, vv, ww = self._rows1
-        s[0], c[0], t[0] = slot, code, t_s
-        vv[0] = v
-        if w is not None:
-            ww[0] = w
-        return self.push(s, c, t, vv, ww, now)
+    def _grow(self, why: int, n_ev: int, more: int) -> None:
+        if why == _GROW_EV:
+            self._grow_events(n_ev, more)
+        else:
+            self._grow_ring(why)
+
+    def push_one(self, slot: int, code: int, t_s: float, v, w, now: float) -> list[tuple]:
+        """One sample (the per-sample path; ``w`` None: zeros): the events released, each a tuple (slot, kind,
+        dmc, reset, t_s, a, b, dt_s, gap_s) — see :class:`Events`."""
+        w0, w1, w2 = (0.0, 0.0, 0.0) if w is None else (float(w[0]), float(w[1]), float(w[2]))
+        while True:
+            n_ev, why = _push1(self.F, self.I, self.PM, self.PI, self.DHT, self.DHV, self.C, self.D, int(slot),
+                               int(code), float(t_s), float(v[0]), float(v[1]), float(v[2]), w0, w1, w2, float(now),
+                               self.S, self.EF, self.EI)
+            if why == _DONE:
+                break
+            self._grow(why, 0, 2 * self.max_pending + 2)
+        if not n_ev:
+            return []
+        ef, ei = self.EF[:n_ev].tolist(), self.EI[:n_ev].tolist()
+        return [(i[0], i[1], i[2], i[3], f[0], f[1:4], f[4:7], f[7], f[8]) for i, f in zip(ei, ef, strict=True)]
 
     # ---- the output rules ----
     def decide(self, ev: Events, mode, uncertain, heading_std_rad, reason) -> Decisions:
@@ -627,6 +680,14 @@ class FleetJoin:
                                     np.ascontiguousarray(heading_std_rad, float), np.ascontiguousarray(reason, np.int64),
                                     pub, al_row, al_state, al_t, tr_row, tr_from)
         return Decisions(pub[:n_pub], al_row[:n_al], al_state[:n_al], al_t[:n_al], tr_row[:n_tr], tr_from[:n_tr])
+
+    def decide_one(self, slot: int, kind: int, t_s: float, reset: bool, mode: int, uncertain: bool,
+                   heading_std_rad: float) -> tuple[bool, int, float]:
+        """:meth:`decide` for one event (a filter stepped row by row): (publish, alarm −1 none / 1 raised / 0 cleared,
+        the cleared alarm's raise time)."""
+        p, a, t, _ = _decide1(self.F, self.I, self.S, int(slot), int(kind), float(t_s), bool(reset), int(mode),
+                              bool(uncertain), float(heading_std_rad))
+        return p, a, t
 
 
 class SlotFilter(compiled.CompiledHeadingFilter):
@@ -764,7 +825,7 @@ class ReferenceJoin:
 # =========================================================================================================
 # warm-up
 # =========================================================================================================
-KERNELS = (_push, _decide)
+KERNELS = (_push, _push1, _decide, _decide1)
 
 
 def warm() -> float:
@@ -779,6 +840,9 @@ def warm() -> float:
                 np.ones((n, 3)), np.ones((n, 3)), 0.0)
     m = ev.n
     j.decide(ev, np.ones(m, np.int64), np.zeros(m, bool), np.zeros(m), np.zeros(m, np.int64))
+    j.decide_one(k, E_IMU, 1.0, False, M_MAG, True, 0.1)
+    j.push_one(k, R_IMU, 1.0, (0.0, 0.0, 0.0), (0.0, 0.0, 9.8), 0.0)
+    j.push_one(k, R_DMC, 1.0, (1.0, 1.0, 0.0), None, 0.0)
     return time.perf_counter() - t0
 
 

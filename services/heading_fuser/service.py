@@ -23,7 +23,6 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 
@@ -35,6 +34,11 @@ from services.physical import refuse_unphysical
 from . import compiled, core, fleet, profiles
 
 MAX_PENDING = fleet.MAX_PENDING
+#: samples given up in frames are reported (``count_drop``) at most this often, wall clock, and on every tick
+DROP_REPORT_S = 1.0
+#: events up to this many go through each vehicle's filter row by row (the per-sample path: a bulk step of the
+#: shared fleet costs more for a few rows); more go through the fleet in one call
+ROWWISE_MAX = 4
 #: mode changes logged per second at most (the rest are counted and named in the next line logged)
 TRANSITION_LOGS_PER_S = 20.0
 _MODE_CODE = {m: i for i, m in enumerate(core.MODES)}
@@ -89,32 +93,6 @@ class VehicleState:
         return self.join.pending_mag(self.slot)
 
 
-class _Rows(NamedTuple):
-    """The filter's state after each event (what the output rules and the heading messages read)."""
-
-    mode: np.ndarray  # code into core.MODES
-    uncertain: np.ndarray  # flags.heading_uncertain
-    alarm_std_rad: np.ndarray  # internal_states.heading_std_rad (after IMU events)
-    reason: np.ndarray  # the fleet's mode-change reason code (0: none, or a filter of its own)
-    heading_rad: np.ndarray
-    pitch_rad: np.ndarray
-    roll_rad: np.ndarray
-    heading_std_rad: np.ndarray
-    pitch_std_rad: np.ndarray
-    roll_std_rad: np.ndarray
-    mag_innovation_rad: np.ndarray  # NaN: none
-    mag_test_ratio: np.ndarray
-    mag_fused: np.ndarray
-    time_since_mag_fused_s: np.ndarray
-    t_s: np.ndarray  # the filter's clock
-
-
-def _rows_of(o: compiled.StepOutput) -> _Rows:
-    return _Rows(o.mode, o.heading_uncertain, o.heading_std_rad, o.reason, o.heading_rad, o.pitch_rad, o.roll_rad,
-                 o.heading_std_rad, o.pitch_std_rad, o.roll_std_rad, o.mag_innovation_rad, o.mag_test_ratio,
-                 o.mag_fused, o.time_since_mag_fused_s, o.t_s)
-
-
 def _opt(x: float) -> float | None:
     return None if x != x else x
 
@@ -150,6 +128,17 @@ class HeadingFuser(Service):
         self._gen = 0  # bumped when slots change (frame vehicle maps are rebuilt)
         self._vmaps: dict[tuple[str, str], list] = {}
         self._log_window = [-math.inf, 0, 0]  # transition logs: window start, lines in it, lines not logged
+        self._drops_at = -math.inf  # when the samples given up were last reported
+
+    #: the tick reports what the frames gave up since the last report (see :data:`DROP_REPORT_S`)
+    tick_override_s = DROP_REPORT_S
+
+    def on_tick(self) -> None:
+        self._report_drops()
+
+    def on_stop(self) -> None:
+        self._report_drops()
+        super().on_stop()
 
     def subscriptions(self) -> list[str]:
         p, s = self.vehicle_pattern, self.settings.sensor
@@ -274,10 +263,10 @@ class HeadingFuser(Service):
             return
         else:
             return
-        ev = self.join.push_one(state.slot, code, msg["t_s"], v, w, time.monotonic())
-        self._report_drops()
-        if ev.n:
-            self._handle(ev, rows_out=False)
+        rows = self.join.push_one(state.slot, code, msg["t_s"], v, w, time.monotonic())
+        self._report_drops(state.slot)
+        if rows:
+            self._handle_rowwise(rows)
 
     def _on_params(self, info, msg: dict, state: VehicleState) -> None:
         if msg["status"] in ("ok", "manifest"):
@@ -335,8 +324,10 @@ class HeadingFuser(Service):
             t = t_all[order]
             v = np.concatenate([p[3] for p in parts])[order]
             w = np.concatenate([p[4] for p in parts])[order]
-        ev = self.join.push(slot, codes, t, v, w, time.monotonic())
-        self._report_drops()
+        now = time.monotonic()
+        ev = self.join.push(slot, codes, t, v, w, now)
+        if now - self._drops_at >= DROP_REPORT_S:
+            self._report_drops()
         if ev.n:
             self._handle(ev, rows_out=True)
 
@@ -362,108 +353,114 @@ class HeadingFuser(Service):
         return vmap
 
     # ---- the events: filters, outputs ------------------------------------------------------------
-    def _report_drops(self) -> None:
-        slots, counts = self.join.take_drops()
-        for s, row in zip(slots.tolist(), counts.tolist(), strict=True):
-            st = self._slot_state.get(s)
-            if st is None:
-                continue
-            for c, (stream, reason) in fleet.DROPS.items():
-                if row[c]:
+    def _report_drops(self, slot: int | None = None) -> None:
+        """Samples the join gave up (of one slot, or of all since the last report), counted on their keys."""
+        if slot is None:
+            self._drops_at = time.monotonic()
+        slots, counts = self.join.take_drops(slot)
+        if not len(slots):
+            return
+        for c, (stream, reason) in fleet.DROPS.items():
+            col = counts[:, c]
+            for i in np.flatnonzero(col).tolist():
+                st = self._slot_state.get(int(slots[i]))
+                if st is not None:
                     key = st.imu_key if stream == "imu" else (st.cal_key if stream == "cal" else st.clean_key)
-                    self.count_drop(key, reason, row[c])
-
-    def _step(self, ev: fleet.Events, fs: np.ndarray) -> _Rows:
-        """Every event through its vehicle's filter (``fs``: each row's slot in the shared compiled fleet, −1 for a
-        filter of the vehicle's own): the fleet in a call per run of rows (a filter restart splits the run), the
-        others row by row."""
-        own = np.flatnonzero(fs < 0)
-        resets = np.flatnonzero(ev.reset)
-        for r in resets.tolist():
-            self.log.warning("vehicle %s: IMU gap of %.2f s at t=%.2f s: restarting the heading filter",
-                             self._slot_vehicle.get(int(ev.slot[r])), float(ev.gap_s[r]), float(ev.t_s[r]))
-        if not len(own):
-            return _rows_of(self._step_fleet(np.arange(ev.n), fs, ev, resets))
-        n = ev.n
-        nan = np.full(n, math.nan)
-        rows = _Rows(np.zeros(n, np.int64), np.zeros(n, bool), nan.copy(), np.zeros(n, np.int64), nan.copy(),
-                     nan.copy(), nan.copy(), nan.copy(), nan.copy(), nan.copy(), nan.copy(), nan.copy(),
-                     np.zeros(n, bool), nan.copy(), nan.copy())
-        mine = np.flatnonzero(fs >= 0)
-        if len(mine):
-            o = self._step_fleet(mine, fs, ev, resets[fs[resets] >= 0])
-            for dst, src in zip(rows, _rows_of(o), strict=True):
-                dst[mine] = src
-        for r in own.tolist():
-            st = self._slot_state[int(ev.slot[r])]
-            f = st.filter
-            if ev.kind[r] == fleet.E_IMU:
-                if ev.reset[r]:
-                    f.reset()
-                    st.n_transitions_logged = 0
-                f.update_imu(ev.a[r], ev.b[r], float(ev.dt_s[r]), t_s=float(ev.t_s[r]))
-                s = f.internal_states
-                rows.uncertain[r] = f.flags.heading_uncertain
-                rows.alarm_std_rad[r] = s.heading_std_rad
-                rows.time_since_mag_fused_s[r] = s.time_since_mag_fused_s
-                if f.aligned:
-                    rows.heading_rad[r], rows.pitch_rad[r], rows.roll_rad[r] = f.euler()
-                    rows.heading_std_rad[r], rows.pitch_std_rad[r], rows.roll_std_rad[r] = f.attitude_std()
-                    rows.mag_innovation_rad[r] = math.nan if s.mag_innovation_rad is None else s.mag_innovation_rad
-                    rows.mag_test_ratio[r] = math.nan if s.mag_test_ratio is None else s.mag_test_ratio
-                    rows.mag_fused[r] = f.flags.mag_fused
-            else:
-                d = int(ev.dmc[r])
-                f.update_mag(ev.a[r], None if d < 0 else bool(d), t_s=float(ev.t_s[r]))
-            rows.mode[r] = _MODE_CODE[f.mode]
-        return rows
-
-    def _step_fleet(self, idx: np.ndarray, fs: np.ndarray, ev: fleet.Events, resets: np.ndarray):
-        """Rows ``idx`` of the events (vehicles of the shared fleet) through it; ``resets``: rows restarting a filter."""
-        fh = self.filters
-        whole = len(idx) == ev.n
-
-        def part(a, b):
-            sel = slice(a, b) if whole else idx[a:b]
-            return fh.step(fs[sel] if not whole else fs[a:b], ev.kind[sel], ev.t_s[sel], ev.a[sel], ev.b[sel],
-                           ev.dt_s[sel], ev.dmc[sel])
-
-        if not len(resets):
-            return part(0, len(idx))
-        outs, a = [], 0
-        pos = resets if whole else np.searchsorted(idx, resets)
-        for p, r in zip(pos.tolist(), resets.tolist(), strict=True):
-            if p > a:
-                outs.append(part(a, p))
-            fh.reset(int(fs[r]))
-            a = p
-        outs.append(part(a, len(idx)))
-        return compiled.StepOutput(*(np.concatenate(x) for x in zip(*outs, strict=True)))
+                    self.count_drop(key, reason, int(col[i]))
 
     def _handle(self, ev: fleet.Events, rows_out: bool) -> None:
-        """Events released by the join: filters stepped, then per row the alarm latch, the heading messages (one
-        per vehicle per ``publish_period_s``) and the mode changes."""
+        """Events released by the join: each through its vehicle's filter, then the output rules (the alarm
+        latch, a heading message per vehicle per ``publish_period_s``, the mode changes). Rows of vehicles of the
+        shared compiled fleet go through it in bulk (one call per run of rows) unless there are only a few (a
+        single sample's); the others row by row through their filter's API (a filter of the vehicle's own: the
+        reference, VQF) — the same kernels and rules either way."""
+        n = ev.n
+        if n > ROWWISE_MAX:
+            bulk = self._fslot[ev.slot] >= 0
+            if bulk.all():
+                self._handle_bulk(ev, None, rows_out)
+                return
+            if bulk.any():
+                self._handle_bulk(ev, np.flatnonzero(bulk), rows_out)
+            self._handle_rowwise(ev.rows(np.flatnonzero(~bulk).tolist()))
+            return
+        self._handle_rowwise(ev.rows())
+
+    def _handle_rowwise(self, rows: list[tuple]) -> None:
+        """Events (:meth:`fleet.FleetJoin.push_one`'s tuples) one by one through each vehicle's filter's API."""
+        join = self.join
+        touched = {}
+        for k, kind, dmc, reset, t, a, b, dt, gap in rows:
+            st = self._slot_state[k]
+            f = st.filter
+            touched[k] = st
+            if kind != fleet.E_IMU:
+                f.update_mag(a, None if dmc < 0 else bool(dmc), t_s=t)
+                join.set_mode(k, _MODE_CODE[f.mode])
+                continue
+            if reset:
+                self._gap_warning(k, gap, t)
+                f.reset()
+                st.n_transitions_logged = 0
+            f.update_imu(a, b, dt, t_s=t)
+            mode = _MODE_CODE[f.mode]
+            if mode == fleet.M_INIT:
+                join.decide_one(k, fleet.E_IMU, t, reset, mode, False, math.nan)
+                continue
+            s, fl = f.internal_states, f.flags
+            pub, alarm, raised_t = join.decide_one(k, fleet.E_IMU, t, reset, mode, fl.heading_uncertain,
+                                                   s.heading_std_rad)
+            if alarm >= 0:
+                self._alarm(self._slot_vehicle[k], alarm, t, s.heading_std_rad, s.time_since_mag_fused_s, mode,
+                            raised_t)
+            if pub:
+                h, p, ro = f.euler()
+                hs, ps, rs = f.attitude_std()
+                self.publish(st.heading_key, "heading", self._slot_vehicle[k], t, heading_rad=h, pitch_rad=p,
+                             roll_rad=ro, heading_std_rad=hs, pitch_std_rad=ps, roll_std_rad=rs, mode=core.MODES[mode],
+                             mag_innovation_rad=s.mag_innovation_rad, mag_test_ratio=s.mag_test_ratio,
+                             mag_fused=fl.mag_fused)
+        for k, st in touched.items():
+            self._log_transitions(self._slot_vehicle[k], st)
+
+    def _handle_bulk(self, ev: fleet.Events, idx: np.ndarray | None, rows_out: bool) -> None:
+        """Rows ``idx`` of the events (all when None), vehicles of the shared fleet: one step call per run of rows
+        (a filter restart splits it), the output rules in one call, the heading messages in one ``publish_rows``."""
+        if idx is not None:
+            ev = fleet.Events(len(idx), *(a[idx] for a in ev[1:]))
         fs = self._fslot[ev.slot]
-        rows = self._step(ev, fs)
-        dec = self.join.decide(ev, rows.mode, rows.uncertain, rows.alarm_std_rad, rows.reason)
-        if len(dec.transition_row) or ev.reset.any():
-            self._note_transitions(ev, fs, rows, dec)
-        own = fs < 0
-        if own.any():
-            for slot in set(ev.slot[own].tolist()):
-                self._log_transitions(self._slot_vehicle[slot], self._slot_state[slot])
+        fh = self.filters
+        resets = np.flatnonzero(ev.reset).tolist()
+        for r in resets:
+            self._gap_warning(int(ev.slot[r]), ev.gap_s[r], float(ev.t_s[r]))
+        outs, a = [], 0
+        for r in resets:
+            if r > a:
+                outs.append(fh.step(fs[a:r], ev.kind[a:r], ev.t_s[a:r], ev.a[a:r], ev.b[a:r], ev.dt_s[a:r],
+                                    ev.dmc[a:r]))
+            fh.reset(int(fs[r]))
+            a = r
+        outs.append(fh.step(fs[a:], ev.kind[a:], ev.t_s[a:], ev.a[a:], ev.b[a:], ev.dt_s[a:], ev.dmc[a:]))
+        o = outs[0] if len(outs) == 1 else compiled.StepOutput(*(np.concatenate(x) for x in zip(*outs, strict=True)))
+        dec = self.join.decide(ev, o.mode, o.heading_uncertain, o.heading_std_rad, o.reason)
+        if len(dec.transition_row) or resets:
+            self._note_transitions(ev, o, dec)
         for r, state, raised_t in zip(dec.alarm_row.tolist(), dec.alarm_state.tolist(),
                                       dec.alarm_raised_t_s.tolist(), strict=True):
-            self._alarm(r, state, raised_t, ev, rows)
+            self._alarm(self._slot_vehicle[int(ev.slot[r])], state, float(ev.t_s[r]), float(o.heading_std_rad[r]),
+                        float(o.time_since_mag_fused_s[r]), int(o.mode[r]), raised_t)
         if len(dec.publish):
-            self._publish(dec.publish, ev, rows, rows_out)
+            self._publish_rows(dec.publish, ev, o, rows_out)
 
-    def _note_transitions(self, ev: fleet.Events, fs: np.ndarray, rows: _Rows, dec: fleet.Decisions) -> None:
-        """The fleet's mode changes into each vehicle's ``filter.transitions`` (a restart clears them, as the
-        filter's reset does), then logged."""
-        marks = [(r, 1, f) for r, f in zip(dec.transition_row.tolist(), dec.transition_from.tolist(), strict=True)
-                 if fs[r] >= 0]
-        marks += [(r, 0, 0) for r in np.flatnonzero(ev.reset & (fs >= 0)).tolist()]
+    def _gap_warning(self, slot: int, gap_s: float, t: float) -> None:
+        self.log.warning("vehicle %s: IMU gap of %.2f s at t=%.2f s: restarting the heading filter",
+                         self._slot_vehicle.get(slot), float(gap_s), float(t))
+
+    def _note_transitions(self, ev: fleet.Events, o: compiled.StepOutput, dec: fleet.Decisions) -> None:
+        """The mode changes of rows stepped in bulk into each vehicle's ``filter.transitions`` (a restart clears
+        them, as the filter's reset does), then logged."""
+        marks = [(r, 1, f) for r, f in zip(dec.transition_row.tolist(), dec.transition_from.tolist(), strict=True)]
+        marks += [(r, 0, 0) for r in np.flatnonzero(ev.reset).tolist()]
         marks.sort()
         touched = {}
         for r, what, frm in marks:
@@ -474,43 +471,40 @@ class HeadingFuser(Service):
                 f.transitions = []
                 st.n_transitions_logged = 0
             else:
-                f.transitions.append((float(rows.t_s[r]), core.MODES[frm], core.MODES[int(rows.mode[r])],
-                                      compiled.REASONS[int(rows.reason[r])]))
+                f.transitions.append((float(o.t_s[r]), core.MODES[frm], core.MODES[int(o.mode[r])],
+                                      compiled.REASONS[int(o.reason[r])]))
             touched[slot] = st
         for slot, st in touched.items():
             st.filter._ntr = self.filters.mode_changes(st.fleet_slot)
             self._log_transitions(self._slot_vehicle[slot], st)
 
-    def _alarm(self, r: int, state: int, raised_t: float, ev: fleet.Events, rows: _Rows) -> None:
-        """``_check_alarm``: the heading alarm raised or cleared after event row ``r``."""
-        vehicle = self._slot_vehicle[int(ev.slot[r])]
+    def _alarm(self, vehicle: str, state: int, t: float, h_std: float, since_fused_s: float, mode: int,
+               raised_t: float) -> None:
+        """``_check_alarm``: the heading alarm raised (``state`` 1) or cleared (0) at ``t``."""
         s = self.settings
-        t = float(ev.t_s[r])
-        h_std = float(rows.alarm_std_rad[r])
-        mode = core.MODES[int(rows.mode[r])]
+        m = core.MODES[mode]
         if state:
             self.alarm(vehicle, "heading", "raised", "warning",
-                       f"heading uncertainty {math.degrees(h_std):.1f}° after "
-                       f"{float(rows.time_since_mag_fused_s[r]):.0f} s without a usable magnetometer (mode {mode})",
-                       h_std, s.heading_alarm_std_rad, t, unit="rad")
+                       f"heading uncertainty {math.degrees(h_std):.1f}° after {since_fused_s:.0f} s without a usable "
+                       f"magnetometer (mode {m})", h_std, s.heading_alarm_std_rad, t, unit="rad")
         else:
             self.alarm(vehicle, "heading", "cleared", "warning",
-                       f"heading uncertainty back to {math.degrees(h_std):.1f}° (mode {mode})",
+                       f"heading uncertainty back to {math.degrees(h_std):.1f}° (mode {m})",
                        h_std, s.heading_alarm_std_rad, t, unit="rad", raised_t_s=_opt(raised_t))
 
     # ---- outputs ------------------------------------------------------------------------------
-    def _publish(self, idx: np.ndarray, ev: fleet.Events, rows: _Rows, rows_out: bool) -> None:
+    def _publish_rows(self, idx: np.ndarray, ev: fleet.Events, o: compiled.StepOutput, rows_out: bool) -> None:
         """Heading messages after event rows ``idx``: one ``publish_rows`` call (frames), or one message each."""
         slots = ev.slot[idx].tolist()
         vehicles = [self._slot_vehicle[s] for s in slots]
         t = ev.t_s[idx].tolist()
-        cols = {"heading_rad": rows.heading_rad[idx].tolist(), "pitch_rad": rows.pitch_rad[idx].tolist(),
-                "roll_rad": rows.roll_rad[idx].tolist(), "heading_std_rad": rows.heading_std_rad[idx].tolist(),
-                "pitch_std_rad": rows.pitch_std_rad[idx].tolist(), "roll_std_rad": rows.roll_std_rad[idx].tolist(),
-                "mode": [core.MODES[m] for m in rows.mode[idx].tolist()],
-                "mag_innovation_rad": [_opt(x) for x in rows.mag_innovation_rad[idx].tolist()],
-                "mag_test_ratio": [_opt(x) for x in rows.mag_test_ratio[idx].tolist()],
-                "mag_fused": [bool(x) for x in rows.mag_fused[idx].tolist()]}
+        cols = {"heading_rad": o.heading_rad[idx].tolist(), "pitch_rad": o.pitch_rad[idx].tolist(),
+                "roll_rad": o.roll_rad[idx].tolist(), "heading_std_rad": o.heading_std_rad[idx].tolist(),
+                "pitch_std_rad": o.pitch_std_rad[idx].tolist(), "roll_std_rad": o.roll_std_rad[idx].tolist(),
+                "mode": [core.MODES[m] for m in o.mode[idx].tolist()],
+                "mag_innovation_rad": [_opt(x) for x in o.mag_innovation_rad[idx].tolist()],
+                "mag_test_ratio": [_opt(x) for x in o.mag_test_ratio[idx].tolist()],
+                "mag_fused": o.mag_fused[idx].tolist()}
         if rows_out:
             self.publish_rows("heading", [self._slot_state[s].heading_key for s in slots], vehicles, t, cols)
             return
