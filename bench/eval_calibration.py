@@ -2,7 +2,7 @@
 
 ``magmesh eval calibration [--json]``.
 
-1. **Simulated clouds** (services/calibration/synthetic.py, seeded, known truth): hard iron up to
+1. **Simulated clouds** (bench/calibration_synthetic.py, seeded, known truth): hard iron up to
    5 × |B|, soft iron ±30% (diagonal) with ±10% cross-axis terms, 50 nT noise, gross errors on 0%,
    10%, 20% of the samples in 4 bursts, each of 20% of |B| in 3-D and 10% of |B| in 2-D (the
    paper's sizes). Errors: offset ``100·|b̂ − b|/|B|``; matrix: spectral-norm relative error of the
@@ -32,8 +32,9 @@ from dataclasses import replace
 
 import numpy as np
 
+from bench import calibration_synthetic as synthetic
 from magmesh import magcal, maths, paths
-from services.calibration import arls, online_ekf, sufficiency, synthetic, two_step
+from services.calibration import arls, online_ekf, sufficiency, two_step
 from services.calibration.core import CalibrationSettings, OnlineSettings, VehicleCalibration
 
 GOAL_PCT = 1.0

@@ -182,9 +182,9 @@ def quasistatic_broad(trials=BROAD_TRIALS, max_tilt_deg: float = 60.0) -> list[d
     near vertical). ``disturbed_flagged``: fraction of the dataset's disturbed samples marked invalid;
     ``undisturbed_valid``: fraction of the others marked valid.
     """
+    from bench import dmc_training as T
     from magmesh import maths
     from services.dmc_detector import core, quasistatic
-    from services.dmc_detector import training as T
     from sim_publishers.replay.core import load_broad
 
     forms = (("paper_form", quasistatic.QuasiStaticSettings(level="accel", variance_of="components",
@@ -268,8 +268,8 @@ def conditions(drives, field_unit_nt: float = FIELD_UNIT_NT) -> dict:
 
 def lab_rows(judged_spec, unit: float) -> dict:
     """The baselines, FCM and its gain on the paper's turntable experiment (runs it never trained on)."""
+    from bench import dmc_training as T
     from services.dmc_detector import core
-    from services.dmc_detector import training as T
 
     train = [T.simulate_lab(*LAB_TRAIN)]
     judged = [T.simulate_lab(run, seed) for run, seed in judged_spec]
@@ -306,8 +306,8 @@ def _dense(curve: list[dict], steps: int = 20) -> tuple[np.ndarray, np.ndarray]:
 
 def threshold_curve(drives, loose=None) -> list[dict]:
     """RP, MP, WP of the stage-1 threshold test with the loose set scaled by each of CURVE_SCALES."""
+    from bench import dmc_training as T
     from services.dmc_detector import fcm
-    from services.dmc_detector import training as T
 
     err = np.concatenate([d.heading_err_deg for d in drives])
     out = []
@@ -338,7 +338,7 @@ def fcm_gain_against_thresholds(drives, model, loose=None) -> dict:
     The threshold stage's operating curve is traced by scaling the loose set (CURVE_SCALES); the FCM's
     (RP, MP) is compared with the curve at the same MP (RP gained) and at the same RP (MP saved). The same
     is done per drive; the seed-to-seed spread is the standard deviation of the per-drive gains."""
-    from services.dmc_detector import training as T
+    from bench import dmc_training as T
 
     err = np.concatenate([d.heading_err_deg for d in drives])
     m = T.metrics(T.fcm_valid(drives, model), err)
@@ -359,8 +359,8 @@ def fcm_gain_against_thresholds(drives, model, loose=None) -> dict:
 
 
 def run(args: argparse.Namespace) -> dict:
+    from bench import dmc_training as T
     from services.dmc_detector import core, fcm, quasistatic
-    from services.dmc_detector import training as T
 
     t_start = time.perf_counter()
     quick = bool(getattr(args, "quick", False))

@@ -183,8 +183,8 @@ def _err_stats(err_deg: np.ndarray, zone: np.ndarray) -> dict:
 
 
 def evaluate_drive(layout: str, seed: int, duration_s: float, dmc_model=None) -> dict:
+    from bench.dmc_training import simulate_drive
     from services.dmc_detector import fcm
-    from services.dmc_detector.training import simulate_drive
 
     t0 = time.perf_counter()
     d = simulate_drive(layout, seed, duration_s=duration_s)

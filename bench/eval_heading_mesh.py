@@ -96,8 +96,9 @@ def measure(duration_s: float = 300.0, speed: float = 5.0, manifest_path: Path |
 
     from bench.elastic_run import Collector, free_port
     from bench.mesh_bench import wait_tokens
-    from magmesh import supervisor, zconf
+    from magmesh import zconf
     from magmesh.paths import DEPLOY_DIR, REPO
+    from magmesh_cli import supervisor
 
     path = Path(manifest_path or DEPLOY_DIR / "mesh.toml")
     man = supervisor.load_manifest(path)

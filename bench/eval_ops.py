@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from magmesh import recording as rc
+from magmesh_cli import recording as rc
 from schemas import keys, messages
 
 REPO = Path(__file__).resolve().parent.parent
@@ -105,8 +105,8 @@ def _free_port() -> int:
 
 def _round_trip(src: Path, out: Path, endpoint: str, rate: float) -> tuple[dict, float]:
     """Replay ``src`` at ``rate`` into a ``magmesh record`` process; return (replay stats, wall seconds)."""
-    from magmesh.commands.replay import replay_to_mesh
     from magmesh.zconf import build_config
+    from magmesh_cli.commands.replay import replay_to_mesh
 
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     rec = subprocess.Popen([sys.executable, "-m", "magmesh", "record", "-o", str(out), "--connect", endpoint, "-q",
@@ -202,10 +202,10 @@ def broad_clean_recording(trial: str, path: Path, rate_hz: float = 50.0) -> int:
 def measure_broad(progress: bool = True, dmc_overrides: dict | None = None) -> list[dict]:
     import tomllib
 
-    from magmesh.commands.rerun import rerun
     from magmesh.paths import DEPLOY_DIR
-    from magmesh.report.data import group
-    from magmesh.report.summary import vehicle_summary
+    from magmesh_cli.commands.rerun import rerun
+    from magmesh_cli.report.data import group
+    from magmesh_cli.report.summary import vehicle_summary
     from sim_publishers.replay.core import broad_trials
 
     manifest = DEPLOY_DIR / "mesh.toml"

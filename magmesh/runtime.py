@@ -877,12 +877,12 @@ class Runner:
                             seq[k] = v
                     cache[k] = [self._publisher(k), jslot, self.count_out[k]]
             hdr = ("type", "version", "vehicle", "t_s", "seq", *names)
-            vals = list(zip(*colv))  # each row's field values, in names' order
+            vals = list(zip(*colv, strict=True))  # each row's field values, in names' order
             for i in rows:
                 k = keys_[i]
                 c = cache[k]
                 s = seq.get(k, -1) + 1
-                m = dict(zip(hdr, (msg_type, ver, vehicles[i], t_s[i], s, *vals[i])))
+                m = dict(zip(hdr, (msg_type, ver, vehicles[i], t_s[i], s, *vals[i]), strict=True))
                 if arr is not None and c[1] >= 0:
                     arr[c[1]] = s  # before the put, as _send journals (a kill between never repeats a seq)
                 c[0].put(enc(m))

@@ -1,7 +1,7 @@
 """Access control: the secured mesh of ``magmesh up --secure``, with the real simulator and services.
 
 ``magmesh up --secure DIR`` makes the certificates (one per vehicle of the manifest, services, operators) and
-runs its router with mutual TLS and the rules of :mod:`magmesh.secure`, and the car simulator, ingest and the
+runs its router with mutual TLS and the rules of :mod:`magmesh_cli.secure`, and the car simulator, ingest and the
 DMC detector each with its role's certificate (declared publishers, subscribers, liveliness, queries). The car's
 whole stream must reach ``dmc``. Every denial is proven against an allowed twin: the same action by the
 certificate that may do it arrives (or is answered) within the same wait, and the denied one does not.
@@ -22,7 +22,7 @@ import msgpack
 import pytest
 from meshutil import REPO, free_port, query_status, stop, wait_alive
 
-from magmesh import secure
+from magmesh_cli import secure
 from schemas import keys, messages
 
 pytestmark = pytest.mark.mesh
@@ -278,7 +278,7 @@ def test_roles_are_enforced_with_positive_proofs(secured, capsys):
 def test_router_file_matches_the_generated_rules():
     text = (SECURE / "router.json5").read_text()
     conf = json.loads("\n".join(line for line in text.splitlines() if not line.lstrip().startswith("//")))
-    from magmesh.supervisor import load_manifest
+    from magmesh_cli.supervisor import load_manifest
 
     vehicles = secure.manifest_vehicles(load_manifest(REPO / "deploy" / "mesh.toml"))
     assert conf["access_control"] == secure.access_control(vehicles)

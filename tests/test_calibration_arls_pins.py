@@ -11,8 +11,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from bench import calibration_synthetic as synthetic
 from magmesh import magcal
-from services.calibration import arls, synthetic, two_step
+from services.calibration import arls, two_step
 
 ALGEBRAIC = arls.ArlsSettings(refine=False)
 

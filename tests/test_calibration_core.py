@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
+from bench import calibration_synthetic as synthetic
 from magmesh import magcal
 from schemas import messages
-from services.calibration import arls, online_ekf, sufficiency, synthetic, two_step
+from services.calibration import arls, online_ekf, sufficiency, two_step
 from services.calibration.core import CalibrationSettings, ParamRecord, SensorCalibrator
 
 

@@ -14,8 +14,9 @@ import time
 import numpy as np
 import pytest
 
+from bench import calibration_synthetic as synthetic
 from magmesh import magcal
-from services.calibration import synthetic, two_step
+from services.calibration import two_step
 
 
 def _cloud(**kw):

@@ -78,7 +78,7 @@ def _check(r: dict) -> None:
 
 
 def test_threshold_curve_falls_with_tighter_thresholds():
-    from services.dmc_detector import training as T
+    from bench import dmc_training as T
 
     d = [T.simulate_drive("paper_b", 21, 120.0)]
     curve = eval_dmc.threshold_curve(d)
@@ -95,7 +95,7 @@ def test_threshold_curve_falls_with_tighter_thresholds():
 
 
 def test_conditions_count_hidden_bad_samples():
-    from services.dmc_detector import training as T
+    from bench import dmc_training as T
 
     d = T.simulate_lab("magnet", 3, turns=6)
     c = eval_dmc.conditions([d])
@@ -110,8 +110,8 @@ def test_conditions_count_hidden_bad_samples():
 
 
 def test_committed_paper_streets_model_matches_its_recipe():
+    from bench import dmc_training as T
     from services.dmc_detector import fcm
-    from services.dmc_detector import training as T
 
     m = fcm.FcmModel.load(fcm.PAPER_STREETS_MODEL)
     assert m.training["drives"] == [f"{lay}/seed{seed}" for lay, seed in T.PAPER_TRAIN_DRIVES]

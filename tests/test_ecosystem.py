@@ -16,7 +16,7 @@ import time
 import msgpack
 import pytest
 
-from magmesh import foxglove_types as fx
+from magmesh_cli import foxglove_types as fx
 from schemas import keys, messages
 from tests import meshutil as mu
 
@@ -224,7 +224,7 @@ def test_foxglove_live_channels_schemas_and_messages(tmp_path):
 
 def test_foxglove_server_counts_every_message_it_does_not_deliver():
     """A client that does not keep up loses its oldest messages, each one counted; nothing vanishes silently."""
-    from magmesh.foxglove_ws import FoxgloveServer
+    from magmesh_cli.foxglove_ws import FoxgloveServer
 
     server = FoxgloveServer(port=0, backlog=8).start()
     n = 400
@@ -324,7 +324,7 @@ def test_record_json_writes_jsonschema_json_and_foxglove_types(tmp_path):
     assert len(logs) == len(alarms) > 10
     assert [lg["level"] for lg in logs] == [fx.LOG_ERROR if a["state"] == "raised" else fx.LOG_INFO for a in alarms]
     # the magmesh channels replay: read back as msgpack messages equal to what was published
-    from magmesh import recording as rc
+    from magmesh_cli import recording as rc
 
     recs = [r for r in rc.read_records(out) if r.key == "magmesh/car-1/heading"]
     assert len(recs) == len(by_topic["magmesh/car-1/heading"])
@@ -335,7 +335,7 @@ def test_record_json_writes_jsonschema_json_and_foxglove_types(tmp_path):
 
 
 def test_mcap_to_json_foxglove_converts_a_msgpack_recording(tmp_path):
-    from magmesh import recording as rc
+    from magmesh_cli import recording as rc
 
     src, dst = tmp_path / "run.mcap", tmp_path / "fox.mcap"
     t0 = 1_700_000_000_000_000_000
@@ -469,7 +469,7 @@ def test_ros2_bridge_bad_flags(tmp_path):
 def test_zenoh_cli_prints_decoded_magmesh_messages(tmp_path):
     from pathlib import Path
 
-    from magmesh import zenoh_codec
+    from magmesh_cli import zenoh_codec
 
     zenoh_exe = Path(sys.executable).with_name("zenoh")
     assert zenoh_exe.exists(), "zenoh-cli is a dev dependency"

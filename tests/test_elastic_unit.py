@@ -12,7 +12,7 @@ import pytest
 
 from magmesh import groups
 from magmesh.journal import Journal
-from magmesh.supervisor import ManifestError, Supervisor, command_for, load_manifest
+from magmesh_cli.supervisor import ManifestError, Supervisor, command_for, load_manifest
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -167,7 +167,7 @@ def test_dead_state_counts_keys_received_but_never_handled_from_their_first_seq(
 
 
 def test_status_shows_each_members_vehicles_and_those_without_an_owner():
-    from magmesh.commands.status import group_assignment, render
+    from magmesh_cli.commands.status import group_assignment, render
 
     def member(inst, owned, seen):
         return {"role": "dmc_detector", "instance": inst, "answered": True,

@@ -66,3 +66,29 @@ def test_every_process_entry_sets_one_blas_thread_before_numpy_loads():
     r = subprocess.run([sys.executable, "-c", code.format(pkg="services")], cwd=REPO, capture_output=True, text=True,
                        env={**env, "OPENBLAS_NUM_THREADS": "2"}, timeout=60)
     assert r.stdout.split() == ["2", "1"], "a user's own setting is kept"
+
+
+def test_imports_run_one_way():
+    """The runtime library (magmesh) imports neither the operator app (magmesh_cli), the services, the
+    simulators nor the evaluations; services, simulators and the contract never import the app or the
+    evaluations (``python -m magmesh`` is the one entry point that starts the app)."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    rules = {"magmesh": ("magmesh_cli", "services", "sim_publishers", "bench"),
+             "schemas": ("magmesh", "magmesh_cli", "services", "sim_publishers", "bench"),
+             "services": ("magmesh_cli", "bench", "sim_publishers"),
+             "sim_publishers": ("magmesh_cli", "bench")}
+    bad = []
+    for pkg, banned in rules.items():
+        for f in sorted((root / pkg).rglob("*.py")):
+            if f.name == "__main__.py" and pkg == "magmesh":
+                continue
+            for node in ast.walk(ast.parse(f.read_text())):
+                names = [a.name for a in node.names] if isinstance(node, ast.Import) else (
+                    [node.module] if isinstance(node, ast.ImportFrom) and node.module and node.level == 0 else [])
+                for n in names:
+                    if n.split(".")[0] in banned:
+                        bad.append(f"{f.relative_to(root)} imports {n}")
+    assert not bad, bad

@@ -32,7 +32,7 @@ def magmesh(*args: str, timeout: float = WAIT_S) -> subprocess.CompletedProcess:
 def magmesh_inproc(capsys, *args: str) -> tuple[int, str, str]:
     """The same command in this process (the command's own code path, without a process start-up of a few
     seconds on a loaded machine); used for the many variants of a case a subprocess test already covers."""
-    from magmesh.cli import main
+    from magmesh_cli.cli import main
 
     rc = main(list(args))
     out, err = capsys.readouterr()
@@ -116,7 +116,7 @@ def test_up_refuses_bad_only_and_set_names(tmp_path, capsys, flag, needles):
 
 
 def test_demo_manifest_passes_the_check():
-    from magmesh.supervisor import check_processes, load_manifest
+    from magmesh_cli.supervisor import check_processes, load_manifest
 
     m = load_manifest(DEMO)
     check_processes(m, all_processes=True)  # raises on any problem
@@ -351,8 +351,8 @@ class _FakeChild:
 
 def _swapper(monkeypatch, instances: dict[str, tuple[str, str]]):
     """A Swapper over the demo manifest's detector specs; ``instances``: name -> (spec name, running impl)."""
-    from magmesh.supervisor import load_manifest
-    from magmesh.swap import Swapper
+    from magmesh_cli.supervisor import load_manifest
+    from magmesh_cli.swap import Swapper
 
     specs = {p.name: p for p in load_manifest(DEMO).processes}
     children = {name: _FakeChild(specs[spec]) for name, (spec, _) in instances.items()}
@@ -363,7 +363,7 @@ def _swapper(monkeypatch, instances: dict[str, tuple[str, str]]):
 
 
 def test_swap_default_candidate_in_the_demo(monkeypatch):
-    from magmesh.swap import SwapError
+    from magmesh_cli.swap import SwapError
 
     demo = {"dmc-1": ("dmc-1", "threshold"), "dmc-broad-1": ("dmc-broad-1", "quasistatic")}
     # the quasi-static detector's settings (level, dpsi_threshold_deg) are unknown to fcm/threshold
@@ -381,7 +381,7 @@ def test_swap_default_candidate_in_the_demo(monkeypatch):
 
 
 def test_swap_with_several_candidates_refuses_and_lists_them(monkeypatch):
-    from magmesh.swap import SwapError
+    from magmesh_cli.swap import SwapError
 
     two = {"dmc-1": ("dmc-1", "threshold"), "dmc-2": ("dmc-1", "single")}
     with pytest.raises(SwapError) as e:
@@ -393,7 +393,7 @@ def test_swap_with_several_candidates_refuses_and_lists_them(monkeypatch):
 
 
 def test_a_swap_standby_process_is_not_restarted_or_misnamed(tmp_path):
-    from magmesh.supervisor import Child, ProcessSpec
+    from magmesh_cli.supervisor import Child, ProcessSpec
 
     spec = ProcessSpec(name="dmc-broad-1", module="services.dmc_detector")
     log = tmp_path / "x.log"
@@ -412,7 +412,7 @@ def test_a_swap_standby_process_is_not_restarted_or_misnamed(tmp_path):
 def test_give_up_counts_own_exits_on_start_not_kills(tmp_path):
     import signal
 
-    from magmesh.supervisor import Child, ProcessSpec
+    from magmesh_cli.supervisor import Child, ProcessSpec
 
     spec = ProcessSpec(name="p", module="services.ingest")
     failing = Child(spec, [sys.executable, "-c", "import sys; sys.exit(3)"], tmp_path / "f.log", [0.0],
@@ -443,7 +443,7 @@ def test_up_on_a_taken_endpoint_is_one_paragraph(router, tmp_path, capsys):
 
 
 def test_recording_counts_samples_missed_in_transit(tmp_path):
-    from magmesh.recording import RecordingWriter
+    from magmesh_cli.recording import RecordingWriter
 
     def imu(seq):
         return messages.make("imu", "car-1", seq * 0.01, seq, gyro_rad_s=[0.0, 0.0, 0.0], accel_m_s2=[0.0, 0.0, 9.8])
@@ -454,6 +454,6 @@ def test_recording_counts_samples_missed_in_transit(tmp_path):
     c = w.counts.as_dict()
     assert c["written"] == 8
     assert c["missed"] == 2 and c["missed_per_key"] == {keys.raw_imu("car-1"): 2}, c
-    from magmesh.commands.record import format_counts
+    from magmesh_cli.commands.record import format_counts
 
     assert "MISSED in transit (gaps in seq, never received): 2" in format_counts(c, "r.mcap")

@@ -17,7 +17,7 @@ import pytest
 from figcheck import assert_figure_drawn
 from meshutil import free_port, wait_alive
 
-from magmesh import recording as rc
+from magmesh_cli import recording as rc
 from schemas import keys, messages
 
 REPO = Path(__file__).resolve().parent.parent
@@ -46,8 +46,8 @@ class _Recorder:
     """magmesh record running in a thread of the test process."""
 
     def __init__(self, endpoint: str, path: Path, key_exprs=()):
-        from magmesh.commands.record import record
         from magmesh.zconf import build_config
+        from magmesh_cli.commands.record import record
 
         self.stop = threading.Event()
         self.ready = threading.Event()
@@ -109,9 +109,9 @@ def _contiguous_seq(path: Path) -> dict[str, tuple[int, int]]:
 
 def test_record_replay_through_a_swapped_detector_and_report(tmp_path):
     zenoh = pytest.importorskip("zenoh")
-    from magmesh.commands.replay import replay_to_mesh
-    from magmesh.commands.report import make_report
     from magmesh.zconf import build_config
+    from magmesh_cli.commands.replay import replay_to_mesh
+    from magmesh_cli.commands.report import make_report
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = zenoh.open(build_config(mode="router", listen=[endpoint]))
@@ -178,8 +178,8 @@ def test_record_replay_through_a_swapped_detector_and_report(tmp_path):
 
 def test_broad_trial_through_the_mesh_gives_heading_and_alarms(tmp_path):
     zenoh = pytest.importorskip("zenoh")
-    from magmesh.report.data import group, heading_error
     from magmesh.zconf import build_config
+    from magmesh_cli.report.data import group, heading_error
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = zenoh.open(build_config(mode="router", listen=[endpoint]))
@@ -237,7 +237,7 @@ def test_broad_trial_through_the_mesh_gives_heading_and_alarms(tmp_path):
 
 def test_rerun_a_recording_through_a_detector_in_a_private_mesh(tmp_path):
     pytest.importorskip("zenoh")
-    from magmesh.commands.rerun import rerun
+    from magmesh_cli.commands.rerun import rerun
     from sim_publishers.replay import core
 
     # 20 s of BROAD trial 32 around the magnet's arrival, as ingest would have published it
@@ -294,8 +294,8 @@ def test_record_command_stops_on_sigint_and_prints_its_counts(tmp_path):
 
 def test_overlapping_key_expressions_keep_each_sample_once(tmp_path):
     zenoh = pytest.importorskip("zenoh")
-    from magmesh.commands.record import record
     from magmesh.zconf import build_config
+    from magmesh_cli.commands.record import record
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = zenoh.open(build_config(mode="router", listen=[endpoint]))

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from magmesh import recording as rc
+from magmesh_cli import recording as rc
 from schemas import keys, messages
 
 

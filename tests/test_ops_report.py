@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from figcheck import assert_figure_drawn
 
-from magmesh import report
 from magmesh.geomap import synthetic_paper_map
-from magmesh.report import data as rdata
-from magmesh.report import summary as rsum
+from magmesh_cli import report
+from magmesh_cli.report import data as rdata
+from magmesh_cli.report import summary as rsum
 from schemas import keys, messages
 
 
@@ -183,8 +183,8 @@ def test_empty_run_still_writes_a_page(tmp_path):
 
 
 def test_report_command_on_a_recording(tmp_path, rendered):
-    from magmesh import cli
-    from magmesh import recording as rc
+    from magmesh_cli import cli
+    from magmesh_cli import recording as rc
 
     _, _, msgs = rendered
     path = tmp_path / "run.mcap"

@@ -26,12 +26,11 @@ from typing import Any
 
 import msgpack
 
+from magmesh import __version__, groups, zconf
+from magmesh.errors import UserError
 from schemas import keys
 
-from . import __version__, groups, zconf
-from .errors import UserError
-
-log = logging.getLogger("magmesh.supervisor")
+log = logging.getLogger("magmesh_cli.supervisor")
 
 #: a process that ran this long before dying restarts at the shortest backoff again
 HEALTHY_AFTER_S = 3.0
@@ -230,7 +229,7 @@ def implementations(module: str) -> tuple[dict[str, type], str]:
     import importlib
     import importlib.util
 
-    from .runtime import Service, SimPublisher
+    from magmesh.runtime import Service, SimPublisher
 
     try:
         found = importlib.util.find_spec(module)
@@ -278,7 +277,7 @@ def check_spec(spec: ProcessSpec, impl: str | None = None) -> tuple[type, str]:
     """Check one process against its module without starting it: module, implementation, settings (names
     and values, against the implementation's settings class) and extra arguments. Returns the service class
     and implementation name; raises ``ValueError`` with the reason."""
-    from .runtime import build_settings, make_parser
+    from magmesh.runtime import build_settings, make_parser
 
     try:
         impls, default = implementations(spec.module)
@@ -456,7 +455,7 @@ class Supervisor:
         self.raised: set[str] = set()
         self.alarms_ignored = 0  # alarm samples whose state the holding instance did not confirm
         self.events: list[str] = []
-        self.swapper = None  # set by magmesh.swap when available
+        self.swapper = None  # set by magmesh_cli.swap when available
         self.keep_going = False  # a process given up stops the mesh unless set (magmesh up --keep-going)
         self.client_config = None  # ProcessSpec -> Zenoh config file of its role (magmesh up --secure)
 

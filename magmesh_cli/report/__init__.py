@@ -1,6 +1,6 @@
 """Run reports: PNG plots and an HTML page with a summary table, from recorded magmesh messages.
 
-    from magmesh.report import build_report
+    from magmesh_cli.report import build_report
     index = build_report(messages, "report/", title="drive 2026-06-01")   # messages: [(key, msg), ...]
 
 Figures per vehicle (each only when its streams are present): field strength and DMC features with

@@ -1,4 +1,4 @@
-"""The ``magmesh`` command. Sub-commands live in :mod:`magmesh.commands` (one module each, with
+"""The ``magmesh`` command. Sub-commands live in :mod:`magmesh_cli.commands` (one module each, with
 ``register(subparsers)``); they are discovered at start-up."""
 
 from __future__ import annotations
@@ -12,10 +12,11 @@ import pkgutil
 import re
 import sys
 
+from magmesh import __version__
+from magmesh.errors import UserError
 from schemas.keys import KeyError_
 
-from . import __version__, commands
-from .errors import UserError
+from . import commands
 
 
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:

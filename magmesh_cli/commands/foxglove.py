@@ -29,12 +29,12 @@ from pathlib import Path
 
 import msgpack
 
+from magmesh import zconf
+from magmesh.paths import DEPLOY_DIR
 from schemas import keys, messages
 
-from .. import zconf
 from ..foxglove_types import FOXGLOVE_SCHEMAS, FoxgloveConverter, magmesh_channel, to_json_bytes
 from ..foxglove_ws import FoxgloveServer
-from ..paths import DEPLOY_DIR
 from ..recording import matches_any
 from ..tap import decode_samples, run_tap
 
@@ -96,7 +96,7 @@ def parse_origins(manifest: str | None, origin_flags: list[str]) -> dict[str, tu
 
 
 class FoxgloveBridge:
-    """Mesh samples → Foxglove channels (the glue between :mod:`magmesh.tap` and the server)."""
+    """Mesh samples → Foxglove channels (the glue between :mod:`magmesh_cli.tap` and the server)."""
 
     def __init__(self, server: FoxgloveServer, converter: FoxgloveConverter):
         self.server = server

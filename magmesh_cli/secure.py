@@ -15,7 +15,7 @@ Anything else (another CN, no certificate, another authority) gets nothing: ``de
 and a client without a certificate of the authority does not get past the TLS handshake.
 
 ``magmesh up --secure DIR`` calls :func:`prepare` (certificates made if absent, configuration files written)
-and runs the router and every process of the manifest with them. ``python -m magmesh.secure MANIFEST DIR``
+and runs the router and every process of the manifest with them. ``python -m magmesh_cli.secure MANIFEST DIR``
 does the preparation alone (to copy the files to other hosts).
 """
 
@@ -27,9 +27,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from magmesh.paths import DEPLOY_DIR
 from schemas import keys
-
-from .paths import DEPLOY_DIR
 
 MAKE_CERTS = DEPLOY_DIR / "secure" / "make-certs.sh"
 R = keys.ROOT
@@ -226,7 +225,7 @@ def exposure_error(endpoint: str, zenoh_config: str | None, secure: bool, insecu
 
 
 def secure_supervisor(sup, manifest, pki: Path, sans: list[str] | None = None) -> dict:
-    """Prepare ``pki`` and switch a :class:`~magmesh.supervisor.Supervisor` to the secured mesh."""
+    """Prepare ``pki`` and switch a :class:`~magmesh_cli.supervisor.Supervisor` to the secured mesh."""
     prepared = prepare(pki, manifest_vehicles(manifest), sup.endpoint, sans)
     for spec in manifest.processes:  # refuse before starting anything
         if spec.enabled:
@@ -242,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from .supervisor import load_manifest
 
-    p = argparse.ArgumentParser(prog="python -m magmesh.secure",
+    p = argparse.ArgumentParser(prog="python -m magmesh_cli.secure",
                                 description="Make the secured mesh's certificates (if absent) and configuration files.")
     p.add_argument("manifest", help="mesh manifest (TOML): its vehicles get one certificate each")
     p.add_argument("dir", help="where certificates and configuration files go")

@@ -8,12 +8,11 @@ import sys
 
 import msgpack
 
+from magmesh import zconf
+from magmesh.errors import UserError
 from schemas import keys
 
-from .. import zconf
-from ..errors import UserError
-
-MAX_INSTANCES = 64  # as magmesh.supervisor.MAX_INSTANCES (not imported: this command stays light)
+MAX_INSTANCES = 64  # as magmesh_cli.supervisor.MAX_INSTANCES (not imported: this command stays light)
 
 
 def register(sub: argparse._SubParsersAction) -> None:

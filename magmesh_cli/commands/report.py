@@ -21,12 +21,13 @@ import tomllib
 from collections import Counter
 from pathlib import Path
 
-from .. import zconf
-from ..paths import DEPLOY_DIR
+from magmesh import zconf
+from magmesh.paths import DEPLOY_DIR
+
 from ..recording import load_liveliness, load_messages, matches_any, summarize
 from ..report.data import plotted_keys
 
-log = logging.getLogger("magmesh.report")
+log = logging.getLogger("magmesh_cli.report")
 
 
 def register(subparsers) -> None:
@@ -59,7 +60,7 @@ def vehicle_maps(manifest: str | None, override: str | None, vehicles) -> tuple[
     the geomagnetic matcher computes it)."""
     import numpy as np
 
-    from ..geomap import core_field_enu_nt, load_map
+    from magmesh.geomap import core_field_enu_nt, load_map
 
     tables: dict[str, dict] = {}
     if manifest and Path(manifest).exists():

@@ -60,7 +60,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import maths
+from magmesh import maths
 
 DISTROS = ("jazzy", "humble")
 ADMIN_SPACE = "@ros2_lv"

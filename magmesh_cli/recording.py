@@ -10,7 +10,7 @@ MCAP (https://mcap.dev) is the log container of ROS 2 and Foxglove. A magmesh re
 - ``log_time`` = receive time (ns since the Unix epoch), ``publish_time`` = the message's sample time
   ``t_s`` (ns, clamped at 0; the exact float stays in the payload), ``sequence`` = the message ``seq``
   (mod 2³²);
-- a ``magmesh.recording`` metadata record (who recorded what, the key expressions, the counts).
+- a ``magmesh_cli.recording`` metadata record (who recorded what, the key expressions, the counts).
 
 Pure Python (mcap, msgpack): no Zenoh here. :func:`replay` drives any ``publish(key, payload)``
 function with the original timing, scaled by ``rate`` (0 = as fast as possible).
@@ -36,7 +36,7 @@ from schemas import keys, messages
 MESSAGE_ENCODING = "msgpack"
 SCHEMA_ENCODING = "jsonschema"
 SCHEMA_PREFIX = "magmesh."
-METADATA_NAME = "magmesh.recording"
+METADATA_NAME = "magmesh_cli.recording"
 #: pseudo message type of service liveliness events (token appeared / disappeared); not replayed
 LIVELINESS = "liveliness"
 LIVELINESS_SCHEMA = {
@@ -316,7 +316,7 @@ def read_records(path: str | Path, key_exprs: Sequence[str] | None = None,
         for schema, channel, message in reader.iter_messages(log_time_order=True):
             ok = selected.get(channel.id)
             if ok is None:
-                # Foxglove views in a json recording (magmesh.foxglove_mcap) are not mesh traffic
+                # Foxglove views in a json recording (magmesh_cli.foxglove_mcap) are not mesh traffic
                 ok = selected[channel.id] = (channel.metadata.get("foxglove_derived") != "true"
                                              and matches_any(key_exprs, channel.topic))
             if not ok:

@@ -9,10 +9,9 @@ import sys
 
 import msgpack
 
+from magmesh import zconf
+from magmesh.errors import UserError
 from schemas import keys
-
-from .. import zconf
-from ..errors import UserError
 
 
 def check_wildcards(pattern: str, flag: str) -> None:

@@ -8,9 +8,8 @@ import sys
 
 import msgpack
 
+from magmesh import zconf
 from schemas import keys
-
-from .. import zconf
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -70,7 +69,7 @@ def collect(session, timeout: float = 2.0) -> dict:
 def group_assignment(services: list[dict]) -> dict:
     """Role groups (instances = N): per ``role/group``, each member's vehicles and every vehicle seen by a member
     that no member holds (``unowned``) or that two hold (``duplicates``)."""
-    from ..groups import summarize
+    from magmesh.groups import summarize
 
     by: dict[str, dict] = {}
     for s in services:

@@ -22,7 +22,8 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from .. import zconf
+from magmesh import zconf
+
 from ..recording import (
     Remap,
     ReplayStats,

@@ -31,9 +31,9 @@ import threading
 import time
 from collections import Counter
 
+from magmesh import zconf
 from schemas import keys, messages
 
-from .. import zconf
 from ..ros2 import (
     DIAGNOSTICS_TOPIC,
     DISTROS,
@@ -48,7 +48,7 @@ from ..ros2 import (
 )
 from ..tap import decode_samples, run_tap
 
-log = logging.getLogger("magmesh.ros2")
+log = logging.getLogger("magmesh_cli.ros2")
 _ROS_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 _ROS_NS = re.compile(r"^/([A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*)?$")
 

@@ -25,7 +25,7 @@ def register(subparsers) -> None:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from services.dmc_detector import training as T
+    from bench import dmc_training as T
 
     default_drives = ",".join(f"{lay}:{seed}" for lay, seed in T.DEFAULT_TRAIN_DRIVES)
     p.add_argument("--drives", default=default_drives,
@@ -53,8 +53,8 @@ def parse_drives(text: str) -> list[tuple[str, int]]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from bench import dmc_training as T
     from services.dmc_detector import fcm
-    from services.dmc_detector import training as T
 
     drives = [T.simulate_drive(lay, seed, args.duration_s) for lay, seed in parse_drives(args.drives)]
     model = T.train_fcm(drives, args.features, seed=args.seed, use_reference=not args.paper_order,

@@ -23,9 +23,9 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from magmesh import zconf
 from schemas import keys
 
-from .. import zconf
 from ..recording import RecordingWriter, keyexpr_matches
 
 log = logging.getLogger("magmesh.record")

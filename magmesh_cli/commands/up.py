@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..paths import DEPLOY_DIR
+from magmesh.paths import DEPLOY_DIR
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -36,7 +36,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..runtime import setup_logging
+    from magmesh.runtime import setup_logging
+
     from ..supervisor import ManifestError, Supervisor, check_processes, load_manifest
 
     setup_logging(args.log_level)

@@ -16,9 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from magmesh import maths
-
-from . import core, fcm
-from .core import CompassParams, Features, Thresholds
+from services.dmc_detector import core, fcm
+from services.dmc_detector.core import CompassParams, Features, Thresholds
 
 GOOD_DEG = 5.0
 
@@ -284,7 +283,7 @@ def quasistatic_run(drive: DriveData, settings=None) -> tuple[np.ndarray, np.nda
 
     Returns (valid, heading error in degrees) per magnetometer epoch (compass 1).
     """
-    from .quasistatic import QuasiStaticDetector
+    from services.dmc_detector.quasistatic import QuasiStaticDetector
 
     if drive.gyro_t_s is None or drive.mag1_nt is None or drive.params1 is None:
         raise ValueError(f"drive {drive.name} has no IMU/magnetometer streams for the quasi-static detector")

@@ -31,9 +31,8 @@ import math
 from collections import Counter
 from dataclasses import dataclass, field
 
+from magmesh import maths
 from schemas import keys, messages
-
-from . import maths
 
 SCHEMA_PREFIX = "magmesh."
 #: schema of service status messages (magmesh/svc/<role>/<instance>/status): a free-form map

@@ -31,7 +31,7 @@ import msgpack
 
 from schemas import keys
 
-log = logging.getLogger("magmesh.swap")
+log = logging.getLogger("magmesh_cli.swap")
 
 
 class SwapError(RuntimeError):

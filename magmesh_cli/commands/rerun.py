@@ -24,9 +24,9 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from magmesh.paths import DEPLOY_DIR, REPO
 from schemas import keys
 
-from ..paths import DEPLOY_DIR, REPO
 from ..recording import matches_any, parse_rate, summarize
 
 log = logging.getLogger("magmesh.rerun")
@@ -71,7 +71,8 @@ def rerun(
     record everything else they publish to ``output``. Returns replay and recording counts."""
     import zenoh
 
-    from ..zconf import build_config
+    from magmesh.zconf import build_config
+
     from .record import record
     from .replay import replay_to_mesh
 

@@ -1,23 +1,23 @@
 """MCAP recordings that Foxglove opens as they are: json messages with jsonschema schemas.
 
-:class:`FoxgloveMcapWriter` has the interface of :class:`magmesh.recording.RecordingWriter` (``write``,
+:class:`FoxgloveMcapWriter` has the interface of :class:`magmesh_cli.recording.RecordingWriter` (``write``,
 ``write_message``, ``write_liveliness``, ``skip``, ``close``, ``counts``, ``info``), so ``magmesh record
 --encoding json`` uses it in place of the default exact-bytes msgpack writer. A file holds:
 
 - one channel per magmesh key (topic = the key, message encoding ``json``, schema ``magmesh.<type>`` in
   ``jsonschema`` encoding, channel metadata ``magmesh_type`` / ``vehicle`` / ``kind``), each message the
   decoded magmesh message as JSON;
-- the Foxglove well-known channels of :mod:`magmesh.foxglove_types` (``/<vehicle>/log`` foxglove.Log,
+- the Foxglove well-known channels of :mod:`magmesh_cli.foxglove_types` (``/<vehicle>/log`` foxglove.Log,
   ``/<vehicle>/gnss/fix`` and ``/<vehicle>/geomag/fix`` foxglove.LocationFix, ``/<vehicle>/pose``
   foxglove.PoseInFrame, ``/tf`` foxglove.FrameTransform), channel metadata ``foxglove_derived = true``
   (readers of magmesh recordings skip them: they are views, not mesh traffic);
 - payloads that do not decode as magmesh messages on a schema-less channel, message encoding
   ``application/octet-stream``, the bytes unchanged (kept and counted as *unvalidated*, never lost);
-- the same ``magmesh.recording`` metadata as a msgpack recording, with ``message_encoding = json``.
+- the same ``magmesh_cli.recording`` metadata as a msgpack recording, with ``message_encoding = json``.
 
 A batch (contract v2) is stored as its samples, each on its stream's own key (a replay publishes them as
 single samples). ``log_time`` is the receive time, ``publish_time`` the sample time, as in msgpack recordings. Replaying a
-json recording re-encodes each message as msgpack (:func:`magmesh.recording.read_records`); JSON keeps
+json recording re-encodes each message as msgpack (:func:`magmesh_cli.recording.read_records`); JSON keeps
 floats exactly (shortest repr round trip), so the replayed messages equal the recorded ones.
 """
 

@@ -14,9 +14,8 @@ import signal
 import threading
 import time
 
+from magmesh import zconf
 from schemas import keys
-
-from .. import zconf
 
 log = logging.getLogger("magmesh.router")
 
@@ -45,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
 
     import zenoh
 
-    from ..runtime import setup_logging
+    from magmesh.runtime import setup_logging
 
     setup_logging(args.log_level)
     conf = build_router_config(args)

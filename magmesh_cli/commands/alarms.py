@@ -7,10 +7,9 @@ import json
 import sys
 import time
 
+from magmesh import zconf
+from magmesh.errors import UserError
 from schemas import keys
-
-from .. import zconf
-from ..errors import UserError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
