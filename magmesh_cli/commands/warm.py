@@ -14,7 +14,7 @@ import time
 
 #: modules with a ``warm()`` function (those not installed are skipped)
 MODULES = ("services.ingest.fleet", "services.dmc_detector.fleet", "services.heading_fuser.compiled",
-           "services.calibration.fleet")
+           "services.heading_fuser.fleet", "services.calibration.fleet")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
