@@ -599,3 +599,18 @@ def test_mesh_ingest_frames_through_calibration(tmp_path):
         for s in subs:
             s.undeclare()
         router.close()
+
+
+def test_param_id_codes_stay_bounded_and_right():
+    fc = F.FleetCalibration(capacity=2)
+    s = [fc.add_sensor(fc.add_vehicle(f"v{i}", online=False), "1") for i in range(2)]
+    for k in range(3000):  # many sets over time: the code table starts again, the sets in use keep their ids
+        fc._set_current(s[k % 2], ParamRecord(magcal.MagParams(), f"1-ls-{k}", "ok", "ls"))
+        assert len(fc._pid_list) <= 4 * len(fc.cur_pid) + 1024
+    for x in s:
+        assert fc._pid_list[fc.cur_code[x]] == fc.cur_pid[x] == fc.records[x].param_id
+    one = np.zeros(1, np.int64)
+    st = fc.step([F.MagIn("1", np.array([0, 1]), np.array(s), np.array([1.0, 1.0]), np.ones((2, 3)))])
+    assert st.param_ids(0) == ["1-ls-2998", "1-ls-2999"] and st.param_id_column(0) == ["1-ls-2998", "1-ls-2999"]
+    st = fc.step([F.MagIn("1", one, np.array(s[:1]), np.array([2.0]), np.ones((1, 3)))])
+    assert st.param_id_column(0) == "1-ls-2998"

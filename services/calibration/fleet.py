@@ -66,8 +66,7 @@ import math
 import sys
 import time
 from collections import deque
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -124,11 +123,12 @@ _GOOD_FIX = np.array([f in online_ekf.GOOD_FIX for f in GNSS_FIXES])
 # settings vector
 (C_WINDOW, C_INTERVAL, C_REFIT, C_IMU_WINDOW, C_RW2, C_HN2, C_VEL_STD, C_MIN_SPEED, C_MAX_YAW, C_GATE2, C_OBS_RATIO,
  C_CONV_STD, C_MIN_TILT, C_PRIOR_STD, C_CONV_PUB, C_MIN_CHANGE, C_EKF_IMPROVE, C_MIN_INTERVAL, C_MIN_EPOCHS,
- C_TILT_ACCEL, C_SR_WINDOW) = range(21)
-N_CFG = 21
-# GNSS input columns
-G_SPEED, G_COURSE, G_OK, G_DECL = range(4)
-N_G = 4
+ C_TILT_ACCEL, C_SR_WINDOW, C_MIN_SATS, C_MAX_PDOP) = range(23)
+N_CFG = 23
+# GNSS input columns: speed, course, declination, satellites, PDOP, fix type (its code in GNSS_FIXES, −1 another)
+# and whether that fix type is good enough (online_ekf.GOOD_FIX)
+G_SPEED, G_COURSE, G_DECL, G_SATS, G_PDOP, G_FIX, G_GOOD_FIX = range(7)
+N_G = 7
 # epoch ring columns: m (3), course, roll, pitch, declination
 N_EP = 7
 #: samples of a sensor kept for the GNSS epochs (the reference's deque(maxlen=64))
@@ -502,7 +502,14 @@ def _run_py(k0, phase0, allow_fit, order, kind, kidx, mag_slot, mag_t, mag_b, im
                 continue
             t = g_t[r]
             speed = g_f[r, G_SPEED]
+            pdop = g_f[r, G_PDOP]
+            sats = g_f[r, G_SATS]
             if phase == 0:
+                # what the status names as the reason an epoch was not used: the vehicle's last GNSS row
+                VI[v, VI_G_FIX] = int(g_f[r, G_FIX])
+                VI[v, VI_G_SATS] = int(sats)
+                VF[v, VF_G_PDOP] = pdop
+                VF[v, VF_G_SPEED] = speed
                 # the speed rate (online_ekf.SpeedRate.update)
                 scap = ST.shape[1]
                 sn = VI[v, VI_SR_N]
@@ -592,7 +599,9 @@ def _run_py(k0, phase0, allow_fit, order, kind, kidx, mag_slot, mag_t, mag_b, im
             roll = VF[v, VF_ROLL]
             pitch = VF[v, VF_PITCH]
             yaw_rate = VF[v, VF_YAW_RATE]
-            ok = g_f[r, G_OK] != 0.0
+            # online_ekf.gnss_usable
+            ok = g_f[r, G_GOOD_FIX] != 0.0 and sats >= cfg[C_MIN_SATS] and not pdop > cfg[C_MAX_PDOP] and \
+                not speed < cfg[C_MIN_SPEED]
             decl = g_f[r, G_DECL]
             course = g_f[r, G_COURSE]
             for j in range(j0, VI[v, VI_NSENS]):
@@ -859,29 +868,41 @@ class Step:
     the row, :meth:`param_ids` the id of that set; ``events`` the parameter-set decisions in the order they
     happened."""
 
-    __slots__ = ("h", "usable", "events", "_bounds", "_ver", "_slots", "_pid_now", "_ver_now", "_pids")
+    __slots__ = ("h", "usable", "events", "_bounds", "_ver", "_slots", "_code_now", "_ver_now", "_pids", "_table")
 
-    def __init__(self, h, use, ver, slots, bounds, events, pids, pid_now, ver_now):
+    def __init__(self, h, use, ver, slots, bounds, events, pids, code_now, ver_now, table):
         self.h = [h[a:b] for a, b in bounds]
         self.usable = [use[a:b] for a, b in bounds]
         self.events = events
         self._bounds, self._ver, self._slots = bounds, ver, slots
-        self._pid_now, self._ver_now, self._pids = pid_now, ver_now, pids
+        self._code_now, self._ver_now, self._pids, self._table = code_now, ver_now, pids, table
+
+    def _late(self, a: int, b: int) -> np.ndarray:
+        """Rows compensated with a set that was replaced later in the same step."""
+        return np.flatnonzero(self._ver[a:b] != self._ver_now[a:b])
 
     def param_ids(self, i: int) -> list:
         """The id of the set that compensated each row of magnetometer input ``i`` (None where none was usable)."""
         a, b = self._bounds[i]
-        out = self._pid_now[a:b]
-        late = np.flatnonzero(self._ver[a:b] != self._ver_now[a:b])
-        if late.size:
-            out = out.copy()
-            for r in late.tolist():
-                out[r] = self._pids.get((int(self._slots[a + r]), int(self._ver[a + r])))
+        table = self._table
+        out = [None if c < 0 else table[c] for c in self._code_now[a:b].tolist()]
+        for r in self._late(a, b).tolist():
+            out[r] = self._pids.get((int(self._slots[a + r]), int(self._ver[a + r])))
         use = self.usable[i]
         if not use.all():
-            out = out.copy()
-            out[~use] = None
-        return out.tolist()
+            for r in np.flatnonzero(~use).tolist():
+                out[r] = None
+        return out
+
+    def param_id_column(self, i: int, rows: np.ndarray | None = None) -> str | list:
+        """:meth:`param_ids` of the rows ``rows`` (all when None) as a frame column: one string when every row
+        has the same set (the ids compared as codes, no string per row), else a list."""
+        a, b = self._bounds[i]
+        codes = self._code_now[a:b] if rows is None else self._code_now[a:b][rows]
+        if codes.size and codes[0] >= 0 and (codes == codes[0]).all() and not self._late(a, b).size:
+            return self._table[int(codes[0])]
+        ids = self.param_ids(i)
+        return ids if rows is None else [ids[r] for r in rows.tolist()]
 
 
 _E1 = np.zeros(0)
@@ -935,6 +956,7 @@ class FleetCalibration:
                                                             online.improve_ratio)
         c[C_MIN_INTERVAL], c[C_MIN_EPOCHS] = online.min_interval_s, min(30, online.gnss_window)
         c[C_TILT_ACCEL] = 1.0 if online.tilt_source == "accel" else 0.0
+        c[C_MIN_SATS], c[C_MAX_PDOP] = e.min_sats, e.max_pdop
         self.cfg = c
         self.wcap = settings.window_capacity
         cap = max(1, int(capacity))
@@ -960,6 +982,10 @@ class FleetCalibration:
         self.n_refused = np.zeros(cap, np.int64)
         self.n_replaced = np.zeros(cap, np.int64)
         self.cur_pid = np.full(cap, None, object)
+        # the id of the set in use as a code (an index in _pid_list; −1: none usable), read per row cheaply
+        self.cur_code = np.full(cap, -1, np.int64)
+        self._pid_list: list[str] = []
+        self._pid_code: dict[str, int] = {}
         # per vehicle slot
         self.vnames: list[str | None] = [None] * cap
         self.vsensors: list[dict[str, int]] = [{} for _ in range(cap)]
@@ -999,6 +1025,7 @@ class FleetCalibration:
                 a = getattr(self, name)
                 setattr(self, name, np.concatenate([a, np.zeros(old, a.dtype)]))
             self.cur_pid = np.concatenate([self.cur_pid, np.full(old, None, object)])
+            self.cur_code = np.concatenate([self.cur_code, np.full(old, -1, np.int64)])
             self.records += [None] * old
             self.attempts += [None] * old
             self.sids += [None] * old
@@ -1061,6 +1088,7 @@ class FleetCalibration:
         self.sids[s] = sid
         self.n_fits[s] = self.n_refused[s] = self.n_replaced[s] = 0
         self.cur_pid[s] = None
+        self.cur_code[s] = -1
         self.SF[s, F_CUR_M:F_CUR_M + 9] = np.eye(3).ravel()
         self.SI[s, I_CUR_OBS:I_CUR_OBS + 3] = 1
         if initial is not None:
@@ -1094,6 +1122,7 @@ class FleetCalibration:
             self.SI[s] = 0
             self.records[s] = self.attempts[s] = self.sids[s] = None
             self.cur_pid[s] = None
+            self.cur_code[s] = -1
             self.queue.discard(s)
             self._sid_slots[sid][v] = -1
             self._free_s.append(s)
@@ -1129,7 +1158,20 @@ class FleetCalibration:
         ver = int(self.SI[s, I_CUR_VER])
         self._pids.setdefault((s, ver), self.cur_pid[s])  # rows of this step compensated before the change
         self.SI[s, I_CUR_VER] = ver + 1
-        self.cur_pid[s] = rec.param_id if rec.status in USABLE else None
+        pid = rec.param_id if rec.status in USABLE else None
+        self.cur_pid[s] = pid
+        self.cur_code[s] = -1 if pid is None else self._code(pid)
+
+    def _code(self, pid: str) -> int:
+        c = self._pid_code.get(pid)
+        if c is None:
+            if len(self._pid_list) >= 4 * len(self.cur_pid) + 1024:  # ids no longer in use: start the table again
+                self._pid_list, self._pid_code = [], {}
+                for i in np.flatnonzero(self.cur_code >= 0).tolist():
+                    self.cur_code[i] = self._code(self.cur_pid[i])
+            c = self._pid_code[pid] = len(self._pid_list)
+            self._pid_list.append(pid)
+        return c
 
     def window(self, s: int) -> np.ndarray:
         """The fit window of sensor slot ``s`` (N × 3 float64, oldest first), as SensorCalibrator.window()."""
@@ -1255,35 +1297,37 @@ class FleetCalibration:
 
     # ---- GNSS inputs ------------------------------------------------------------------------------------------
     def _gnss_columns(self, g: GnssIn) -> np.ndarray:
-        """Per GNSS row: speed, course, whether the epoch is usable (online_ekf.gnss_usable), declination."""
+        """Per GNSS row: speed, course, declination, and what decides whether the epoch is usable."""
         n = len(g.t_s)
         cols = g.cols
         out = np.empty((n, N_G))
-        speed = np.asarray(cols["speed_m_s"], float)
-        sats = np.asarray(cols["num_sats"], np.int64)
-        pdop = np.asarray(cols["pdop"], float)
+        out[:, G_SPEED] = cols["speed_m_s"]
+        out[:, G_COURSE] = cols["course_rad"]
+        out[:, G_SATS] = cols["num_sats"]
+        out[:, G_PDOP] = cols["pdop"]
         fix = cols["fix_type"]
         if isinstance(fix, str):
-            fcode = np.full(n, _FIX_CODE.get(fix, -1), np.int64)
+            code = _FIX_CODE.get(fix, -1)
+            out[:, G_FIX] = code
+            out[:, G_GOOD_FIX] = code >= 0 and _GOOD_FIX[code]
         else:
             fcode = np.fromiter((_FIX_CODE.get(f, -1) for f in fix), np.int64, n)
-        e = self.online.ekf
-        out[:, G_SPEED] = speed
-        out[:, G_COURSE] = np.asarray(cols["course_rad"], float)
-        out[:, G_OK] = (fcode >= 0) & _GOOD_FIX[fcode] & (sats >= e.min_sats) & ~(pdop > e.max_pdop) & \
-            ~(speed < e.min_speed_m_s)
+            out[:, G_FIX] = fcode
+            out[:, G_GOOD_FIX] = (fcode >= 0) & _GOOD_FIX[fcode]
         vs = np.asarray(g.vslots, np.int64)
+        if (out[:, G_FIX] < 0).any():  # a fix type this version does not know: kept by name for the status
+            for i in np.flatnonzero(out[:, G_FIX] < 0).tolist():
+                self._odd_fix[int(vs[i])] = fix if isinstance(fix, str) else fix[i]
         VF = self.VF
-        online = self.VI[vs, VI_ONLINE] != 0
         decl = VF[vs, VF_DECL]
-        need = online & np.isnan(decl)
+        need = np.isnan(decl) & (self.VI[vs, VI_ONLINE] != 0)
         if need.any():
             # the declination at the rounded position: the vehicle's last one when it has not left its cell
             ni = np.flatnonzero(need)
             la, lo, al = Declinations.cells(*(np.asarray(cols[c], float)[ni] for c in ("lat_deg", "lon_deg", "alt_m")))
             vn = vs[ni]
             same = (la == VF[vn, VF_CELL_LAT]) & (lo == VF[vn, VF_CELL_LON]) & (al == VF[vn, VF_CELL_ALT])
-            d = VF[vn, VF_CELL_DECL].copy()
+            d = VF[vn, VF_CELL_DECL]
             moved = ~same
             if moved.any():
                 d[moved] = self.declinations(la[moved], lo[moved], al[moved], rounded=True)
@@ -1291,20 +1335,8 @@ class FleetCalibration:
                 VF[vn[moved], VF_CELL_LON] = lo[moved]
                 VF[vn[moved], VF_CELL_ALT] = al[moved]
                 VF[vn[moved], VF_CELL_DECL] = d[moved]
-            decl = decl.copy()
             decl[ni] = d
         out[:, G_DECL] = decl
-        # each online vehicle's last row: what the status names as the reason an epoch was not used
-        last = np.flatnonzero(np.r_[vs[1:] != vs[:-1], True] & online) if n else np.zeros(0, np.int64)
-        if last.size:
-            vl = vs[last]
-            self.VI[vl, VI_G_FIX] = fcode[last]
-            self.VI[vl, VI_G_SATS] = sats[last]
-            VF[vl, VF_G_PDOP] = pdop[last]
-            VF[vl, VF_G_SPEED] = speed[last]
-            if (fcode[last] < 0).any():  # a fix type this version does not know: kept by name
-                for i in last[fcode[last] < 0].tolist():
-                    self._odd_fix[int(vs[i])] = fix if isinstance(fix, str) else fix[i]
         return out
 
     # ---- the step ---------------------------------------------------------------------------------------------
@@ -1400,7 +1432,7 @@ class FleetCalibration:
             bounds.append((a, a + len(x.t_s)))
             a += len(x.t_s)
         return Step(out_h, out_use.view(bool), out_ver, mag_slot, bounds, self._events, self._pids,
-                    self.cur_pid[mag_slot], self.SI[mag_slot, I_CUR_VER])
+                    self.cur_code[mag_slot], self.SI[mag_slot, I_CUR_VER], self._pid_list)
 
     # ---- what the status shows --------------------------------------------------------------------------------
     def sensor_entry(self, s: int) -> dict:
@@ -1493,6 +1525,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from services.calibration import fleet as _fleet  # the module's own kernels (and cache), not a __main__ copy
+    from services.calibration import (
+        fleet as _fleet,  # the module's own kernels (and cache), not a __main__ copy
+    )
 
     sys.exit(_fleet.main())

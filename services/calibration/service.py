@@ -240,22 +240,26 @@ class Calibration(Service):
         out = {}
         for i, (x, st) in enumerate(mags):
             use = step.usable[i]
-            if not use.all():  # counted per sensor slot here, handed to the drop counts at the tick
+            every = bool(use.all())
+            if not every:  # counted per sensor slot here, handed to the drop counts at the tick
                 if self._unusable.shape[0] < fc.SF.shape[0]:
                     self._unusable = np.concatenate([self._unusable,
                                                      np.zeros(fc.SF.shape[0] - self._unusable.shape[0], np.int64)])
                 np.add.at(self._unusable, x.slots[~use], 1)
-            rows = np.flatnonzero(use)
-            if not rows.size:
-                continue
-            pids = step.param_ids(i)
-            pids = [pids[r] for r in rows.tolist()] if rows.size < len(pids) else pids
-            cols = {"sensor": x.sid, "b_nt": step.h[i][rows], "calibrated": np.ones(rows.size, np.uint8),
-                    "param_id": pids[0] if pids.count(pids[0]) == len(pids) else pids}
+            if every:  # (the common case: no copies)
+                rows = None
+                h, vi, t = step.h[i], st.vi, st.t_s
+            else:
+                rows = np.flatnonzero(use)
+                if not rows.size:
+                    continue
+                h, vi, t = step.h[i][rows], st.vi[rows], st.t_s[rows]
+            cols = {"sensor": x.sid, "b_nt": h, "calibrated": np.ones(len(t), np.uint8),
+                    "param_id": step.param_id_column(i, rows)}
             temp = st.cols.get("temp_c")
             if isinstance(temp, np.ndarray):
-                cols["temp_c"] = temp[rows]
-            out[f"mag/{x.sid}"] = fleetframe.Stream(f"mag/{x.sid}", "mag", st.vi[rows], st.t_s[rows], None, cols)
+                cols["temp_c"] = temp if rows is None else temp[rows]
+            out[f"mag/{x.sid}"] = fleetframe.Stream(f"mag/{x.sid}", "mag", vi, t, None, cols)
         if out:
             self.publish_frame("cal", names, out)
 
