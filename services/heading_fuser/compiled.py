@@ -63,54 +63,55 @@ ACCEL_REJECTION_M_S2 = 9
 ACCEL_UPDATE_PERIOD_S = 10
 GRAVITY_LPF_TAU_S = 11
 GRAVITY_LPF_NOISE_M_S2 = 12
-REST_DETECTION = 13
-REST_GYRO_RAD_S = 14
-REST_ACCEL_M_S2 = 15
-REST_MIN_S = 16
-REST_FILTER_TAU_S = 17
-REST_ACCEL_NOISE_M_S2 = 18
-REST_GYRO_NOISE_RAD_S = 19
-MAG_NOISE_NT = 20
-MAG_HEADING_NOISE_FLOOR_RAD = 21
-MAG_GATE_SIGMA = 22
-MAG_UPDATE_PERIOD_S = 23
-MAG_DELAY_S = 24
-MAG_DELAY_ONLINE = 25
-MAG_DELAY_MAX_S = 26
-DECLINATION_RAD = 27
-REF_FIELD_NT = 28
-REF_DIP_RAD = 29
-FIELD_STRENGTH_TOL_FRAC = 30
-FIELD_DIP_TOL_RAD = 31
-SAMPLE_STRENGTH_TOL_FRAC = 32
-SAMPLE_DIP_TOL_RAD = 33
-USE_FIELD_CHECK = 34
-MAG_VECTOR_FUSION = 35
-ADAPTIVE_NOISE = 36
-QUASI_STATIC_WINDOW_S = 37
-QUASI_STATIC_VAR_NT2 = 38
-QUASI_STATIC_DIP_VAR_RAD2 = 39
-QUASI_STATIC_HEADING_RAD = 40
-ADAPTIVE_GAIN_VARIANCE = 41
-ADAPTIVE_GAIN_HEADING = 42
-USE_DMC = 43
-CLEAR_HOLD_S = 44
-RECOVERY_HOLD_S = 45
-RECOVERY_SLEW_RAD_S = 46
-RECOVERY_NOISE_GAIN = 47
-DISTURBED_NOISE_GAIN = 48
-DISTURBED_GATE_RAD = 49
-HARD_IRON_TRACKING = 50
-HARD_IRON_TAU_S = 51
-HARD_IRON_NOISE_GAIN = 52
-HARD_IRON_FROM_ROTATION = 53
-HARD_IRON_MIN_INFO = 54
-RECOVERY_EXIT_RAD = 55
-HOLDS_SCALE_WITH_OUTAGE = 56
-MIN_HOLD_S = 57
-REJECTION_TIMEOUT_S = 58
-HEADING_ALARM_STD_RAD = 59
-N_SETTINGS = 60
+GRAVITY_LPF_ORDER = 13
+REST_DETECTION = 14
+REST_GYRO_RAD_S = 15
+REST_ACCEL_M_S2 = 16
+REST_MIN_S = 17
+REST_FILTER_TAU_S = 18
+REST_ACCEL_NOISE_M_S2 = 19
+REST_GYRO_NOISE_RAD_S = 20
+MAG_NOISE_NT = 21
+MAG_HEADING_NOISE_FLOOR_RAD = 22
+MAG_GATE_SIGMA = 23
+MAG_UPDATE_PERIOD_S = 24
+MAG_DELAY_S = 25
+MAG_DELAY_ONLINE = 26
+MAG_DELAY_MAX_S = 27
+DECLINATION_RAD = 28
+REF_FIELD_NT = 29
+REF_DIP_RAD = 30
+FIELD_STRENGTH_TOL_FRAC = 31
+FIELD_DIP_TOL_RAD = 32
+SAMPLE_STRENGTH_TOL_FRAC = 33
+SAMPLE_DIP_TOL_RAD = 34
+USE_FIELD_CHECK = 35
+MAG_VECTOR_FUSION = 36
+ADAPTIVE_NOISE = 37
+QUASI_STATIC_WINDOW_S = 38
+QUASI_STATIC_VAR_NT2 = 39
+QUASI_STATIC_DIP_VAR_RAD2 = 40
+QUASI_STATIC_HEADING_RAD = 41
+ADAPTIVE_GAIN_VARIANCE = 42
+ADAPTIVE_GAIN_HEADING = 43
+USE_DMC = 44
+CLEAR_HOLD_S = 45
+RECOVERY_HOLD_S = 46
+RECOVERY_SLEW_RAD_S = 47
+RECOVERY_NOISE_GAIN = 48
+DISTURBED_NOISE_GAIN = 49
+DISTURBED_GATE_RAD = 50
+HARD_IRON_TRACKING = 51
+HARD_IRON_TAU_S = 52
+HARD_IRON_NOISE_GAIN = 53
+HARD_IRON_FROM_ROTATION = 54
+HARD_IRON_MIN_INFO = 55
+RECOVERY_EXIT_RAD = 56
+HOLDS_SCALE_WITH_OUTAGE = 57
+MIN_HOLD_S = 58
+REJECTION_TIMEOUT_S = 59
+HEADING_ALARM_STD_RAD = 60
+N_SETTINGS = 61
 
 SETTING_NAMES = tuple(f.name for f in fields(core.Settings))
 assert len(SETTING_NAMES) == N_SETTINGS and all(globals()[n.upper()] == i for i, n in enumerate(SETTING_NAMES)), (
@@ -169,7 +170,9 @@ X_TR_T = 81  # time of the last mode change
 X_HR_A = 84  # 9: HardIronFromRotation's information matrix
 X_HR_B = 93  # 3
 X_HR_LAST = 96  # its last sample time (−inf: none)
-N_X = 100
+X_LP_S0 = 97  # 3: the second-order gravity low-pass's states
+X_LP_S1 = 100  # 3
+N_X = 104
 
 # ---- int state columns per slot ----------------------------------------------------------------------------
 I_MODE = 0
@@ -870,6 +873,16 @@ def _attitude_at(x, iv, L, t):
 
 
 @njit(cache=True, error_model="numpy")
+def butterworth2(tau_s, dt):
+    """core.butterworth2: a second-order Butterworth low-pass's coefficients (b0, b1, b2, a1, a2)."""
+    fc = (math.sqrt(2.0) / (2.0 * math.pi)) / tau_s
+    c = math.tan(math.pi * fc * dt)
+    d = c * c + math.sqrt(2.0) * c + 1.0
+    b0 = c * c / d
+    return b0, 2.0 * b0, b0, 2.0 * (c * c - 1.0) / d, (1.0 - math.sqrt(2.0) * c + c * c) / d
+
+
+@njit(cache=True, error_model="numpy")
 def min_eig_sym3(a00, a01, a02, a11, a12, a22):
     """core.min_eig_sym3: the smallest eigenvalue of a symmetric 3×3 matrix (closed form)."""
     p1 = a01 * a01 + a02 * a02 + a12 * a12
@@ -999,7 +1012,24 @@ def _imu(s, x, iv, L, g0, g1, g2, a0, a1, a2, dt, t_in, W):
         i0 = R[0, 0] * a0 + R[0, 1] * a1 + R[0, 2] * a2
         i1 = R[1, 0] * a0 + R[1, 1] * a1 + R[1, 2] * a2
         i2 = R[2, 0] * a0 + R[2, 1] * a1 + R[2, 2] * a2
-        if math.isnan(x[X_ACC_LP]) or iv[I_AT_REST]:
+        if s[GRAVITY_LPF_ORDER] == 2.0:
+            b0, b1, b2, fa1, fa2 = butterworth2(s[GRAVITY_LPF_TAU_S], dt)
+            if math.isnan(x[X_ACC_LP]) or iv[I_AT_REST]:
+                x[X_ACC_LP] = i0
+                x[X_ACC_LP + 1] = i1
+                x[X_ACC_LP + 2] = i2
+                for j in range(3):
+                    v = x[X_ACC_LP + j]
+                    x[X_LP_S0 + j] = v * (1.0 - b0)
+                    x[X_LP_S1 + j] = v * (b2 - fa2)
+            else:
+                for j in range(3):
+                    v = i0 if j == 0 else (i1 if j == 1 else i2)
+                    y = b0 * v + x[X_LP_S0 + j]
+                    x[X_LP_S0 + j] = b1 * v - fa1 * y + x[X_LP_S1 + j]
+                    x[X_LP_S1 + j] = b2 * v - fa2 * y
+                    x[X_ACC_LP + j] = y
+        elif math.isnan(x[X_ACC_LP]) or iv[I_AT_REST]:
             x[X_ACC_LP] = i0
             x[X_ACC_LP + 1] = i1
             x[X_ACC_LP + 2] = i2
