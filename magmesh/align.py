@@ -15,6 +15,12 @@ replay speed the wait is the same real time, never a span of sample time), or wh
 of its stream are already waiting (``overflow``). Given-up samples are returned (a caller may still use them
 alone, e.g. a heading fuser that goes on without a verdict), and counted in :attr:`gave_up`.
 Each stream's samples must arrive in time order (ingest guarantees it on clean data).
+
+The heading fuser's three-way join (IMU, magnetometer, DMC verdict) is a compiled specialisation of these two,
+many vehicles per call (``services/heading_fuser/fleet.py``, whose docstring states its rule): a magnetometer
+sample waits for the IMU to cover its time (a :class:`CoverWait`) and for its verdict (a wall-clock bounded
+wait, as here; one that does not come is counted and the sample used without it); the IMU in turn waits for the
+magnetometer stream, bounded in sample time.
 """
 
 from __future__ import annotations

@@ -421,7 +421,9 @@ def test_frames_and_samples_give_the_same_heading_messages(drives, monkeypatch, 
     drops = lambda r: {(k, why): n for k, d in r.drops.items() for why, n in d.items() if n}  # noqa: E731
     assert drops(r_f) == drops(r_s)
     for v in VEHICLES:
-        assert svc_f.join.counts(svc_f.vehicle_states[v].slot) == svc_s.join.counts(svc_s.vehicle_states[v].slot)
+        a, b = svc_f.vehicle_states[v], svc_s.vehicle_states[v]
+        assert svc_f.join.counts(a.slot) == svc_s.join.counts(b.slot)
+        assert a.filter.transitions == b.filter.transitions and a.filter.transitions  # stepped in bulk / row by row
     # what the scenario is made of happened
     period = Settings().publish_period_s
     for v in VEHICLES:

@@ -6,12 +6,16 @@ CONSUMES  magmesh/{vehicle}/clean/imu             gyro + accelerometer (drives t
                                                   latest cal/params, else the manifest's ``mag_params``
           magmesh/{vehicle}/cal/params/{sensor}   parameters for that fallback
           magmesh/{vehicle}/dmc                   the DMC's ``valid`` flag (docs/methods.md#dmc)
+          (the clean/, cal/mag and dmc streams also as fleet frames, magmesh/fleet/{shard}/{clean,cal,dmc}: on_frame)
 PRODUCES  magmesh/{vehicle}/heading               heading/pitch/roll, 1-σ, mode, mag innovation and test ratio
           magmesh/{vehicle}/alarm/heading         heading σ past ``heading_alarm_std_rad`` while not magnetic
 
 The filter is :class:`services.heading_fuser.core.HeadingFilter` (``--impl ekf``, the default; run by its compiled
-twin :class:`services.heading_fuser.compiled.CompiledHeadingFilter` unless ``compiled = false``) or the
-``vqf`` library's VQF (``--impl vqf``, :mod:`services.heading_fuser.vqf_impl`); this file is wiring only.
+twin: every vehicle a slot of one shared :class:`services.heading_fuser.compiled.FleetHeading`, unless
+``compiled = false``) or the ``vqf`` library's VQF (``--impl vqf``, :mod:`services.heading_fuser.vqf_impl`).
+The time join of the streams and the output rules are :mod:`services.heading_fuser.fleet` (compiled, state in
+per-vehicle slots): a fleet frame's rows of every vehicle in one call, a single sample as a call of one row; this
+file is wiring only.
 Manifest vehicle keys used: ``declination_rad``, ``heading_profile`` (a name from
 :mod:`services.heading_fuser.profiles`, e.g. ``imu_only``) and ``mag_params.{sensor}`` (offset_nt,
 matrix, field_radius_nt). New calibration parameters re-base the filter's field reference.
