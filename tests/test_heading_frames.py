@@ -518,7 +518,7 @@ def _old_service(svc: HeadingFuser, v: str, msgs, clock):
     p = MagParams.from_message(svc.vehicles_config[v]["mag_params"]["1"])
     j.params = (p.offset.tolist(), p.M.tolist())
     out, alarms = [], []
-    raised, raised_t, last_pub = False, None, -math.inf
+    raised, last_pub = False, -math.inf
     for tw, _, info, msg in msgs:
         clock[0] = tw * 0.9
         if info.kind == "clean" and info.stream == "imu":
@@ -538,7 +538,7 @@ def _old_service(svc: HeadingFuser, v: str, msgs, clock):
                 continue
             h_std = f.internal_states.heading_std_rad
             if not raised and f.flags.heading_uncertain:
-                raised, raised_t = True, t
+                raised = True
                 alarms.append(("raised", t, h_std, f"heading uncertainty {math.degrees(h_std):.1f}° after "
                                f"{f.internal_states.time_since_mag_fused_s:.0f} s without a usable magnetometer "
                                f"(mode {f.mode})"))

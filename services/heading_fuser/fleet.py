@@ -150,16 +150,16 @@ M_INIT, M_MAG = 0, 1  # compiled.MODES codes the output rules read
 # kernels
 # =========================================================================================================
 @njit(cache=True, inline="always")
-def _newest_verdict_t(I, DHT, k):
+def _newest_verdict_t(IS, DHT, k):
     cap = DHT.shape[1]
-    return DHT[k, (I[k, I_DH_HEAD] + I[k, I_DH_N] - 1) % cap]
+    return DHT[k, (IS[k, I_DH_HEAD] + IS[k, I_DH_N] - 1) % cap]
 
 
 @njit(cache=True, inline="always")
-def _verdict_at(I, DHT, DHV, k, t):
+def _verdict_at(IS, DHT, DHV, k, t):
     """The validity of the latest-arrived verdict at or before ``t`` (−1: none)."""
     cap = DHT.shape[1]
-    h, n = I[k, I_DH_HEAD], I[k, I_DH_N]
+    h, n = IS[k, I_DH_HEAD], IS[k, I_DH_N]
     for j in range(n - 1, -1, -1):
         i = (h + j) % cap
         if DHT[k, i] <= t + 1e-6:
@@ -168,11 +168,11 @@ def _verdict_at(I, DHT, DHV, k, t):
 
 
 @njit(cache=True, inline="always")
-def _verdict_due(I, DHT, PM, k, pm_i, now, S):
+def _verdict_due(IS, DHT, PM, k, pm_i, now, S):
     """(still waiting, why not: 0 waits / 1 no verdict stream / 2 detector silent / 3 wall-clock wait over)."""
-    if I[k, I_DH_N] == 0:
+    if IS[k, I_DH_N] == 0:
         return False, 1
-    if PM[k, pm_i, 0] - _newest_verdict_t(I, DHT, k) > S[S_DMC_TIMEOUT]:
+    if PM[k, pm_i, 0] - _newest_verdict_t(IS, DHT, k) > S[S_DMC_TIMEOUT]:
         return False, 2
     if now - PM[k, pm_i, 4] < S[S_DMC_WAIT_WALL]:
         return True, 0
@@ -197,23 +197,23 @@ def _event(EF, EI, n_ev, k, kind, t, a0, a1, a2, b0, b1, b2, dt, dmc, reset, gap
 
 
 @njit(cache=True, inline="always")
-def _drain(F, I, PM, PI, DHT, DHV, C, k, now, S, EF, EI, n_ev):
+def _drain(F, IS, PM, PI, DHT, DHV, C, k, now, S, EF, EI, n_ev):
     """The per-sample service's ``_drain`` for slot ``k``: events appended from ``n_ev``; returns the new count."""
     pm_cap, pi_cap = PM.shape[1], PI.shape[1]
     maxp = S[S_MAX_PENDING]
     while True:
-        has_mag = I[k, I_PM_N] > 0
-        mi = I[k, I_PM_HEAD]
+        has_mag = IS[k, I_PM_N] > 0
+        mi = IS[k, I_PM_HEAD]
         mt = PM[k, mi, 0] if has_mag else 0.0
         last_imu = F[k, F_LAST_IMU]
         if has_mag and not math.isnan(last_imu) and mt <= last_imu + 1e-6:
             dmc = -1
             ready = True
-            if I[k, I_DH_N] > 0:
-                if _newest_verdict_t(I, DHT, k) >= mt - 1e-6:
-                    dmc = _verdict_at(I, DHT, DHV, k, mt)
+            if IS[k, I_DH_N] > 0:
+                if _newest_verdict_t(IS, DHT, k) >= mt - 1e-6:
+                    dmc = _verdict_at(IS, DHT, DHV, k, mt)
                 else:
-                    due, why = _verdict_due(I, DHT, PM, k, mi, now, S)
+                    due, why = _verdict_due(IS, DHT, PM, k, mi, now, S)
                     if due:
                         ready = False  # the verdict for this time is on its way
                     elif why == 3:
@@ -224,25 +224,25 @@ def _drain(F, I, PM, PI, DHT, DHV, C, k, now, S, EF, EI, n_ev):
                 _event(EF, EI, n_ev, k, E_MAG, mt, PM[k, mi, 1], PM[k, mi, 2], PM[k, mi, 3], 0.0, 0.0, 0.0, 0.0, dmc,
                        0, 0.0)
                 n_ev += 1
-                I[k, I_PM_HEAD] = (mi + 1) % pm_cap
-                I[k, I_PM_N] -= 1
+                IS[k, I_PM_HEAD] = (mi + 1) % pm_cap
+                IS[k, I_PM_N] -= 1
                 continue
-        if I[k, I_PI_N] == 0:
+        if IS[k, I_PI_N] == 0:
             break
-        ii = I[k, I_PI_HEAD]
+        ii = IS[k, I_PI_HEAD]
         it = PI[k, ii, 0]
         if has_mag and mt < it - 1e-9 and not math.isnan(last_imu) and mt <= last_imu + 1e-6:
             # that magnetometer sample waits for its verdict: the IMU goes on (up to the bound)
-            due, why = _verdict_due(I, DHT, PM, k, mi, now, S)
+            due, why = _verdict_due(IS, DHT, PM, k, mi, now, S)
             if due:
-                if I[k, I_PI_N] < maxp:
+                if IS[k, I_PI_N] < maxp:
                     break
                 C[k, C_IMU_FORCED] += 1
         elif (not math.isnan(F[k, F_NEWEST_MAG]) and it > F[k, F_NEWEST_MAG] + 1e-6
-              and F[k, F_NEWEST_IMU] - F[k, F_NEWEST_MAG] <= S[S_MAG_WAIT] and I[k, I_PI_N] < maxp):
+              and F[k, F_NEWEST_IMU] - F[k, F_NEWEST_MAG] <= S[S_MAG_WAIT] and IS[k, I_PI_N] < maxp):
             break  # the magnetometer stream has not reached this time yet: wait a little for it
-        I[k, I_PI_HEAD] = (ii + 1) % pi_cap
-        I[k, I_PI_N] -= 1
+        IS[k, I_PI_HEAD] = (ii + 1) % pi_cap
+        IS[k, I_PI_N] -= 1
         dt = 0.0 if math.isnan(last_imu) else it - last_imu
         gap = dt
         reset = 0
@@ -263,20 +263,20 @@ def _count(C, D, k, c):
 
 
 @njit(cache=True, inline="always")
-def _push_row(F, I, PM, PI, DHT, DHV, C, D, k, code, t, v0, v1, v2, w0, w1, w2, now, S, EF, EI, n_ev):
+def _push_row(F, IS, PM, PI, DHT, DHV, C, D, k, code, t, v0, v1, v2, w0, w1, w2, now, S, EF, EI, n_ev):
     """One pushed sample of slot ``k`` and its slot's drain: returns (events written, why stopped) — stopped
     before the row (nothing changed) when a ring, or the event buffer, has to grow first."""
     pm_cap, pi_cap, dh_cap = PM.shape[1], PI.shape[1], DHT.shape[1]
-    if n_ev + I[k, I_PM_N] + I[k, I_PI_N] + 1 > EF.shape[0]:
+    if n_ev + IS[k, I_PM_N] + IS[k, I_PI_N] + 1 > EF.shape[0]:
         return n_ev, _GROW_EV
     if code == R_IMU:
-        if I[k, I_PI_N] >= pi_cap:
+        if IS[k, I_PI_N] >= pi_cap:
             return n_ev, _GROW_PI
         if not math.isnan(F[k, F_NEWEST_IMU]) and t <= F[k, F_NEWEST_IMU]:
             _count(C, D, k, C_IMU_NOT_AFTER)
             return n_ev, _DONE
         F[k, F_NEWEST_IMU] = t
-        j = (I[k, I_PI_HEAD] + I[k, I_PI_N]) % pi_cap
+        j = (IS[k, I_PI_HEAD] + IS[k, I_PI_N]) % pi_cap
         PI[k, j, 0] = t
         PI[k, j, 1] = v0
         PI[k, j, 2] = v1
@@ -284,26 +284,26 @@ def _push_row(F, I, PM, PI, DHT, DHV, C, D, k, code, t, v0, v1, v2, w0, w1, w2, 
         PI[k, j, 4] = w0
         PI[k, j, 5] = w1
         PI[k, j, 6] = w2
-        I[k, I_PI_N] += 1
+        IS[k, I_PI_N] += 1
     elif code == R_DMC:
-        n = I[k, I_DH_N]
+        n = IS[k, I_DH_N]
         if n >= dh_cap and dh_cap < DMC_HISTORY:
             return n_ev, _GROW_DH
         valid = 1 if v0 != 0.0 else 0
-        I[k, I_DMC_VALID] = valid
+        IS[k, I_DMC_VALID] = valid
         F[k, F_DMC_CRED] = v1
         F[k, F_DMC_T] = t
         if n >= dh_cap:  # full: the oldest verdict goes (deque(maxlen))
-            I[k, I_DH_HEAD] = (I[k, I_DH_HEAD] + 1) % dh_cap
+            IS[k, I_DH_HEAD] = (IS[k, I_DH_HEAD] + 1) % dh_cap
             n -= 1
-        j = (I[k, I_DH_HEAD] + n) % dh_cap
+        j = (IS[k, I_DH_HEAD] + n) % dh_cap
         DHT[k, j] = t
         DHV[k, j] = valid
-        I[k, I_DH_N] = n + 1
-        if I[k, I_PM_N] == 0:
+        IS[k, I_DH_N] = n + 1
+        if IS[k, I_PM_N] == 0:
             return n_ev, _DONE  # nothing waits for a verdict: the drain would release nothing new
     else:
-        if I[k, I_PM_N] >= pm_cap:
+        if IS[k, I_PM_N] >= pm_cap:
             return n_ev, _GROW_PM
         b0, b1, b2 = v0, v1, v2
         if code == R_CAL:
@@ -313,7 +313,7 @@ def _push_row(F, I, PM, PI, DHT, DHV, C, D, k, code, t, v0, v1, v2, w0, w1, w2, 
             if t - F[k, F_LAST_CAL] <= S[S_CAL_TIMEOUT]:
                 _count(C, D, k, C_CAL_IN_USE)
                 return n_ev, _DONE
-            if I[k, I_HAS_PARAMS] == 0:
+            if IS[k, I_HAS_PARAMS] == 0:
                 _count(C, D, k, C_NO_PARAMS)
                 return n_ev, _DONE
             d0, d1, d2 = v0 - F[k, F_OFF], v1 - F[k, F_OFF + 1], v2 - F[k, F_OFF + 2]
@@ -327,29 +327,29 @@ def _push_row(F, I, PM, PI, DHT, DHV, C, D, k, code, t, v0, v1, v2, w0, w1, w2, 
             return n_ev, _DONE
         nm = F[k, F_NEWEST_MAG]
         F[k, F_NEWEST_MAG] = t if math.isnan(nm) else max(nm, t)
-        j = (I[k, I_PM_HEAD] + I[k, I_PM_N]) % pm_cap
+        j = (IS[k, I_PM_HEAD] + IS[k, I_PM_N]) % pm_cap
         PM[k, j, 0] = t
         PM[k, j, 1] = b0
         PM[k, j, 2] = b1
         PM[k, j, 3] = b2
         PM[k, j, 4] = now
         PM[k, j, 5] = src
-        I[k, I_PM_N] += 1
-        if I[k, I_PM_N] > S[S_MAX_PENDING]:
-            h = I[k, I_PM_HEAD]
+        IS[k, I_PM_N] += 1
+        if IS[k, I_PM_N] > S[S_MAX_PENDING]:
+            h = IS[k, I_PM_HEAD]
             _count(C, D, k, C_OVERFLOW_CAL if PM[k, h, 5] == 0 else C_OVERFLOW_CLEAN)
-            I[k, I_PM_HEAD] = (h + 1) % pm_cap
-            I[k, I_PM_N] -= 1
-    return _drain(F, I, PM, PI, DHT, DHV, C, k, now, S, EF, EI, n_ev), _DONE
+            IS[k, I_PM_HEAD] = (h + 1) % pm_cap
+            IS[k, I_PM_N] -= 1
+    return _drain(F, IS, PM, PI, DHT, DHV, C, k, now, S, EF, EI, n_ev), _DONE
 
 
 @njit(cache=True)
-def _push(F, I, PM, PI, DHT, DHV, C, D, r_slot, r_code, r_t, r_v, r_w, start, now, S, EF, EI, n_ev):
+def _push(F, IS, PM, PI, DHT, DHV, C, D, r_slot, r_code, r_t, r_v, r_w, start, now, S, EF, EI, n_ev):
     """Push rows start… (each followed by its slot's drain). Returns (rows done, events written, why stopped):
     a call stops before a row whose ring, or the event buffer, has to grow first (the caller grows it and calls
     again from there)."""
     for r in range(start, r_slot.shape[0]):
-        n_ev, why = _push_row(F, I, PM, PI, DHT, DHV, C, D, r_slot[r], r_code[r], r_t[r], r_v[r, 0], r_v[r, 1],
+        n_ev, why = _push_row(F, IS, PM, PI, DHT, DHV, C, D, r_slot[r], r_code[r], r_t[r], r_v[r, 0], r_v[r, 1],
                               r_v[r, 2], r_w[r, 0], r_w[r, 1], r_w[r, 2], now, S, EF, EI, n_ev)
         if why != _DONE:
             return r, n_ev, why
@@ -357,30 +357,30 @@ def _push(F, I, PM, PI, DHT, DHV, C, D, r_slot, r_code, r_t, r_v, r_w, start, no
 
 
 @njit(cache=True)
-def _push1(F, I, PM, PI, DHT, DHV, C, D, k, code, t, v0, v1, v2, w0, w1, w2, now, S, EF, EI):
+def _push1(F, IS, PM, PI, DHT, DHV, C, D, k, code, t, v0, v1, v2, w0, w1, w2, now, S, EF, EI):
     """One sample (the per-sample path): (events written from 0, why stopped)."""
-    return _push_row(F, I, PM, PI, DHT, DHV, C, D, k, code, t, v0, v1, v2, w0, w1, w2, now, S, EF, EI, 0)
+    return _push_row(F, IS, PM, PI, DHT, DHV, C, D, k, code, t, v0, v1, v2, w0, w1, w2, now, S, EF, EI, 0)
 
 
 @njit(cache=True, inline="always")
-def _decide_row(F, I, S, k, kind, t, reset, mode, unc, hstd):
+def _decide_row(F, IS, S, k, kind, t, reset, mode, unc, hstd):
     """The output rules after one stepped event of slot ``k``: returns (publish, alarm: −1 none / 1 raised / 0
     cleared, the cleared alarm's raise time, the mode code the row left)."""
     if reset:
-        I[k, I_MODE] = M_INIT
-    left = I[k, I_MODE]
-    I[k, I_MODE] = mode
+        IS[k, I_MODE] = M_INIT
+    left = IS[k, I_MODE]
+    IS[k, I_MODE] = mode
     if kind != E_IMU or mode == M_INIT:
         return False, -1, math.nan, left
     alarm = -1
     raised_t = math.nan
-    if I[k, I_RAISED] == 0 and unc:
-        I[k, I_RAISED] = 1
+    if IS[k, I_RAISED] == 0 and unc:
+        IS[k, I_RAISED] = 1
         F[k, F_RAISED_T] = t
         alarm = 1
         raised_t = t
-    elif I[k, I_RAISED] != 0 and (mode == M_MAG or hstd < S[S_CLEAR_STD]):
-        I[k, I_RAISED] = 0
+    elif IS[k, I_RAISED] != 0 and (mode == M_MAG or hstd < S[S_CLEAR_STD]):
+        IS[k, I_RAISED] = 0
         alarm = 0
         raised_t = F[k, F_RAISED_T]
     publish = False
@@ -391,12 +391,12 @@ def _decide_row(F, I, S, k, kind, t, reset, mode, unc, hstd):
 
 
 @njit(cache=True)
-def _decide(F, I, S, e_slot, e_kind, e_t, e_reset, o_mode, o_unc, o_hstd, o_reason, pub, al_row, al_state,
+def _decide(F, IS, S, e_slot, e_kind, e_t, e_reset, o_mode, o_unc, o_hstd, o_reason, pub, al_row, al_state,
             al_raised_t, tr_row, tr_from):
     """The output rules over stepped events (module docstring); returns (published, alarm, transition) counts."""
     n_pub, n_al, n_tr = 0, 0, 0
     for r in range(e_slot.shape[0]):
-        publish, alarm, raised_t, left = _decide_row(F, I, S, e_slot[r], e_kind[r], e_t[r], e_reset[r], o_mode[r],
+        publish, alarm, raised_t, left = _decide_row(F, IS, S, e_slot[r], e_kind[r], e_t[r], e_reset[r], o_mode[r],
                                                      o_unc[r], o_hstd[r])
         if o_reason[r] != 0:
             tr_row[n_tr] = r
@@ -414,8 +414,8 @@ def _decide(F, I, S, e_slot, e_kind, e_t, e_reset, o_mode, o_unc, o_hstd, o_reas
 
 
 @njit(cache=True)
-def _decide1(F, I, S, k, kind, t, reset, mode, unc, hstd):
-    return _decide_row(F, I, S, k, kind, t, reset, mode, unc, hstd)
+def _decide1(F, IS, S, k, kind, t, reset, mode, unc, hstd):
+    return _decide_row(F, IS, S, k, kind, t, reset, mode, unc, hstd)
 
 
 # =========================================================================================================
@@ -472,7 +472,7 @@ class FleetJoin:
         self.max_pending = int(max_pending)
         cap = max(1, int(capacity))
         self.F = np.zeros((cap, N_F))
-        self.I = np.zeros((cap, N_I), np.int64)
+        self.IS = np.zeros((cap, N_I), np.int64)
         self.C = np.zeros((cap, N_C), np.int64)
         self.D = np.zeros((cap, N_C), np.int64)
         r0 = min(_RING0, self.max_pending + 1)
@@ -489,46 +489,46 @@ class FleetJoin:
 
     # ---- slots ----
     def add(self) -> int:
-        free = np.flatnonzero(self.I[:, I_USED] == 0)
+        free = np.flatnonzero(self.IS[:, I_USED] == 0)
         if not len(free):
             self._grow_slots(2 * self.capacity)
-            free = np.flatnonzero(self.I[:, I_USED] == 0)
+            free = np.flatnonzero(self.IS[:, I_USED] == 0)
         k = int(free[0])
         self.F[k] = 0.0
         self.F[k, [F_LAST_IMU, F_NEWEST_IMU, F_NEWEST_MAG, F_DMC_CRED, F_RAISED_T]] = math.nan
         self.F[k, [F_LAST_CAL, F_DMC_T, F_LAST_PUB]] = -math.inf
-        self.I[k] = 0
-        self.I[k, I_DMC_VALID] = -1
-        self.I[k, I_USED] = 1
+        self.IS[k] = 0
+        self.IS[k, I_DMC_VALID] = -1
+        self.IS[k, I_USED] = 1
         self.C[k] = 0
         self.D[k] = 0
         return k
 
     def free(self, slot: int) -> None:
-        self.I[slot] = 0
+        self.IS[slot] = 0
         self.D[slot] = 0
 
     def set_params(self, slot: int, offset_nt, matrix) -> None:
         """clean/mag compensation of the slot: h = M (m − offset) (``matrix`` 3×3 or 9 row-major)."""
         self.F[slot, F_OFF:F_OFF + 3] = np.asarray(offset_nt, float).reshape(3)
         self.F[slot, F_M:F_M + 9] = np.asarray(matrix, float).reshape(9)
-        self.I[slot, I_HAS_PARAMS] = 1
+        self.IS[slot, I_HAS_PARAMS] = 1
 
     def set_alarm(self, slot: int, raised: bool, raised_t_s: float | None) -> None:
         """The heading alarm latch as the mesh holds it (after a restart, a swap)."""
-        self.I[slot, I_RAISED] = int(bool(raised))
+        self.IS[slot, I_RAISED] = int(bool(raised))
         self.F[slot, F_RAISED_T] = math.nan if raised_t_s is None else float(raised_t_s)
 
     def set_mode(self, slot: int, mode: int) -> None:
         """The filter's mode code now (after a change outside the stepped events: a field re-base)."""
-        self.I[slot, I_MODE] = mode
+        self.IS[slot, I_MODE] = mode
 
     def alarm_raised(self, slot: int) -> bool:
-        return bool(self.I[slot, I_RAISED])
+        return bool(self.IS[slot, I_RAISED])
 
     def dmc(self, slot: int) -> tuple[bool | None, float | None, float]:
         """(validity, credibility, time) of the slot's last verdict."""
-        v = int(self.I[slot, I_DMC_VALID])
+        v = int(self.IS[slot, I_DMC_VALID])
         c = float(self.F[slot, F_DMC_CRED])
         return (None if v < 0 else bool(v)), (None if math.isnan(c) else c), float(self.F[slot, F_DMC_T])
 
@@ -548,12 +548,12 @@ class FleetJoin:
     def pending_mag(self, slot: int) -> list[tuple[float, list[float], str, float]]:
         """The slot's waiting magnetometer samples, oldest first: (t_s, field nT, "cal" | "clean", arrived)."""
         cap = self.PM.shape[1]
-        h, n = int(self.I[slot, I_PM_HEAD]), int(self.I[slot, I_PM_N])
+        h, n = int(self.IS[slot, I_PM_HEAD]), int(self.IS[slot, I_PM_N])
         rows = self.PM[slot, (h + np.arange(n)) % cap]
         return [(float(r[0]), r[1:4].tolist(), "cal" if r[5] == 0 else "clean", float(r[4])) for r in rows]
 
     def pending_imu(self, slot: int) -> int:
-        return int(self.I[slot, I_PI_N])
+        return int(self.IS[slot, I_PI_N])
 
     def take_drops(self, slot: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(slots, counts by counter) of the samples given up since the last call (of one slot, or of all); the
@@ -581,7 +581,7 @@ class FleetJoin:
             b[:n] = a
             return b
 
-        self.F, self.I, self.C, self.D = grown(self.F), grown(self.I), grown(self.C), grown(self.D)
+        self.F, self.IS, self.C, self.D = grown(self.F), grown(self.IS), grown(self.C), grown(self.D)
         self.PM, self.PI, self.DHT, self.DHV = grown(self.PM), grown(self.PI), grown(self.DHT), grown(self.DHV)
 
     @staticmethod
@@ -597,20 +597,20 @@ class FleetJoin:
         return out
 
     def _grow_ring(self, which: int) -> None:
-        I = self.I
+        IS = self.IS
         if which == _GROW_PM:
             new = min(2 * self.PM.shape[1], self.max_pending + 1)
-            self.PM = self._unrolled(self.PM, I[:, I_PM_HEAD], I[:, I_PM_N], new)
-            I[:, I_PM_HEAD] = 0
+            self.PM = self._unrolled(self.PM, IS[:, I_PM_HEAD], IS[:, I_PM_N], new)
+            IS[:, I_PM_HEAD] = 0
         elif which == _GROW_PI:
             new = min(2 * self.PI.shape[1], self.max_pending + 1)
-            self.PI = self._unrolled(self.PI, I[:, I_PI_HEAD], I[:, I_PI_N], new)
-            I[:, I_PI_HEAD] = 0
+            self.PI = self._unrolled(self.PI, IS[:, I_PI_HEAD], IS[:, I_PI_N], new)
+            IS[:, I_PI_HEAD] = 0
         else:
             new = min(2 * self.DHT.shape[1], DMC_HISTORY)
-            self.DHT = self._unrolled(self.DHT, I[:, I_DH_HEAD], I[:, I_DH_N], new)
-            self.DHV = self._unrolled(self.DHV, I[:, I_DH_HEAD], I[:, I_DH_N], new)
-            I[:, I_DH_HEAD] = 0
+            self.DHT = self._unrolled(self.DHT, IS[:, I_DH_HEAD], IS[:, I_DH_N], new)
+            self.DHV = self._unrolled(self.DHV, IS[:, I_DH_HEAD], IS[:, I_DH_N], new)
+            IS[:, I_DH_HEAD] = 0
 
     def _grow_events(self, n_ev: int, more: int) -> None:
         cap = max(2 * self.EF.shape[0], n_ev + more)
@@ -632,7 +632,7 @@ class FleetJoin:
         w = np.ascontiguousarray(w, float)
         done, n_ev = 0, 0
         while True:
-            done, n_ev, why = _push(self.F, self.I, self.PM, self.PI, self.DHT, self.DHV, self.C, self.D, slot, code,
+            done, n_ev, why = _push(self.F, self.IS, self.PM, self.PI, self.DHT, self.DHV, self.C, self.D, slot, code,
                                     t_s, v, w, done, float(now), self.S, self.EF, self.EI, n_ev)
             if why == _DONE:
                 break
@@ -653,7 +653,7 @@ class FleetJoin:
         dmc, reset, t_s, a, b, dt_s, gap_s) — see :class:`Events`."""
         w0, w1, w2 = (0.0, 0.0, 0.0) if w is None else (float(w[0]), float(w[1]), float(w[2]))
         while True:
-            n_ev, why = _push1(self.F, self.I, self.PM, self.PI, self.DHT, self.DHV, self.C, self.D, int(slot),
+            n_ev, why = _push1(self.F, self.IS, self.PM, self.PI, self.DHT, self.DHV, self.C, self.D, int(slot),
                                int(code), float(t_s), float(v[0]), float(v[1]), float(v[2]), w0, w1, w2, float(now),
                                self.S, self.EF, self.EI)
             if why == _DONE:
@@ -675,7 +675,7 @@ class FleetJoin:
         al_t = np.empty(n)
         tr_row = np.empty(n, np.int64)
         tr_from = np.empty(n, np.int64)
-        n_pub, n_al, n_tr = _decide(self.F, self.I, self.S, ev.slot, ev.kind, ev.t_s, ev.reset,
+        n_pub, n_al, n_tr = _decide(self.F, self.IS, self.S, ev.slot, ev.kind, ev.t_s, ev.reset,
                                     np.ascontiguousarray(mode, np.int64), np.ascontiguousarray(uncertain, np.bool_),
                                     np.ascontiguousarray(heading_std_rad, float), np.ascontiguousarray(reason, np.int64),
                                     pub, al_row, al_state, al_t, tr_row, tr_from)
@@ -685,7 +685,7 @@ class FleetJoin:
                    heading_std_rad: float) -> tuple[bool, int, float]:
         """:meth:`decide` for one event (a filter stepped row by row): (publish, alarm −1 none / 1 raised / 0 cleared,
         the cleared alarm's raise time)."""
-        p, a, t, _ = _decide1(self.F, self.I, self.S, int(slot), int(kind), float(t_s), bool(reset), int(mode),
+        p, a, t, _ = _decide1(self.F, self.IS, self.S, int(slot), int(kind), float(t_s), bool(reset), int(mode),
                               bool(uncertain), float(heading_std_rad))
         return p, a, t
 

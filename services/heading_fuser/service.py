@@ -552,7 +552,7 @@ class HeadingFuser(Service):
                 "field_rebases": getattr(f, "n_rebases", 0),
                 "dmc_valid": st.dmc_valid,
                 "alarm_raised": st.alarm_raised,
-                "waiting": {"mag": self.join.I[st.slot, fleet.I_PM_N].item(),
+                "waiting": {"mag": self.join.IS[st.slot, fleet.I_PM_N].item(),
                             "imu": self.join.pending_imu(st.slot)},
                 "join": self.join.counts(st.slot),
             }
