@@ -24,6 +24,17 @@ def _own_state_dir(tmp_path_factory, monkeypatch):
     return d
 
 
+@pytest.fixture(autouse=True)
+def _heading_kernels(request):
+    """A heading test starts once the background compile that pytest_sessionstart began has finished (a cold
+    cache): the service then takes its compiled path, as it does on a warm cache, whatever the test order."""
+    if request.module.__name__.rsplit(".", 1)[-1].startswith("test_heading"):
+        from services.heading_fuser import compiled
+
+        if compiled._WARMING is not None:
+            compiled._WARMING.wait(timeout=900)
+
+
 def pytest_sessionstart(session):
     """A cold numba cache: compile the heading fuser's kernels in a background process while the tests run
     (python -m services.heading_fuser.compiled --warm; tests/test_heading_compiled.py waits for it)."""
