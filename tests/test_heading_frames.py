@@ -11,6 +11,7 @@ wall-clock wait runs out), an IMU gap (a filter restart) and a long spell of inv
 from __future__ import annotations
 
 import math
+import time
 import tomllib
 
 import msgpack
@@ -583,3 +584,71 @@ def test_bench_row_runs_small():
     r = cores_bench.heading_service(vehicles=3, windows=60, repeats=1)
     assert r["vehicles"] == 3 and r["input_samples"] > 0 and r["us_per_input_sample"] > 0
     assert r["heading_messages"] > 0
+
+
+# =========================================================================================================
+# a real mesh on frames
+# =========================================================================================================
+@pytest.mark.mesh
+@pytest.mark.slow
+def test_heading_on_frames_in_a_mesh(tmp_path):
+    """Car simulator → ingest (``output = frames``) → DMC detector (FCM) and calibration → heading fuser over a
+    router on loopback: the fuser takes the clean, cal and dmc frames and publishes its usual messages (gap-free
+    seqs, gyro only at the bridge and back, close to the truth). ~40 s here."""
+    from meshutil import Collector, free_port, open_router, query_status, spawn, stop, wait_alive
+    from test_heading_mesh import _manifest
+
+    port = free_port()
+    router = open_router(port)
+    heading = Collector(router, keys.heading("car-1"))
+    pose = Collector(router, keys.truth("car-1", "pose"))
+    duration = 120.0
+    manifest = _manifest(tmp_path)
+    procs = []
+    try:
+        procs.append(spawn("services.ingest", port, "--instance", "ingest-hf", "--set", "output=frames",
+                           log_path=tmp_path / "ingest.log"))
+        procs.append(spawn("services.dmc_detector", port, "--impl", "fcm", "--instance", "dmc-hf", "--manifest",
+                           manifest, log_path=tmp_path / "dmc.log"))
+        procs.append(spawn("services.calibration", port, "--instance", "cal-hf", "--manifest", manifest,
+                           log_path=tmp_path / "cal.log"))
+        procs.append(spawn("services.heading_fuser", port, "--instance", "heading-hf", "--manifest", manifest,
+                           log_path=tmp_path / "heading.log"))
+        for role, inst in (("ingest", "ingest-hf"), ("dmc_detector", "dmc-hf"), ("calibration", "cal-hf"),
+                           ("heading_fuser", "heading-hf")):
+            assert wait_alive(router, keys.svc_token(role, inst)), (tmp_path / "heading.log").read_text()[-3000:]
+        procs.append(spawn("sim_publishers.car", port, "--vehicle", "car-1", "--instance", "sim-hf", "--set",
+                           "speed=5", "--set", f"duration_s={duration}", "--set", "layout=urban_a",
+                           log_path=tmp_path / "sim.log"))
+        deadline = time.monotonic() + 240.0
+        while time.monotonic() < deadline:
+            got = heading.matching(lambda k, m: True)
+            if got and got[-1][1]["t_s"] >= duration - 0.5:
+                break
+            for p in procs:
+                assert p.poll() is None, (tmp_path / "heading.log").read_text()[-3000:]
+            time.sleep(0.5)
+        time.sleep(0.5)
+        st = query_status(router, keys.svc_status("heading_fuser", "heading-hf"))
+    finally:
+        for p in reversed(procs):
+            stop(p)
+        router.close()
+    log = (tmp_path / "heading.log").read_text()
+    # frames every 20 ms of wall time (24 s at 5x) of three kinds: the inputs came as frames
+    assert st is not None and st["frames_in"] > 0.5 * duration / 5 / 0.02, (st and st["frames_in"], log[-2000:])
+    msgs = [m for _, m in heading.items]
+    assert msgs and msgs[-1]["t_s"] >= duration - 0.5, (len(msgs), log[-2000:])
+    assert [m["seq"] for m in msgs] == list(range(len(msgs)))
+    modes = [m["mode"] for m in msgs]
+    assert "gyro_only" in modes and "magnetic" in modes[modes.index("gyro_only"):], "the bridge, and back"
+    tt = np.array([m["t_s"] for _, m in pose.items])
+    th = np.unwrap([m["heading_rad"] for _, m in pose.items])
+    t_h = np.array([m["t_s"] for m in msgs])
+    inside = (t_h >= tt[0]) & (t_h <= tt[-1])
+    est = np.array([m["heading_rad"] for m in msgs])[inside]
+    errs = np.degrees(np.abs(np.remainder(est - np.interp(t_h[inside], tt, th) + math.pi, 2 * math.pi) - math.pi))
+    assert inside.sum() > 0.9 * duration * 10
+    assert float(np.sqrt(np.mean(errs**2))) < 3.0
+    vst = st["vehicles"]["car-1"]
+    assert vst["param_source"] in ("manifest", "cal") and vst["waiting"]["mag"] < 50
