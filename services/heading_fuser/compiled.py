@@ -172,7 +172,9 @@ X_HR_B = 93  # 3
 X_HR_LAST = 96  # its last sample time (−inf: none)
 X_LP_S0 = 97  # 3: the second-order gravity low-pass's states
 X_LP_S1 = 100  # 3
-N_X = 104
+X_LP_DT = 103  # the step its coefficients below are for (NaN: none yet)
+X_LP_C = 104  # 5: b0, b1, b2, a1, a2
+N_X = 112
 
 # ---- int state columns per slot ----------------------------------------------------------------------------
 I_MODE = 0
@@ -1013,7 +1015,12 @@ def _imu(s, x, iv, L, g0, g1, g2, a0, a1, a2, dt, t_in, W):
         i1 = R[1, 0] * a0 + R[1, 1] * a1 + R[1, 2] * a2
         i2 = R[2, 0] * a0 + R[2, 1] * a1 + R[2, 2] * a2
         if s[GRAVITY_LPF_ORDER] == 2.0:
-            b0, b1, b2, fa1, fa2 = butterworth2(s[GRAVITY_LPF_TAU_S], dt)
+            if dt != x[X_LP_DT]:  # a fixed rate: computed once (the same values as every step)
+                c = butterworth2(s[GRAVITY_LPF_TAU_S], dt)
+                for j in range(5):
+                    x[X_LP_C + j] = c[j]
+                x[X_LP_DT] = dt
+            b0, b1, b2, fa1, fa2 = x[X_LP_C], x[X_LP_C + 1], x[X_LP_C + 2], x[X_LP_C + 3], x[X_LP_C + 4]
             if math.isnan(x[X_ACC_LP]) or iv[I_AT_REST]:
                 x[X_ACC_LP] = i0
                 x[X_ACC_LP + 1] = i1
@@ -1699,7 +1706,7 @@ class FleetHeading:
         x[X_LAST_ACC_T] = x[X_LAST_MAG_T] = -1e9
         for c in (X_INIT_T0, X_CLEAR_SINCE, X_CONS_SINCE, X_INSIDE_SINCE, X_REJ_SINCE, X_GO_SINCE, X_LEFT_MAG_T,
                   X_OUTAGE_S, X_ACC_LP, X_REST_ALP, X_REST_SINCE, X_INNOV, X_INNOV_VAR, X_RATIO, X_LT_PREV,
-                  X_LW_PREV, X_TR_T):
+                  X_LW_PREV, X_TR_T, X_LP_DT):
             x[c] = math.nan
         x[X_DELAY] = s.mag_delay_s
         x[X_NGV] = s.rest_gyro_noise_rad_s**2
