@@ -158,6 +158,11 @@ class _FrameRows:
         return self.st.messages(vehicle, self.a, self.b)
 
 
+def _is_dmc_key(kexpr: str) -> bool:
+    parts = kexpr.split("/")
+    return len(parts) == 3 and parts[0] == keys.ROOT and parts[2] == "dmc" and parts[1] not in (keys.SVC, keys.FLEET)
+
+
 def frame_kinds_for(subscriptions: list[str]) -> list[str]:
     """The fleet frame kinds (clean, cal, dmc) that carry the per-vehicle streams of these subscriptions."""
     out = []
@@ -2050,8 +2055,13 @@ class Runner:
         # output = frames, calibration's and the detector's frames); a service subscribed to them takes those
         # frames too, filtered here to the vehicles and streams it subscribes to
         if svc.FRAME_INPUT and svc.DECODE_INPUTS:
-            for kind in frame_kinds_for(svc.subscriptions()):
+            kinds = frame_kinds_for(svc.subscriptions())
+            for kind in kinds:
                 subs.append(keys.fleet_frames(kind))
+            if "dmc" in kinds:
+                # the detector publishes every verdict per vehicle (for outside users) and in its dmc frames with
+                # the same seq: a service takes them from the frames only, never twice
+                subs = [k for k in subs if not _is_dmc_key(k)]
         for kexpr in subs:
             sub = self.session.declare_subscriber(kexpr, zenoh.handlers.FifoChannel(FIFO_CAPACITY))
             self.subs.append(sub)

@@ -68,6 +68,10 @@ def json_schema(msg_type: str) -> dict:
     generated from the contract), titled for MCAP."""
     from schemas import streams
 
+    if msg_type in ("batch", "frame"):  # the envelopes of contract v2 / v3
+        js = streams.json_schema(msg_type)
+        return {**js, "title": f"{SCHEMA_PREFIX}{js['title'].removeprefix('magmesh ')}",
+                "description": js["description"] + " (msgpack map on the wire)"}
     mt = messages.MESSAGES[msg_type]
     return {**streams.json_schema(msg_type), "title": f"{SCHEMA_PREFIX}{mt.name} v{mt.version}",
             "description": mt.doc + " (msgpack map on the wire)"}
@@ -169,6 +173,32 @@ def open_mcap(path: str | Path, compression: str = "zstd") -> tuple[Path, Binary
     return path, fh, writer
 
 
+def _decode_any(key: str, payload: bytes) -> dict | None:
+    """A received payload as a message (header fields at least), or None when it is not a valid one: a v1
+    message, a batch (contract v2, binary form v3) or a fleet frame (v3) — checked by their own decoders."""
+    try:
+        return messages.decode(payload, where=key)
+    except messages.SchemaError:
+        pass
+    try:
+        info = keys.parse(key)
+    except keys.KeyError_:
+        return None
+    from schemas import batch as batches
+    from schemas import frame as fleetframe
+
+    try:
+        if info.kind == keys.FLEET:
+            f = fleetframe.decode(payload, where=key)
+            return {"type": "frame", "version": fleetframe.VERSION, "vehicle": "", "t_s": f.t_s, "seq": f.seq}
+        if info.kind in ("raw", "clean") and info.rest == (keys.BATCH,):
+            b = batches.decode(payload, where=key)
+            return {"type": "batch", "version": batches.VERSION, "vehicle": b.vehicle, "t_s": b.t_s, "seq": b.seq}
+    except messages.SchemaError:
+        return None
+    return None
+
+
 class RecordingWriter:
     """Write magmesh samples to an MCAP file (see the module doc for the layout).
 
@@ -221,10 +251,7 @@ class RecordingWriter:
         receive_ns = time.time_ns() if receive_ns is None else int(receive_ns)
         payload = bytes(payload)
         if msg is None:
-            try:
-                msg = messages.decode(payload, where=key)
-            except messages.SchemaError:
-                msg = None
+            msg = _decode_any(key, payload)
         msg_type = msg["type"] if msg is not None else None
         cid = self._channel_id(key, msg_type)
         t_s = msg["t_s"] if msg is not None else None

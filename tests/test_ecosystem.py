@@ -360,7 +360,7 @@ def test_mcap_to_json_foxglove_converts_a_msgpack_recording(tmp_path):
 
 def test_ros2_bridge_puts_cdr_under_rmw_zenoh_keys_with_tokens(tmp_path):
 
-    from magmesh import ros2
+    from magmesh_cli import ros2
     from schemas import batch
 
     port = mu.free_port()

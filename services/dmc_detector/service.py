@@ -422,9 +422,11 @@ class DmcDetectorService(Service):
         """One decision of a per-vehicle detector (implementations without a fleet core)."""
         state.epochs += 1
         state.n_valid += int(d.valid)
-        self.publish(keys.dmc(vehicle), "dmc", vehicle, d.t_s, dm_nt=d.dm_nt, ddm_nt_s=d.ddm_nt_s, dh_rad=d.dh_rad,
-                     ddh_rad_s=d.ddh_rad_s, heading_rad=d.heading_rad, stage1_pass=d.stage1_pass,
-                     credibility=d.credibility, valid=d.valid, impl=self.impl, param_source=param_source)
+        # per vehicle, and as a one-row dmc frame (the heading fuser takes verdicts from the frames)
+        self.publish_rows("dmc", [keys.dmc(vehicle)], [vehicle], [d.t_s], {
+            "dm_nt": [d.dm_nt], "ddm_nt_s": [d.ddm_nt_s], "dh_rad": [d.dh_rad], "ddh_rad_s": [d.ddh_rad_s],
+            "heading_rad": [d.heading_rad], "stage1_pass": [d.stage1_pass], "credibility": [d.credibility],
+            "valid": [d.valid], "impl": self.impl, "param_source": [param_source]}, mirror="dmc")
         if d.transition is None:
             self._sync_latches()
             self._adopt_published_alarm(vehicle, state)
