@@ -129,13 +129,19 @@ class Sink:
                 ts.append(stamp(s.payload.to_bytes()).t_s)
                 tr.append(now)
 
-    def latencies_ms(self, start_at: float | None, window_s: float | None) -> tuple:
-        """(from raw publish, from sample time) in ms: the v2 fleet puts a window's batch at its last sample's
-        time (bench/fleet.py publish_time); v1 samples are put when taken, so both are the same there."""
+    def latencies_ms(self, start_at: float | None, window_s: float | None, measure_from: float | None = None
+                     ) -> tuple:
+        """(from raw publish, from sample time) in ms of the outputs of samples taken from ``measure_from`` on:
+        the v2 fleet puts a window's batch at its last sample's time (bench/fleet.py publish_time); v1 samples are
+        put when taken, so both are the same there."""
         if not self.t_sample:
             return None, None
         ts = np.asarray(self.t_sample, float)
         tr = np.asarray(self.t_recv[:len(ts)], float)
+        if measure_from is not None:
+            keep = ts >= measure_from
+            if keep.any():
+                ts, tr = ts[keep], tr[keep]
         age = (tr - ts) * 1000
         if start_at is None:
             return age, age
@@ -146,7 +152,7 @@ class Sink:
 
 def _spawn(args: list[str], port: int, log: Path) -> subprocess.Popen:
     # the benchmark's vehicles must not leave calibration sets or alarm states in the user's state directory
-    env = dict(os.environ, PYTHONUNBUFFERED="1", MAGMESH_LOG_LEVEL="WARNING", MAGMESH_STATE_DIR=str(log.parent / "state"))
+    env = dict(os.environ, PYTHONUNBUFFERED="1", MAGMESH_LOG_LEVEL=os.environ.get("MAGMESH_BENCH_LOG_LEVEL", "WARNING"), MAGMESH_STATE_DIR=str(log.parent / "state"))
     return subprocess.Popen([sys.executable, *args, "--connect", f"tcp/127.0.0.1:{port}"], cwd=paths.REPO,
                             stdout=open(log, "ab"), stderr=subprocess.STDOUT, env=env, start_new_session=True)
 
@@ -181,9 +187,14 @@ def _status(session, role: str, inst: str) -> dict:
 
 
 def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple[str, ...], tmp: Path,
-             wire: str = "v3", window_s: float = 0.05, frame_s: float = 0.02) -> dict:
+             wire: str = "v3", window_s: float = 0.05, frame_s: float = 0.02, warmup_s: float | None = None) -> dict:
     """One run: ``kind`` is "pipeline", "limit" or "ingest" (ingest alone, clean batches out). ``window_s``: each
-    v2 vehicle's batch window; ``frame_s``: ingest's frame window (the pipeline with v2 runs on fleet frames)."""
+    v2 vehicle's batch window; ``frame_s``: ingest's frame window (the pipeline with v2 runs on fleet frames).
+    ``warmup_s`` (paced runs; default 5 s, 0 at saturation): the fleet publishes that long first — the stages
+    meet every vehicle, declare its keys and settle — and latency and CPU are measured after it; every sample of
+    the warm-up still counts for loss."""
+    if warmup_s is None:
+        warmup_s = 0.0 if max_mode else 5.0
     import zenoh
 
     port = _free_port()
@@ -232,12 +243,12 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         time.sleep(0.5)
         start_at = time.time() + 2.0 + (n / 500)  # the fleet declares a publisher per vehicle first
         cpu0 = {}
-        fleet_args = ["-m", "bench.fleet", "--vehicles", str(n), "--duration", str(duration_s), "--start-at",
+        fleet_args = ["-m", "bench.fleet", "--vehicles", str(n), "--duration", str(duration_s + warmup_s), "--start-at",
                       str(start_at), "--wire", "v1" if kind == "ingest" else wire, "--window", str(window_s)] + (
                           ["--max"] if max_mode else [])
         fleet = subprocess.Popen([sys.executable, *fleet_args, "--connect", f"tcp/127.0.0.1:{port}"], cwd=paths.REPO,
                                  stdout=subprocess.PIPE, stderr=open(tmp / "fleet.log", "ab"), text=True)
-        while time.time() < start_at:
+        while time.time() < start_at + warmup_s:
             time.sleep(0.01)
         cpu0 = {k: _cpu_s(p.pid) for k, p in procs.items()}
         cpu0["fleet"] = _cpu_s(fleet.pid)
@@ -246,7 +257,7 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         time.sleep(duration_s * 0.8)
         rss = {k: _rss_mb(p.pid) for k, p in procs.items()}
         cpu_fleet = _cpu_s(fleet.pid)
-        out, _ = fleet.communicate(timeout=duration_s + 120)
+        out, _ = fleet.communicate(timeout=duration_s + warmup_s + 120)
         fl = json.loads(out.strip().splitlines()[-1])
         expected = fl["sent"]["mag"] // 2  # one DMC epoch (or relayed mag/2) per magnetometer pair
         # drain: wait for every output, or until nothing has arrived for 10 s (at most 180 s)
@@ -264,12 +275,15 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
             statuses["ingest"] = _status(router, "ingest", "b-ingest")
         if kind == "pipeline":
             statuses["dmc_detector"] = _status(router, "dmc_detector", "b-dmc")
-        drops = {}
+            for role, inst in (("calibration", "b-cal"), ("heading_fuser", "b-heading")):
+                if role in procs:
+                    statuses[role] = _status(router, role, inst)
+        drops = {}  # what any stage lost or refused (a skip by design — a stream a stage does not use — is neither)
         for name, st in statuses.items():
-            for _key, reasons in st.get("drops", {}).items():
-                for r, c in reasons.items():
-                    if r != "alarm_state_unchanged":
-                        drops[f"{name}:{r}"] = drops.get(f"{name}:{r}", 0) + c
+            for cat in ("lost", "rejected"):
+                for r, c in (st.get(cat) or {}).items():
+                    if c:
+                        drops[f"{name}:{cat}:{r}"] = drops.get(f"{name}:{cat}:{r}", 0) + c
         lost = max(0, expected - sink.n) + sum(drops.values())
         if statuses.get("ingest"):
             st = statuses["ingest"]  # samples received: in_total counts batches besides their samples
@@ -278,10 +292,12 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         # latency only means something when paced: from the batch's publication (the goal's measure) and from
         # the sample's own time (which adds the vehicle's batching window)
         v2_fleet = wire in ("v2", "v3") and kind != "ingest"
-        lat, age = sink.latencies_ms(fl.get("start_at") if v2_fleet else None, window_s) if not max_mode else (None, None)
+        lat, age = sink.latencies_ms(fl.get("start_at") if v2_fleet else None, window_s,
+                                     (fl.get("start_at") or start_at) + warmup_s) if not max_mode else (None, None)
         samples_done = fl["total"] * min(1.0, sink.n / max(expected, 1))
         return {
-            "kind": kind, "vehicles": n, "max_mode": max_mode, "duration_s": duration_s, "wire": wire,
+            "kind": kind, "vehicles": n, "max_mode": max_mode, "duration_s": duration_s, "warmup_s": warmup_s,
+            "wire": wire,
             "window_s": window_s if (wire in ("v2", "v3") or kind == "ingest") else None,
             "offered_samples_s": fl["offered_rate"], "published_samples_s": round(fl["rate"], 1),
             "sustained_samples_s": round(samples_done / wall, 1),

@@ -526,6 +526,8 @@ class Runner:
         self.suppressed = 0
         self.in_seq: SeqTable = SeqTable()  # input key -> last seq handled (frames track many keys at once)
         self.params_sent: dict[str, list] = {}  # cal/params key -> [param_id, seq, t_s] last published
+        self._cal_sent: dict[str, list] = {}  # the same, as the live calibration instances last reported it
+        self._cal_sent_t = float("-inf")  # when they reported it (monotonic s): a report is used for 2 s
         self.journal = None  # magmesh.journal.Journal: last input/output seq per key, survives kill -9
         self.resumed_in: set[str] = set()  # input keys whose first gap after a restart is lost_during_restart
         self.restart_gaps: dict[str, list[list[int]]] = {}  # input key -> [first, last] seq missed by a restart
@@ -1116,10 +1118,16 @@ class Runner:
             return True
         want = [msg.get("param_id"), msg.get("seq"), msg.get("t_s")]
         why = "no live calibration service instance reports having published this parameter set"
+        # what the live calibration instances reported having sent, by key: one answer confirms every parameter
+        # set they had sent when they answered (hundreds arrive together when a fleet's vehicles first appear)
+        asked = time.monotonic()
+        if self._cal_sent.get(key) == want and asked - self._cal_sent_t < CAL_CONFIRM_TIMEOUT_S:
+            return True
         try:
-            deadline = time.monotonic() + CAL_CONFIRM_TIMEOUT_S
+            deadline = asked + CAL_CONFIRM_TIMEOUT_S
             while why and time.monotonic() < deadline:
-                for r in self.session.get(f"{keys.ROOT}/{keys.SVC}/calibration/*/status",
+                seen: dict[str, list] = {}
+                for r in self.session.get(f"{keys.ROOT}/{keys.SVC}/calibration/*/status?only=cal_params_sent",
                                              timeout=CAL_CONFIRM_TIMEOUT_S):
                     if r.ok is None:
                         continue
@@ -1128,8 +1136,11 @@ class Runner:
                     except Exception:  # noqa: BLE001 - a garbage answer confirms nothing
                         continue
                     if isinstance(st, dict) and st.get("role") == "calibration" and \
-                            (st.get("cal_params_sent") or {}).get(key) == want:
-                        why = None
+                            isinstance(st.get("cal_params_sent"), dict):
+                        seen.update(st["cal_params_sent"])
+                self._cal_sent, self._cal_sent_t = seen, time.monotonic()
+                if seen.get(key) == want:
+                    why = None
                 if why:  # a status asked a moment before the put was sent: ask once more
                     time.sleep(0.05)
         except Exception as e:  # noqa: BLE001 - no confirmation, no adoption
@@ -1930,8 +1941,24 @@ class Runner:
         return st
 
     def _answer_status(self, query: Any) -> None:
+        """The status; with the selector parameter ``only=name[,name...]`` just those entries (a service checking
+        calibration parameters asks for ``cal_params_sent`` alone, not for every vehicle's state)."""
         try:
-            payload = msgpack.packb(self.status(), use_bin_type=True)
+            only = None
+            try:
+                params = dict(query.parameters) if query.parameters is not None else {}
+                only = params.get("only")
+            except Exception:  # noqa: BLE001 - a selector this runtime cannot read: the whole status
+                only = None
+            if only:
+                names = [n for n in str(only).split(",") if n][:16]
+                with self.lock:
+                    st = {"type": "status", "version": 1, "role": self.svc.role, "instance": self.svc.instance}
+                    if "cal_params_sent" in names:
+                        st["cal_params_sent"] = dict(list(self.params_sent.items())[:65536])
+                payload = msgpack.packb(st, use_bin_type=True)
+            else:
+                payload = msgpack.packb(self.status(), use_bin_type=True)
             skey = keys.svc_status(self.svc.role, self.svc.instance)
             query.reply(skey, payload, encoding=_encoding(skey))
         except Exception as e:
