@@ -547,13 +547,16 @@ class Runner:
         self.reconcile_at: float | None = None
         self.reconcile_pending: dict[str, str] = {}  # restored raised alarm key -> vehicle, not yet decided
         self.out_since_start: dict[str, int] = {}  # vehicle -> outputs published (while reconciling only)
-        self.first_in_t: dict[str, float] = {}
-        self.last_in_t: dict[str, float] = {}
+        self._first_in_t: dict[str, float] = {}
+        self._last_in_t: dict[str, float] = {}
+        # frames: each vehicle's times kept in arrays per vehicle list and written into the dicts above when they
+        # are read (swap cuts, group hand-overs, eviction), not once per vehicle per frame
+        self._times_pending: dict[int, list] = {}
         # input-path bookkeeping: what the sample being handled did, when keys and vehicles were last heard
         self._cur_key: str | None = None
         self._cur_rejected = False
         self.key_seen: dict[str, float] = {}
-        self.vehicle_seen: dict[str, float] = {}
+        self._vehicle_seen: dict[str, float] = {}
         self._out_idle: dict[str, tuple[int, float]] = {}
         self.evicted: dict[str, int] = defaultdict(int)  # what eviction freed: vehicles, keys
         self.evicted_drops: dict[str, int] = defaultdict(int)  # drop counts of evicted keys, by reason
@@ -1614,19 +1617,55 @@ class Runner:
 
     def _frame_times(self, vehicles: list[str], vmask: np.ndarray, taken: dict, now: float) -> None:
         """Each vehicle's first and latest input sample time and when it was last heard (swap cuts, group
-        hand-overs, eviction)."""
-        t_max = np.full(len(vehicles), -np.inf)
+        hand-overs, eviction): gathered in arrays for the frame's vehicle list, written into the per-vehicle
+        maps when those are next read."""
+        p = self._times_pending.get(id(vehicles))
+        if p is None or p[0] is not vehicles:
+            if p is not None or len(self._times_pending) > 64:  # (another list once had this id: its times first)
+                self._sync_times()
+            n = len(vehicles)
+            p = self._times_pending[id(vehicles)] = [vehicles, np.full(n, np.inf), np.full(n, -np.inf),
+                                                     np.full(n, -np.inf)]
+        t_min, t_max, seen = p[1], p[2], p[3]
         for st in taken.values():
+            np.minimum.at(t_min, st.vi, st.t_s)
             np.maximum.at(t_max, st.vi, st.t_s)
-        first, last, seen = self.first_in_t, self.last_in_t, self.vehicle_seen
-        for i in np.flatnonzero(vmask).tolist():
-            v = vehicles[i]
-            t = float(t_max[i])
-            if v not in first:
-                first[v] = t
-            if t > last.get(v, -np.inf):
-                last[v] = t
-            seen[v] = now
+        seen[vmask] = now
+
+    def _sync_times(self) -> None:
+        """Write what frames gathered into the per-vehicle time maps."""
+        pending, self._times_pending = self._times_pending, {}
+        first, last, seen = self._first_in_t, self._last_in_t, self._vehicle_seen
+        for vehicles, t_min, t_max, heard in pending.values():
+            for i in np.flatnonzero(heard > -np.inf).tolist():
+                v = vehicles[i]
+                if v not in first:
+                    first[v] = float(t_min[i])
+                t = float(t_max[i])
+                if t > last.get(v, -np.inf):
+                    last[v] = t
+                seen[v] = float(heard[i])
+
+    @property
+    def first_in_t(self) -> dict[str, float]:
+        """Each vehicle's first input sample time."""
+        if self._times_pending:
+            self._sync_times()
+        return self._first_in_t
+
+    @property
+    def last_in_t(self) -> dict[str, float]:
+        """Each vehicle's latest input sample time (a swap's or hand-over's cut is chosen from it)."""
+        if self._times_pending:
+            self._sync_times()
+        return self._last_in_t
+
+    @property
+    def vehicle_seen(self) -> dict[str, float]:
+        """When each vehicle was last heard (monotonic s; eviction)."""
+        if self._times_pending:
+            self._sync_times()
+        return self._vehicle_seen
 
     def _journal_frame(self, done: list) -> None:
         """After the handler: each vehicle's stream is handled up to its last seq in the frame (a kill -9
