@@ -1,5 +1,6 @@
-"""Contract v2 on a real mesh: v1 singles and v2 batches through ingest (clean batches) to the DMC detector,
-with every sample an outside subscriber receives carrying an encoding that names its type and version."""
+"""Contracts v2 and v3 on a real mesh: v1 singles and batches (list or binary columns) through ingest (clean
+batches, or fleet frames) to the DMC detector, with every sample an outside subscriber receives carrying an
+encoding that names its type and version."""
 
 from __future__ import annotations
 
@@ -49,14 +50,15 @@ def _field(n, seed):
     return np.array([2.2e4, 1.5e3, -4.1e4]) + rng.normal(0, 30, (n, 3))
 
 
-def test_v1_singles_and_v2_batches_reach_dmc_with_encodings(tmp_path):
+@pytest.mark.parametrize("output,binary", [("batches", False), ("frames", True)])
+def test_v1_singles_and_batches_reach_dmc_with_encodings(tmp_path, output, binary):
     import zenoh
 
     port = free_port()
     router = open_router(port)
     tap = _Tap(router)
     env = {"MAGMESH_STATE_DIR": str(tmp_path / "state")}
-    procs = [spawn("services.ingest", port, "--instance", "ing-v2", "--set", "output=batches",
+    procs = [spawn("services.ingest", port, "--instance", "ing-v2", "--set", f"output={output}",
                    log_path=tmp_path / "ingest.log", env=env),
              spawn("services.dmc_detector", port, "--instance", "dmc-v2", "--manifest", _manifest(tmp_path),
                    log_path=tmp_path / "dmc.log", env=env)]
@@ -70,7 +72,7 @@ def test_v1_singles_and_v2_batches_reach_dmc_with_encodings(tmp_path):
         p1 = {s: client.declare_publisher(keys.raw_mag("car-1", s), **opts) for s in ("1", "2")}
         # car-2: a vehicle agent's v2 batches, 10 epochs each; one sample beyond a magnetometer's range
         p2 = client.declare_publisher(keys.raw_batch("car-2"), encoding=zenoh.Encoding(
-            streams.encoding_name("batch")), **opts)
+            streams.encoding_name("batch", 3 if binary else 2)), **opts)
         time.sleep(1.0)
         f = {s: _field(N, i) for i, s in enumerate(("1", "2"))}
         bad = f["2"].copy()
@@ -84,7 +86,8 @@ def test_v1_singles_and_v2_batches_reach_dmc_with_encodings(tmp_path):
             sl = slice(j, j + 10)
             p2.put(batch.encode("car-2", j // 10, {
                 "mag/1": {"t_s": t[sl], "seq": np.arange(N)[sl], "cols": {"sensor": "1", "b_nt": f["1"][sl]}},
-                "mag/2": {"t_s": t[sl], "seq": np.arange(N)[sl], "cols": {"sensor": "2", "b_nt": bad[sl]}}}))
+                "mag/2": {"t_s": t[sl], "seq": np.arange(N)[sl], "cols": {"sensor": "2", "b_nt": bad[sl]}}},
+                binary=binary))
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
             if len(tap.on(keys.dmc("car-1"))) >= N and len(tap.on(keys.dmc("car-2"))) >= N - 1:
@@ -110,9 +113,19 @@ def test_v1_singles_and_v2_batches_reach_dmc_with_encodings(tmp_path):
     assert ist["drops"][keys.raw_mag("car-2", "2")] == {"rejected:range": 1}
     unpaired = sum(d.get("unpaired", 0) for k, d in st["drops"].items() if k.startswith("magmesh/car-2/"))
     assert unpaired == 1  # sensor 1's sample whose partner was refused: counted, not lost silently
-    clean = tap.on(keys.clean_batch("car-1"))
-    assert clean and all(batch.decode(p).vehicle == "car-1" for _, p in clean)
-    assert not tap.on(keys.clean_mag("car-1", "1"))  # output=batches: no singles on clean/
+    if output == "batches":
+        clean = tap.on(keys.clean_batch("car-1"))
+        assert clean and all(batch.decode(p).vehicle == "car-1" for _, p in clean)
+    else:
+        from schemas import frame
+
+        fr = [frame.decode(p) for _, p in tap.on(keys.fleet_frame("ing-v2", "clean"))]
+        rows = {v: sum(int((s.vi == i).sum()) for f in fr for s in f.streams.values()
+                       for i in [f.vehicles.index(v)] if v in f.vehicles) for v in ("car-1", "car-2")}
+        assert rows == {"car-1": 2 * N, "car-2": 2 * N - 1}, rows  # every accepted sample, in frames
+        mirrored = [frame.decode(p) for _, p in tap.on(keys.fleet_frame("dmc-v2", "dmc"))]
+        assert sum(f.streams["dmc"].n for f in mirrored) == len(d1) + len(d2)  # the verdicts, mirrored
+    assert not tap.on(keys.clean_mag("car-1", "1"))  # no singles on clean/
     # every sample on the mesh names its type and version; the outside v1 client's car-1 samples carry none
     seen_types = set()
     with tap.lock:
@@ -123,10 +136,12 @@ def test_v1_singles_and_v2_batches_reach_dmc_with_encodings(tmp_path):
         parsed = streams.parse_encoding(enc)
         assert parsed is not None, (key, enc)
         want = streams.encoding_for_key(key)
+        if key == keys.raw_batch("car-2"):  # the vehicle's agent names the form it sends
+            want = streams.encoding_name("batch", 3 if binary else 2)
         assert enc == want, (key, enc, want)
         mtype = parsed[0]
         seen_types.add(mtype)
         if mtype != "batch":
             assert msgpack.unpackb(payload)["type"] == mtype
-    assert {"batch", "dmc", "reject"} <= seen_types
+    assert {"batch", "dmc", "reject"} | ({"frame"} if output == "frames" else set()) <= seen_types
     assert str(status_reply[0].encoding) == "application/msgpack;magmesh/status/v1"
