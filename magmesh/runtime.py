@@ -43,7 +43,7 @@ from schemas import keys, messages, streams
 from schemas.keys import KeyInfo
 from schemas.messages import SchemaError
 
-from . import __version__, zconf
+from . import __version__, declare, zconf
 from .frames import NONE as _NO_SEQ
 from .frames import SeqTable, StreamKeys
 
@@ -199,8 +199,9 @@ class Service:
     role: str = "service"
     impl: str = "service"
     Settings: type | None = None
-    CONSUMES: tuple[str, ...] = ()
-    PRODUCES: tuple[str, ...] = ()
+    #: the streams taken and published (magmesh/declare.py): the subscriptions, status and --help derive from them
+    INPUTS: tuple[declare.Input, ...] = ()
+    OUTPUTS: tuple[declare.Output, ...] = ()
     #: raw/batch payloads (contract v2) reach on_message undecoded: the service validates them (ingest)
     RAW_BATCHES: bool = False
     #: decode inputs before on_message (ingest turns this off to validate raw bytes itself)
@@ -222,7 +223,7 @@ class Service:
 
     # ---- hooks --------------------------------------------------------------------------------
     def subscriptions(self) -> list[str]:
-        return []
+        return declare.subscriptions(self)
 
     def new_vehicle(self, vehicle: str) -> Any:
         return None
@@ -389,7 +390,8 @@ def _coerce(tp: Any, value: Any, name: str) -> Any:
 
 
 def build_settings(cls: type | None, values: dict) -> Any:
-    """Build a Settings dataclass from a dict; unknown names are an error that lists the known ones."""
+    """Build a Settings dataclass from a dict; unknown names are an error that lists the known ones, a value its
+    declaration does not allow a :class:`magmesh.declare.SettingError` naming setting, value and allowed range."""
     if cls is None:
         if values:
             raise ValueError(f"this service takes no settings, got {sorted(values)}")
@@ -398,19 +400,19 @@ def build_settings(cls: type | None, values: dict) -> Any:
     unknown = sorted(set(values) - set(flds))
     if unknown:
         raise ValueError(f"unknown setting(s) {', '.join(unknown)}; known: {', '.join(flds)}")
-    kw = {k: _coerce(flds[k].type, v, k) for k, v in values.items()}
+    kw = {}
+    for k, v in values.items():
+        try:
+            kw[k] = _coerce(flds[k].type, v, k)
+        except ValueError:
+            raise declare.SettingError(k, v, f"is not {declare._type_name(flds[k].type)}") from None
+    declare.check_values(cls, kw)
     return cls(**kw)
 
 
 def settings_help(cls: type | None) -> str:
-    if cls is None:
-        return "  (none)"
-    lines = []
-    for f in dataclasses.fields(cls):
-        default = f.default if f.default is not dataclasses.MISSING else (
-            f.default_factory() if f.default_factory is not dataclasses.MISSING else "")
-        lines.append(f"  {f.name} = {default!r}")
-    return "\n".join(lines)
+    """The settings table of ``--help`` (magmesh/declare.py)."""
+    return declare.settings_table(cls)
 
 
 _PRIMS = (float, int, str, bool, type(None))
@@ -1944,8 +1946,8 @@ class Runner:
                 "evicted": dict(self.evicted),
                 "vehicles": sorted(self.vehicle_state)[:STATUS_TOP_KEYS],
                 "vehicles_total": len(self.vehicle_state),
-                "consumes": list(self.svc.CONSUMES),
-                "produces": list(self.svc.PRODUCES),
+                "consumes": declare.consumes(self.svc),
+                "produces": declare.produces(self.svc),
                 "in": {k: {"n": c.n, "rate_hz": round(c.rate, 2)} for k, c in _top(self.count_in, _n)},
                 "out": {k: {"n": c.n, "rate_hz": round(c.rate, 2)} for k, c in _top(self.count_out, _n)},
                 "in_keys": len(self.count_in),
@@ -2317,10 +2319,8 @@ def make_parser(cls: type[Service], implementations: dict[str, type] | None = No
     """The command line of a service. ``implementations`` (name -> class) adds ``--impl`` for a role with
     several (the chosen one's settings are listed)."""
     doc = (sys.modules[cls.__module__].__doc__ or cls.__doc__ or "").strip()
-    epilog = (f"role: {cls.role}   implementation: {cls.impl}\n"
-              f"consumes: {', '.join(cls.CONSUMES) or '-'}\nproduces: {', '.join(cls.PRODUCES) or '-'}\n"
-              f"(keys are magmesh/{{vehicle}}/...)\n\nsettings of {cls.impl} (--set NAME=VALUE):\n"
-              f"{settings_help(cls.Settings)}")
+    epilog = (f"role: {cls.role}   implementation: {cls.impl}\n{declare.streams_help(cls)}\n\n"
+              f"settings of {cls.impl} (--set NAME=VALUE):\n{settings_help(cls.Settings)}")
     if implementations:
         lines = [f"  {n:<12} {((c.__doc__ or '').strip().splitlines() or [''])[0]}" for n, c in implementations.items()]
         epilog += ("\n\nimplementations (--impl NAME; --impl NAME --help lists its settings):\n" + "\n".join(lines))
@@ -2353,7 +2353,10 @@ def make_parser(cls: type[Service], implementations: dict[str, type] | None = No
 def service_from_args(cls: type[Service], args: argparse.Namespace) -> Service:
     values: dict[str, Any] = {}
     if args.settings_json:
-        values.update(json.loads(args.settings_json))
+        try:
+            values.update(json.loads(args.settings_json))
+        except (ValueError, TypeError) as e:
+            raise SystemExit(f"{cls.role} ({cls.impl}): --settings-json is not one JSON object of settings: {e}") from None
     for item in args.set:
         k, sep, v = item.partition("=")
         if not sep:
@@ -2361,8 +2364,9 @@ def service_from_args(cls: type[Service], args: argparse.Namespace) -> Service:
         values[k.strip()] = v
     try:
         settings = build_settings(cls.Settings, values)
-    except (ValueError, TypeError) as e:
-        raise SystemExit(f"{cls.impl}: {e}") from None
+    except (ValueError, TypeError) as e:  # one paragraph: service, setting, value, what is allowed
+        raise SystemExit(f"{cls.role} ({cls.impl}): {' '.join(str(e).split())}. Every setting with its unit and "
+                         f"range: {_program_name(cls)} --help") from None
     vehicles_config = {}
     if args.manifest:
         with open(args.manifest, "rb") as f:
