@@ -11,7 +11,7 @@ ratio pipeline / limit. Every figure is a median over ``--repeat`` runs.
 ``wire="v2"`` (the default): the fleet publishes one batch per vehicle per ``window_s`` (contract v2, as an
 on-board agent would), ingest emits clean batches (``output=batches``, the same window) and the limit relays the
 same batches. ``wire="v1"``: every sample alone on its key, end to end, as before. Besides, ``v1_ingest`` finds
-how many vehicles publishing v1 single samples one ingest process sustains (ingest alone, clean batches out).
+how many vehicles publishing v1 single samples one ingest process sustains (ingest alone, fleet frames out).
 """
 
 from __future__ import annotations
@@ -188,7 +188,7 @@ def _status(session, role: str, inst: str) -> dict:
 
 def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple[str, ...], tmp: Path,
              wire: str = "v3", window_s: float = 0.05, frame_s: float = 0.02, warmup_s: float | None = None) -> dict:
-    """One run: ``kind`` is "pipeline", "limit" or "ingest" (ingest alone, clean batches out). ``window_s``: each
+    """One run: ``kind`` is "pipeline", "limit" or "ingest" (ingest alone, fleet frames out). ``window_s``: each
     v2 vehicle's batch window; ``frame_s``: ingest's frame window (the pipeline with v2 runs on fleet frames).
     ``warmup_s`` (paced runs; default 5 s, 0 at saturation): the fleet publishes that long first — the stages
     meet every vehicle, declare its keys and settle — and latency and CPU are measured after it; every sample of
@@ -204,14 +204,12 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
     tokens = []
     batch_stream = None
     ingest_args = ["-m", "services.ingest", "--instance", "b-ingest"]
-    if kind == "ingest":
-        ingest_args += ["--set", "output=batches", "--set", f"batch_window_s={frame_s}"]
-    elif wire in ("v2", "v3"):
+    if kind == "ingest" or wire in ("v2", "v3"):
         ingest_args += ["--set", "output=frames", "--set", f"batch_window_s={frame_s}"]
     if kind == "ingest":
         procs["ingest"] = _spawn(ingest_args, port, tmp / "ingest.log")
         tokens.append(keys.svc_token("ingest", "b-ingest"))
-        sink_key, batch_stream = keys.clean_batch("*"), "mag/2"
+        sink_key, batch_stream = keys.fleet_frames("clean"), "mag/2"  # (a frame's rows of stream mag/2)
     elif kind == "pipeline":
         procs["ingest"] = _spawn(ingest_args, port, tmp / "ingest.log")
         tokens.append(keys.svc_token("ingest", "b-ingest"))
@@ -414,7 +412,7 @@ def format_text(res: dict) -> str:
     goal = res.get("p99_goal_ms", 50.0)
     lines.append(f"\nmax vehicles sustained (zero loss, p99 ≤ {goal:g} ms): {res['max_vehicles']}")
     if res.get("v1_ingest"):
-        lines += ["", "v1 single-sample vehicles through one ingest (clean batches out):", "", *head]
+        lines += ["", "v1 single-sample vehicles through one ingest (fleet frames out):", "", *head]
         lines += [_row(r) for r in res["v1_ingest"]]
         lines.append(f"\nv1 vehicles one ingest sustains: {res['v1_ingest_max_vehicles']}")
     return "\n".join(lines)
