@@ -20,8 +20,8 @@ import time
 import msgpack
 
 
-def vehicle_ids(n: int) -> list[str]:
-    return [f"bench-{i:04d}" for i in range(n)]
+def vehicle_ids(n: int, first: int = 0) -> list[str]:
+    return [f"bench-{i:04d}" for i in range(first, first + n)]
 
 
 def load_drive(duration_s: float = 60.0):
@@ -146,6 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__)
     zconf.add_zenoh_args(p)
     p.add_argument("--vehicles", type=int, default=10)
+    p.add_argument("--first", type=int, default=0, help="number of the first vehicle (bench-NNNN)")
     p.add_argument("--duration", type=float, default=10.0, help="seconds of publishing")
     p.add_argument("--max", action="store_true", help="as fast as possible instead of real-time rates")
     p.add_argument("--stream", default="raw", help="key stream to publish on (raw)")
@@ -158,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
 
     v2 = args.wire in ("v2", "v3")
     d = load_drive()
-    ids = vehicle_ids(args.vehicles)
+    ids = vehicle_ids(args.vehicles, args.first)
     opts = dict(congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
     if v2:
         start_at = args.start_at or time.time() + 1.5

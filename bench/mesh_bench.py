@@ -8,10 +8,13 @@ Figures: sustained samples/s end to end (raw samples whose DMC epoch reached the
 (raw publish → dmc received) p50/p99, CPU per stage (% of one core), memory per process, messages lost, and the
 ratio pipeline / limit. Every figure is a median over ``--repeat`` runs.
 
-``wire="v2"`` (the default): the fleet publishes one batch per vehicle per ``window_s`` (contract v2, as an
-on-board agent would), ingest emits clean batches (``output=batches``, the same window) and the limit relays the
-same batches. ``wire="v1"``: every sample alone on its key, end to end, as before. Besides, ``v1_ingest`` finds
-how many vehicles publishing v1 single samples one ingest process sustains (ingest alone, fleet frames out).
+``wire="v3"`` (the default): the fleet publishes one batch per vehicle per ``window_s`` with binary columns
+(``v2``: list columns; both as an on-board agent would), ingest emits fleet frames (``output=frames``, window
+``frame_s``) that the stages take, and the limit relays the same batches. ``wire="v1"``: every sample alone on its
+key, end to end. Besides, ``v1_ingest`` finds how many vehicles publishing v1 single samples one ingest process
+sustains (ingest alone, fleet frames out), and the overload run (:func:`overload_case`) doubles the highest
+sustained load and then drops back: no stage may crash, every sample that never came out must be counted by a
+stage under a reason, and latency must come back within the goal.
 """
 
 from __future__ import annotations
@@ -187,19 +190,23 @@ def _status(session, role: str, inst: str) -> dict:
 
 
 def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple[str, ...], tmp: Path,
-             wire: str = "v3", window_s: float = 0.05, frame_s: float = 0.02, warmup_s: float | None = None) -> dict:
+             wire: str = "v3", window_s: float = 0.05, frame_s: float = 0.02, warmup_s: float | None = None,
+             extra: int = 0, extra_s: float = 0.0) -> dict:
     """One run: ``kind`` is "pipeline", "limit" or "ingest" (ingest alone, fleet frames out). ``window_s``: each
     v2 vehicle's batch window; ``frame_s``: ingest's frame window (the pipeline with v2 runs on fleet frames).
     ``warmup_s`` (paced runs; default 5 s, 0 at saturation): the fleet publishes that long first — the stages
     meet every vehicle, declare its keys and settle — and latency and CPU are measured after it; every sample of
-    the warm-up still counts for loss."""
+    the warm-up still counts for loss. ``extra``/``extra_s`` (the overload case): a second fleet of ``extra`` more
+    vehicles publishes beside the first for the first ``extra_s`` seconds (warm-up included), then stops; the
+    result then also holds ``phases``: p99 latency of the samples taken while both fleets ran and of those taken
+    in the last half of the time after."""
     if warmup_s is None:
         warmup_s = 0.0 if max_mode else 5.0
     import zenoh
 
     port = _free_port()
     router = zenoh.open(zconf.build_config(mode="router", listen=[f"tcp/127.0.0.1:{port}"]))
-    man = _manifest(n, tmp)
+    man = _manifest(n + extra, tmp)
     procs: dict[str, subprocess.Popen] = {}
     tokens = []
     batch_stream = None
@@ -246,6 +253,13 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
                           ["--max"] if max_mode else [])
         fleet = subprocess.Popen([sys.executable, *fleet_args, "--connect", f"tcp/127.0.0.1:{port}"], cwd=paths.REPO,
                                  stdout=subprocess.PIPE, stderr=open(tmp / "fleet.log", "ab"), text=True)
+        fleet2 = None
+        if extra:
+            a2 = list(fleet_args)
+            a2[a2.index("--vehicles") + 1], a2[a2.index("--duration") + 1] = str(extra), str(extra_s)
+            fleet2 = subprocess.Popen([sys.executable, *a2, "--first", str(n), "--connect",
+                                       f"tcp/127.0.0.1:{port}"], cwd=paths.REPO, stdout=subprocess.PIPE,
+                                      stderr=open(tmp / "fleet2.log", "ab"), text=True)
         while time.time() < start_at + warmup_s:
             time.sleep(0.01)
         cpu0 = {k: _cpu_s(p.pid) for k, p in procs.items()}
@@ -257,6 +271,12 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         cpu_fleet = _cpu_s(fleet.pid)
         out, _ = fleet.communicate(timeout=duration_s + warmup_s + 120)
         fl = json.loads(out.strip().splitlines()[-1])
+        if fleet2 is not None:
+            out2, _ = fleet2.communicate(timeout=extra_s + 120)
+            fl2 = json.loads(out2.strip().splitlines()[-1])
+            fl = dict(fl, sent={k: v + fl2["sent"][k] for k, v in fl["sent"].items()}, total=fl["total"] + fl2["total"],
+                      rate=fl["rate"] + fl2["total"] / max(extra_s, 1e-9) * (extra_s / (duration_s + warmup_s)),
+                      offered_rate=fl["offered_rate"] + fl2["offered_rate"] * extra_s / (duration_s + warmup_s))
         expected = fl["sent"]["mag"] // 2  # one DMC epoch (or relayed mag/2) per magnetometer pair
         # drain: wait for every output, or until nothing has arrived for 10 s (at most 180 s)
         deadline = time.time() + 180
@@ -293,6 +313,27 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         lat, age = sink.latencies_ms(fl.get("start_at") if v2_fleet else None, window_s,
                                      (fl.get("start_at") or start_at) + warmup_s) if not max_mode else (None, None)
         samples_done = fl["total"] * min(1.0, sink.n / max(expected, 1))
+        alive = {k: p.poll() is None for k, p in procs.items()}
+        phases = None
+        if extra and not max_mode:
+            t0 = fl.get("start_at") or start_at
+            t_over, t_end_pub = t0 + extra_s, t0 + duration_s + warmup_s
+            ts = np.asarray(sink.t_sample, float)
+            tr = np.asarray(sink.t_recv[:len(ts)], float)
+            if v2_fleet:
+                from .fleet import publish_time
+
+                lat_all = (tr - publish_time(ts, fl["start_at"], window_s)) * 1000
+            else:
+                lat_all = (tr - ts) * 1000
+            over = (ts >= t0) & (ts < t_over)
+            tail = ts >= t_over + (t_end_pub - t_over) / 2
+
+            def _p99(x):
+                return round(float(np.percentile(x, 99)), 2) if len(x) else None
+
+            phases = {"overload_p99_ms": _p99(lat_all[over]), "overload_outputs": int(over.sum()),
+                      "recovered_p99_ms": _p99(lat_all[tail]), "recovered_outputs": int(tail.sum())}
         return {
             "kind": kind, "vehicles": n, "max_mode": max_mode, "duration_s": duration_s, "warmup_s": warmup_s,
             "wire": wire,
@@ -308,6 +349,8 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
             "cpu_pct": {k: round(100 * (cpu1[k] - cpu0[k]) / wall, 1) for k in procs}
                        | {"fleet": round(100 * (cpu_fleet - cpu0["fleet"]) / (duration_s * 0.8), 1)},
             "rss_mb": {k: round(v, 1) for k, v in rss.items()},
+            "alive": alive,
+            **({"extra_vehicles": extra, "extra_s": extra_s, "phases": phases} if extra else {}),
         }
     finally:
         _stop(procs)
@@ -323,6 +366,31 @@ def _median_case(kind, n, duration_s, max_mode, stages, repeat, tmp, wire="v3", 
     out["lost"] = max(r["lost"] for r in runs)
     out["runs"] = len(runs)
     return out
+
+
+def overload_case(n: int, duration_s: float, stages: tuple[str, ...], tmp: Path, wire: str = "v3",
+                  window_s: float = 0.05, frame_s: float = 0.02, p99_ms: float = 100.0) -> dict:
+    """Twice ``n`` vehicles (the highest sustained load) for a 5 s warm-up and ``duration_s``, then ``n`` alone
+    for ``max(10, 1.5 × duration_s)`` s: every stage must live through it, every sample that never came out must
+    be counted by a stage under a reason, and the latency of the samples taken in the last half of the calm must
+    be back within the goal."""
+    warm = 5.0
+    calm = max(10.0, 1.5 * duration_s)
+    r = run_case("pipeline", n, duration_s + calm, False, stages, tmp, wire, window_s, frame_s, warmup_s=warm,
+                 extra=n, extra_s=warm + duration_s)
+    missing = max(0, r["expected_outputs"] - r["outputs"])
+    counted = sum(r["drops"].values())
+    ph = r.get("phases") or {}
+    rp = ph.get("recovered_p99_ms")
+    r["overload"] = {
+        "vehicles": n, "peak_vehicles": 2 * n, "overload_s": warm + duration_s, "calm_s": calm,
+        "crashed": sorted(k for k, ok in r["alive"].items() if not ok),
+        "missing_outputs": missing, "counted_drops": counted, "by_reason": r["drops"],
+        "uncounted": max(0, missing - counted),
+        "overload_p99_ms": ph.get("overload_p99_ms"), "recovered_p99_ms": rp,
+        "recovered": bool(all(r["alive"].values()) and rp is not None and rp <= p99_ms),
+    }
+    return r
 
 
 def available_stages() -> tuple[str, ...]:
@@ -343,7 +411,8 @@ def _sustained(r: dict, p99_ms: float) -> bool:
 
 def bench(vehicles: list[int], duration_s: float = 8.0, repeat: int = 1, stages: tuple[str, ...] | None = None,
           limit_vehicles: int | None = None, progress=None, wire: str = "v3", window_s: float = 0.05,
-          p99_ms: float = 100.0, v1_ingest: bool = True, frame_s: float = 0.02) -> dict:
+          p99_ms: float = 100.0, v1_ingest: bool = True, frame_s: float = 0.02, overload: bool = True,
+          overload_vehicles: int | None = None) -> dict:
     stages = stages or available_stages()
     tmp = Path(tempfile.mkdtemp(prefix="magmesh-bench-"))
     say = progress or (lambda s: None)
@@ -371,6 +440,11 @@ def bench(vehicles: list[int], duration_s: float = 8.0, repeat: int = 1, stages:
             if not r["sustained"]:
                 break
     ok_ing = [r["vehicles"] for r in ingest_rows if r["sustained"]]
+    over = None
+    if overload:  # twice the highest sustained load, then back
+        n_over = overload_vehicles or (max(ok) if ok else min(vehicles))
+        say(f"overload: {2 * n_over} vehicles, then {n_over} ({wire})")
+        over = overload_case(n_over, duration_s, stages, tmp, wire, window_s, frame_s, p99_ms)["overload"]
     return {
         "stages": list(stages),
         "wire": wire,
@@ -383,6 +457,7 @@ def bench(vehicles: list[int], duration_s: float = 8.0, repeat: int = 1, stages:
         "max_vehicles": max(ok) if ok else 0,
         "v1_ingest": ingest_rows,
         "v1_ingest_max_vehicles": max(ok_ing) if ok_ing else 0,
+        "overload": over,
         "logs": str(tmp),
     }
 
@@ -415,4 +490,12 @@ def format_text(res: dict) -> str:
         lines += ["", "v1 single-sample vehicles through one ingest (fleet frames out):", "", *head]
         lines += [_row(r) for r in res["v1_ingest"]]
         lines.append(f"\nv1 vehicles one ingest sustains: {res['v1_ingest_max_vehicles']}")
+    o = res.get("overload")
+    if o:
+        reasons = ", ".join(f"{k} {v}" for k, v in sorted(o["by_reason"].items())) or "none"
+        lines += ["", f"overload: {o['peak_vehicles']} vehicles for {o['overload_s']:g} s, then {o['vehicles']} for "
+                  f"{o['calm_s']:g} s — crashed: {', '.join(o['crashed']) or 'none'}; outputs missing "
+                  f"{o['missing_outputs']}, counted by stages {o['counted_drops']} ({reasons}), uncounted "
+                  f"{o['uncounted']}; p99 {o['overload_p99_ms']} ms under overload, {o['recovered_p99_ms']} ms in the "
+                  f"calm's last half → {'recovered' if o['recovered'] else 'NOT recovered'}"]
     return "\n".join(lines)

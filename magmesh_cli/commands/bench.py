@@ -30,6 +30,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="latency goal a sustained row must meet, raw publish → dmc out p99 (default 100 ms)")
     m.add_argument("--no-v1-ingest", action="store_true",
                    help="skip measuring how many v1 single-sample vehicles one ingest sustains")
+    m.add_argument("--no-overload", action="store_true",
+                   help="skip the overload run (twice the highest sustained load, then back to it)")
+    m.add_argument("--overload-vehicles", type=int, default=None,
+                   help="the load the overload run doubles (default: the highest sustained count)")
     m.add_argument("--json", action="store_true")
     m.set_defaults(func=run_mesh)
     c = bsub.add_parser("cores", help="each pure core against its Python peer on the same input")
@@ -53,7 +57,8 @@ def run_mesh(args: argparse.Namespace) -> int:
     stages = tuple(s.strip() for s in args.stages.split(",")) if args.stages else None
     res = bench(vehicles, args.duration, args.repeat, stages, args.saturation_vehicles,
                 progress=lambda s: print(s, file=sys.stderr, flush=True), wire=args.wire, window_s=args.window,
-                frame_s=args.frame_window, p99_ms=args.p99_ms, v1_ingest=not args.no_v1_ingest)
+                frame_s=args.frame_window, p99_ms=args.p99_ms, v1_ingest=not args.no_v1_ingest,
+                overload=not args.no_overload, overload_vehicles=args.overload_vehicles)
     if args.json:
         json.dump(res, sys.stdout)
         print()
