@@ -186,7 +186,7 @@ def settings_table(cls: type | None, width: int = 118) -> str:
     cells = [(s.name, s.type, s.unit, _default_text(s.default), s.allowed, s.doc) for s in rows]
     head = ("name", "type", "unit", "default", "range", "description")
     w = [max(len(r[i]) for r in [*cells, head]) for i in range(5)]
-    w[3], w[4] = min(w[3], 24), min(w[4], 28)
+    w[3], w[4] = min(w[3], 12), min(w[4], 16)
     lead = sum(w) + 2 * 5 + 2
     lines = ["  " + "  ".join(h.ljust(w[i]) for i, h in enumerate(head[:5])) + "  " + head[5]]
     for r in cells:
@@ -302,13 +302,24 @@ def _check_template(template: str, what: str) -> None:
                          f"known: {', '.join(sorted(_builders()))}")
 
 
-def _when_active(when: Any, settings: Any) -> bool:
+def _value(settings: Any, name: str, declared: type | None) -> Any:
+    """A setting's value; one the instance's settings lack (a test's narrower Settings) is the declared default."""
+    v = getattr(settings, name, _MISSING)
+    if v is _MISSING:
+        v = next((s.default for s in settings_info(declared) if s.name == name), None)
+    return v
+
+
+_MISSING = object()
+
+
+def _when_active(when: Any, settings: Any, declared: type | None = None) -> bool:
     if when is None:
         return True
     if isinstance(when, str):
-        return bool(getattr(settings, when))
+        return bool(_value(settings, when, declared))
     name, value = when
-    v = getattr(settings, name)
+    v = _value(settings, name, declared)
     return v in value if isinstance(value, (tuple, list, set, frozenset)) else v == value
 
 
@@ -326,7 +337,7 @@ def _when_text(when: Any) -> str:
 def short(template: str, **fixed: str | None) -> str:
     """A template as status and ``--help`` show it: without ``magmesh/{vehicle}/``, fixed parts filled in."""
     prefix = f"{keys.ROOT}/{{vehicle}}/"
-    s = template[len(prefix):] if template.startswith(prefix) else template.removeprefix(f"{keys.ROOT}/")
+    s = template[len(prefix):] if template.startswith(prefix) else template
     for k, v in fixed.items():
         if v is not None:
             s = s.replace("{" + k + "}", v)
@@ -358,7 +369,7 @@ class Input:
     def short(self) -> str:
         return short(self.template)
 
-    def sensor_ids(self, settings: Any) -> list[str]:
+    def sensor_ids(self, settings: Any, declared: type | None = None) -> list[str]:
         """The sensors this input names under ``settings`` (``["*"]`` for every one)."""
         if self.sensors is None:
             return []
@@ -366,7 +377,7 @@ class Input:
             return ["*"]
         out: list[str] = []
         for name in (self.sensors,) if isinstance(self.sensors, str) else self.sensors:
-            v = getattr(settings, name)
+            v = _value(settings, name, declared)
             if isinstance(v, str):
                 if v:
                     out.append(v)
@@ -374,14 +385,15 @@ class Input:
                 out.extend(str(x) for x in v)
         return out
 
-    def keys(self, vehicle_pattern: str, settings: Any) -> list[str]:
-        """The key expressions of this input (none while ``when`` is off), built by the streams table's builder."""
-        if not _when_active(self.when, settings):
+    def keys(self, vehicle_pattern: str, settings: Any, declared: type | None = None) -> list[str]:
+        """The key expressions of this input (none while ``when`` is off), built by the streams table's builder
+        (``declared``: the service's Settings class, whose defaults stand in for settings an instance lacks)."""
+        if not _when_active(self.when, settings, declared):
             return []
         build = _builders()[self.template]
         if self.sensors is None:
             return [build(vehicle_pattern)]
-        return [build(vehicle_pattern, s) for s in self.sensor_ids(settings)]
+        return [build(vehicle_pattern, s) for s in self.sensor_ids(settings, declared)]
 
     def help_line(self) -> str:
         notes = []
@@ -426,14 +438,16 @@ def alarm(source: str, doc: str, when: str | tuple | None = None) -> Output:
 def subscriptions(svc: Any) -> list[str]:
     """The key expressions a service subscribes to: every active input's keys, in declaration order."""
     out: list[str] = []
-    for i in type(svc).INPUTS:
-        out += i.keys(svc.vehicle_pattern, svc.settings)
+    cls = type(svc)
+    for i in cls.INPUTS:
+        out += i.keys(svc.vehicle_pattern, svc.settings, cls.Settings)
     return out
 
 
 def _listing(decls: Iterable, obj: Any) -> list[str]:
-    settings = None if isinstance(obj, type) else obj.settings
-    return [d.short for d in decls if settings is None or _when_active(d.when, settings)]
+    if isinstance(obj, type):
+        return [d.short for d in decls]
+    return [d.short for d in decls if _when_active(d.when, obj.settings, type(obj).Settings)]
 
 
 def consumes(obj: Any) -> list[str]:
@@ -466,4 +480,4 @@ def streams_help(cls: type, width: int = 118) -> str:
             lines.append(lead + wrapped[0])
             lines += [" " * len(lead) + x for x in wrapped[1:]]
         parts.append("\n".join(lines))
-    return "\n".join(parts) + f"\n(keys are {keys.ROOT}/{{vehicle}}/...)"
+    return "\n".join(parts) + f"\n(keys without a {keys.ROOT}/ prefix are {keys.ROOT}/{{vehicle}}/...)"

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from magmesh.declare import setting
 from schemas import batch as batches
 from schemas import keys, streams
 
@@ -35,16 +36,11 @@ REFUSED_SEQS_MAX = 1024
 
 @dataclass(frozen=True)
 class IngestServiceSettings(IngestSettings):
-    output: str = "singles"  # singles: one clean/ message per sample (v1) | batches: clean/batch per vehicle (v2)
-    #                          | frames: one fleet frame of every vehicle per window (v3, magmesh/fleet/{instance}/clean)
-    batch_window_s: float = 0.02  # longest wall-clock wait of an accepted sample before its batch or frame goes out
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if self.output not in ("singles", "batches", "frames"):
-            raise ValueError(f"output must be 'singles', 'batches' or 'frames', got {self.output!r}")
-        if not 0 < self.batch_window_s <= 5.0:
-            raise ValueError(f"batch_window_s must be in (0, 5] s, got {self.batch_window_s!r}")
+    output: str = setting("singles", "singles: one clean/ message per sample (v1); batches: clean/batch per vehicle "
+                          "(v2); frames: one fleet frame of every vehicle per window (v3, magmesh/fleet/{instance}/clean)",
+                          choices=("singles", "batches", "frames"))
+    batch_window_s: float = setting(0.02, "longest wall-clock wait of an accepted sample before its batch or frame "
+                                    "goes out", gt=0, hi=5.0)
 
 
 def order_masks(t: np.ndarray, ok: np.ndarray, last_t: float | None) -> tuple[np.ndarray, np.ndarray]:

@@ -9,6 +9,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from magmesh import declare
+from magmesh.declare import setting
 from schemas.streams import LIMIT_DEFAULTS, limit_problem
 
 #: how far (s of sample time) a sample may run ahead of its stream's clock, by stream kind; see
@@ -19,28 +21,36 @@ MAX_AHEAD_S = {"mag": 10.0, "imu": 10.0, "gnss": 60.0, "ins": 60.0, "attitude": 
 @dataclass(frozen=True)
 class IngestSettings:
     # physical ranges: defaults from the streams table (schemas/streams.py LIMITS / LIMIT_DEFAULTS)
-    max_field_nt: float = LIMIT_DEFAULTS["max_field_nt"]
-    max_gyro_rad_s: float = LIMIT_DEFAULTS["max_gyro_rad_s"]
-    max_accel_m_s2: float = LIMIT_DEFAULTS["max_accel_m_s2"]
-    max_speed_m_s: float = LIMIT_DEFAULTS["max_speed_m_s"]
-    alt_range_m: tuple = LIMIT_DEFAULTS["alt_range_m"]
-    max_pdop: float = LIMIT_DEFAULTS["max_pdop"]
-    max_pos_m: float = LIMIT_DEFAULTS["max_pos_m"]
-    max_time_jump_s: float = 3600.0  # a sample this far ahead of the previous one on its stream is refused
-    # a sample further ahead of its stream's clock than this (s, by stream kind; a JSON object overrides the
-    # kinds it names) is refused; the clock runs at the stream's own learned rate (replays run faster)
-    max_ahead_s: dict = field(default_factory=lambda: dict(MAX_AHEAD_S))
-    max_clock_rate: float = 10000.0  # fastest sample-time-per-wall-time rate a stream's clock is believed to run
-    rebase_after: int = 10  # this many consecutive, mutually consistent refusals on time: the clock really jumped
-    seq_jump_max: int = 10_000  # a seq jump beyond this is a counter re-base, not that many lost samples
-    evict_idle_s: float = 600.0  # state of a key or vehicle silent this long is freed (counted)
-    tick_s: float = 1.0
+    max_field_nt: float = setting(LIMIT_DEFAULTS["max_field_nt"], "a magnetometer sample whose |b| exceeds this is "
+                                  "refused (not a reading: sensor full scale is about 0.8–8 mT)", gt=0)
+    max_gyro_rad_s: float = setting(LIMIT_DEFAULTS["max_gyro_rad_s"], "an IMU sample whose |ω| exceeds this is "
+                                    "refused (about 2300 °/s)", gt=0)
+    max_accel_m_s2: float = setting(LIMIT_DEFAULTS["max_accel_m_s2"], "an IMU sample whose |a| exceeds this is "
+                                    "refused (about 30 g)", gt=0)
+    max_speed_m_s: float = setting(LIMIT_DEFAULTS["max_speed_m_s"], "a GNSS speed above this is refused (the "
+                                   "velocity vector may reach 1.5 × this)", gt=0)
+    alt_range_m: tuple = setting(LIMIT_DEFAULTS["alt_range_m"], "a GNSS altitude outside (lowest, highest) is "
+                                 "refused")
+    max_pdop: float = setting(LIMIT_DEFAULTS["max_pdop"], "a GNSS fix with a PDOP above this is refused")
+    max_pos_m: float = setting(LIMIT_DEFAULTS["max_pos_m"], "a local ENU coordinate (GNSS, INS, route) beyond ± this "
+                               "is refused (an INS velocity component too, in m/s)")
+    max_time_jump_s: float = setting(3600.0, "a sample this far ahead of the previous one on its stream is refused",
+                                     gt=0)
+    max_ahead_s: dict = setting(dict(MAX_AHEAD_S), "a sample further ahead of its stream's clock than this (s, by "
+                                "stream kind; a JSON object overrides the kinds it names) is refused; the clock runs "
+                                "at the stream's own learned rate (replays run faster)")
+    max_clock_rate: float = setting(10000.0, "fastest sample-time-per-wall-time rate a stream's clock is believed to "
+                                    "run", gt=0)
+    rebase_after: int = setting(10, "this many consecutive, mutually consistent refusals on time: the clock really "
+                                "jumped (re-based)", gt=0)
+    seq_jump_max: int = setting(10_000, "a seq jump beyond this is a counter re-base, not that many lost samples",
+                                gt=0)
+    evict_idle_s: float = setting(600.0, "state of a key or vehicle silent this long is freed (counted)", gt=0)
+    tick_s: float = setting(1.0, "period of the service's tick with output = singles (batches and frames go out "
+                            "from a tick at half batch_window_s)")
 
     def __post_init__(self) -> None:
-        for name in ("max_field_nt", "max_gyro_rad_s", "max_accel_m_s2", "max_speed_m_s", "max_time_jump_s",
-                     "max_clock_rate", "rebase_after", "seq_jump_max", "evict_idle_s"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0")
+        declare.check(self)
         if not isinstance(self.max_ahead_s, dict):
             raise ValueError(f"max_ahead_s must be a map of stream kind to seconds, got {self.max_ahead_s!r}")
         unknown = sorted(set(self.max_ahead_s) - set(MAX_AHEAD_S))

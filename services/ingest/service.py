@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import time
 
+from magmesh.declare import Input, Output
 from magmesh.runtime import Service
 from schemas import keys, messages
 
@@ -31,12 +32,17 @@ class Ingest(FramingIngest, BatchingIngest, Service):
     Settings = IngestServiceSettings
     RAW_BATCHES = True  # raw/batch (contract v2): validated here on whole columns
     FRAME_INPUT = False
-    CONSUMES = ("raw/mag/{sensor}", "raw/imu", "raw/gnss", "raw/ins", "raw/route", "raw/attitude")
-    PRODUCES = ("clean/mag/{sensor}", "clean/imu", "clean/gnss", "clean/ins", "clean/route", "clean/attitude",
-                "rejects")
-
-    def subscriptions(self) -> list[str]:
-        return [keys.raw_all(self.vehicle_pattern)]
+    INPUTS = (Input("magmesh/{vehicle}/raw/**", "every raw stream (mag/{sensor}, imu, gnss, ins, route, attitude) "
+                    "and raw/batch, validated here"),)
+    OUTPUTS = (
+        *(Output(f"magmesh/{{vehicle}}/clean/{s}", f"accepted {s} samples", when=("output", "singles"))
+          for s in ("mag/{sensor}", "imu", "gnss", "ins", "route", "attitude")),
+        Output("magmesh/{vehicle}/clean/batch", "accepted samples of a vehicle per batch_window_s (contract v2)",
+               when=("output", "batches")),
+        Output("magmesh/fleet/{shard}/clean", "accepted samples of every vehicle per batch_window_s (contract v3)",
+               when=("output", "frames")),
+        Output("magmesh/{vehicle}/rejects", "every refused sample, with the field and a sentence"),
+    )
 
     def new_vehicle(self, vehicle: str) -> VehicleState:
         return VehicleState()
