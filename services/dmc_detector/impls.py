@@ -13,33 +13,41 @@ from pathlib import Path
 
 import numpy as np
 
-from magmesh import runtime
+from magmesh import declare, runtime
+from magmesh.declare import Input, setting
 from schemas import keys
 from services.physical import refuse_unphysical
 
 from . import core, fcm, fleet, quasistatic
 from .core import HysteresisSettings
-from .service import DmcDetectorService, Settings, ThresholdDmcDetector, VehicleState
+from .service import (
+    DmcDetectorService,
+    Settings,
+    ThresholdDmcDetector,
+    VehicleState,
+    clear_after_setting,
+    pair_tolerance_setting,
+    raise_after_setting,
+    severity_setting,
+)
 
 # ---- fcm ----------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
 class FcmSettings:
-    sensor_a: str = "1"
-    sensor_b: str = "2"
-    pair_tolerance_s: float = 0.005
-    model_path: str = ""  # trained centres; "" = models/dmc_fcm_v1.json
-    kc_min: float = 0.0  # valid when K_c > kc_min; 0 = the model's (0.8, the paper's)
-    raise_after_s: float = HysteresisSettings.raise_after_s
-    clear_after_s: float = HysteresisSettings.clear_after_s
-    severity: str = "warning"
+    sensor_a: str = setting("1", "the reference compass (its heading is published)")
+    sensor_b: str = setting("2", "the second compass of the differential pair")
+    pair_tolerance_s: float = pair_tolerance_setting()
+    model_path: str = setting("", "trained centres (JSON); \"\" = models/dmc_fcm_v1.json")
+    kc_min: float = setting(0.0, "an epoch is valid when its credibility K_c exceeds this; 0 = the model's (0.8, the "
+                            "paper's)", lo=0, lt=1)
+    raise_after_s: float = raise_after_setting()
+    clear_after_s: float = clear_after_setting()
+    severity: str = severity_setting()
 
     def __post_init__(self):
-        if self.severity not in ("warning", "critical"):
-            raise ValueError(f"severity must be warning or critical, got {self.severity!r}")
-        if not 0 <= self.kc_min < 1:
-            raise ValueError(f"kc_min must be in [0, 1), got {self.kc_min}")
+        declare.check(self)
         keys.check_id(self.sensor_a, "sensor_a")
         keys.check_id(self.sensor_b, "sensor_b")
 
@@ -82,15 +90,15 @@ class SingleDmcDetector(DmcDetectorService):
     """One compass (sensor_a) only: |Δm| < V_Δm and |dΔm| < V_dΔm. The heading-difference tests are absent."""
 
     impl = "single"
-    CONSUMES = ("clean/mag/{sensor}", "cal/params/{sensor}")
+    INPUTS = (
+        Input("magmesh/{vehicle}/clean/mag/{sensor}", "the one compass tested", sensors="sensor_a"),
+        Input("magmesh/{vehicle}/cal/params/{sensor}", "its static compensation; overrides the manifest's mag_params",
+              sensors="sensor_a"),
+    )
 
     @property
     def required_sensors(self) -> tuple[str, ...]:
         return (self.settings.sensor_a,)
-
-    def subscriptions(self) -> list[str]:
-        p, a = self.vehicle_pattern, self.settings.sensor_a
-        return [keys.clean_mag(p, a), keys.cal_params(p, a)]
 
     def make_fleet(self):
         s = self.settings
@@ -122,23 +130,32 @@ class SingleDmcDetector(DmcDetectorService):
 # ---- quasistatic --------------------------------------------------------------------------------
 
 
+_QS = quasistatic.QuasiStaticSettings
+
+
 @dataclass(frozen=True)
 class QuasiStaticServiceSettings:
-    sensor: str = "1"
-    window_s: float = quasistatic.QuasiStaticSettings.window_s
-    var_threshold_nt2: float = quasistatic.QuasiStaticSettings.var_threshold_nt2
-    dpsi_threshold_deg: float = quasistatic.QuasiStaticSettings.dpsi_threshold_deg
-    variance_of: str = quasistatic.QuasiStaticSettings.variance_of
-    dm_threshold_nt: float = quasistatic.QuasiStaticSettings.dm_threshold_nt
-    level: str = quasistatic.QuasiStaticSettings.level
-    max_imu_lag_s: float = quasistatic.QuasiStaticSettings.max_imu_lag_s
-    raise_after_s: float = HysteresisSettings.raise_after_s
-    clear_after_s: float = HysteresisSettings.clear_after_s
-    severity: str = "warning"
+    sensor: str = setting("1", "the magnetometer tested")
+    window_s: float = setting(_QS.window_s, "sliding window L of the variance and heading-change tests", gt=0, hi=60)
+    var_threshold_nt2: float = setting(_QS.var_threshold_nt2, "var_initial: the field's variance over the window "
+                                       "stays below this when undisturbed (0.8 µT² = 0.8e6 nT²)", gt=0)
+    dpsi_threshold_deg: float = setting(_QS.dpsi_threshold_deg, "Δψ_initial: magnetometer and gyro heading changes "
+                                        "over the window agree within this (the paper: 0.5 open road, 2 garage; a car "
+                                        "leaning in turns needs 2.5)", gt=0)
+    variance_of: str = setting(_QS.variance_of, "magnitude: the variance of |h|; components: of m_x, m_y, m_z (the "
+                               "paper's)", choices=("magnitude", "components"))
+    dm_threshold_nt: float = setting(_QS.dm_threshold_nt, "added test |Δm| = ||h| − R| < this; 0 switches it off (the "
+                                     "paper)", lo=0)
+    level: str = setting(_QS.level, "body: a near-level vehicle (ψ̇ = −ω_z, level compass); accel: levelled by the "
+                         "accelerometer", choices=("body", "accel"))
+    max_imu_lag_s: float = setting(_QS.max_imu_lag_s, "a magnetometer epoch is decided without gyro data after this "
+                                   "much sample time")
+    raise_after_s: float = raise_after_setting()
+    clear_after_s: float = clear_after_setting()
+    severity: str = severity_setting()
 
     def __post_init__(self):
-        if self.severity not in ("warning", "critical"):
-            raise ValueError(f"severity must be warning or critical, got {self.severity!r}")
+        declare.check(self)
         keys.check_id(self.sensor, "sensor")
         self.core()
 
@@ -155,7 +172,12 @@ class QuasiStaticDmcDetector(DmcDetectorService):
 
     impl = "quasistatic"
     Settings = QuasiStaticServiceSettings
-    CONSUMES = ("clean/mag/{sensor}", "clean/imu", "cal/params/{sensor}")
+    INPUTS = (
+        Input("magmesh/{vehicle}/clean/mag/{sensor}", "the magnetometer tested", sensors="sensor"),
+        Input("magmesh/{vehicle}/clean/imu", "the gyro whose heading change the magnetometer's must match"),
+        Input("magmesh/{vehicle}/cal/params/{sensor}", "its static compensation; overrides the manifest's mag_params",
+              sensors="sensor"),
+    )
 
     @property
     def sensors(self) -> tuple[str, str]:
@@ -164,10 +186,6 @@ class QuasiStaticDmcDetector(DmcDetectorService):
     @property
     def required_sensors(self) -> tuple[str, ...]:
         return (self.settings.sensor,)
-
-    def subscriptions(self) -> list[str]:
-        p, a = self.vehicle_pattern, self.settings.sensor
-        return [keys.clean_mag(p, a), keys.clean_imu(p), keys.cal_params(p, a)]
 
     on_frame = None  # per vehicle only: the runtime hands each vehicle's frame rows to on_message
 

@@ -1,10 +1,6 @@
 """DMC detector: recognises dynamic magnetic interference from two compasses (docs/methods.md#dmc).
 
-Consumes  magmesh/{vehicle}/clean/mag/1, clean/mag/2   the two compasses of the DMC, paired by time
-          magmesh/{vehicle}/cal/params/{sensor}        static compensation; overrides the manifest's
-Produces  magmesh/{vehicle}/dmc                        features, credibility and validity per epoch
-          magmesh/{vehicle}/alarm/dmc                  raised / cleared, with hysteresis
-
+What it consumes and produces is declared on the service class (``INPUTS``, ``OUTPUTS``; ``--help`` lists them).
 Until ``cal/params`` arrive, the compensation comes from the mesh manifest's vehicle table
 (``mag_params.{sensor}`` with offset_nt, matrix, field_radius_nt; ``declination_rad``; optional
 ``dh_ref_rad``). A 2-D (horizontal) ``cal/params`` set does not replace a 3-D one already held: its
@@ -21,7 +17,9 @@ from typing import Any
 
 import numpy as np
 
+from magmesh import declare
 from magmesh.align import REASONS, TimeAligner
+from magmesh.declare import Input, Output, setting
 from magmesh.runtime import Service
 from schemas import keys
 from services.physical import refuse_unphysical
@@ -29,26 +27,52 @@ from services.physical import refuse_unphysical
 from . import core, fleet
 from .core import CompassParams, FeatureSettings, HysteresisSettings, Thresholds
 
+# ---- settings every implementation shares (one declaration each) ------------------------------------
+
+
+def pair_tolerance_setting() -> Any:
+    return setting(0.005, "samples of the two compasses closer than this form an epoch", lo=0)
+
+
+def raise_after_setting() -> Any:
+    return setting(HysteresisSettings.raise_after_s, "alarm/dmc is raised after this long of invalid epochs without "
+                   "interruption", lo=0)
+
+
+def clear_after_setting() -> Any:
+    return setting(HysteresisSettings.clear_after_s, "alarm/dmc is cleared after this long of valid epochs without "
+                   "interruption", lo=0)
+
+
+def severity_setting() -> Any:
+    return setting("warning", "severity of alarm/dmc", choices=("warning", "critical"))
+
 
 @dataclass(frozen=True)
 class Settings:
-    sensor_a: str = "1"  # the reference compass (its heading is published)
-    sensor_b: str = "2"
-    pair_tolerance_s: float = 0.005  # samples of the two compasses closer than this form an epoch
-    pair_max_wait_s: float = 10.0  # wall-clock seconds a compass sample waits for its partner (then counted)
-    dm_threshold_nt: float = Thresholds.dm_nt  # V_Δm
-    ddm_threshold_nt_s: float = Thresholds.ddm_nt_s  # V_dΔm
-    dh_threshold_deg: float = Thresholds.dh_deg  # V_Δh
-    ddh_threshold_deg_s: float = Thresholds.ddh_deg_s  # V_dΔh
-    smooth_window_s: float = FeatureSettings.smooth_window_s
-    rate_window_s: float = FeatureSettings.rate_window_s
-    raise_after_s: float = HysteresisSettings.raise_after_s
-    clear_after_s: float = HysteresisSettings.clear_after_s
-    severity: str = "warning"  # of alarm/dmc
+    sensor_a: str = setting("1", "the reference compass (its heading is published)")
+    sensor_b: str = setting("2", "the second compass of the differential pair")
+    pair_tolerance_s: float = pair_tolerance_setting()
+    pair_max_wait_s: float = setting(10.0, "wall-clock seconds a compass sample waits for its partner (then counted "
+                                     "as unpaired)", gt=0)
+    dm_threshold_nt: float = setting(Thresholds.dm_nt, "V_Δm: a valid epoch has |Δm| (field-strength error) below "
+                                     "this on both compasses", gt=0)
+    ddm_threshold_nt_s: float = setting(Thresholds.ddm_nt_s, "V_dΔm: a valid epoch has |dΔm| (rate of the "
+                                        "field-strength error) below this", gt=0)
+    dh_threshold_deg: float = setting(Thresholds.dh_deg, "V_Δh: a valid epoch has |Δh| (relative heading difference "
+                                      "of the two compasses) below this", gt=0)
+    ddh_threshold_deg_s: float = setting(Thresholds.ddh_deg_s, "V_dΔh: a valid epoch has |dΔh| (its rate) below this",
+                                         gt=0)
+    smooth_window_s: float = setting(FeatureSettings.smooth_window_s, "features are averaged over this window before "
+                                     "differentiating", gt=0, hi=10)
+    rate_window_s: float = setting(FeatureSettings.rate_window_s, "rates are taken between window means this far "
+                                   "apart", gt=0, hi=30)
+    raise_after_s: float = raise_after_setting()
+    clear_after_s: float = clear_after_setting()
+    severity: str = severity_setting()
 
     def __post_init__(self):
-        if self.severity not in ("warning", "critical"):
-            raise ValueError(f"severity must be warning or critical, got {self.severity!r}")
+        declare.check(self)
         keys.check_id(self.sensor_a, "sensor_a")
         keys.check_id(self.sensor_b, "sensor_b")
         self.thresholds()  # range checks
@@ -93,9 +117,19 @@ class DmcDetectorService(Service):
     role = "dmc_detector"
     impl = "threshold"
     Settings = Settings
-    CONSUMES = ("clean/mag/{sensor}", "cal/params/{sensor}")
+    INPUTS = (
+        Input("magmesh/{vehicle}/clean/mag/{sensor}", "the two compasses of the DMC, paired by time",
+              sensors=("sensor_a", "sensor_b")),
+        Input("magmesh/{vehicle}/cal/params/{sensor}", "static compensation; overrides the manifest's mag_params",
+              sensors=("sensor_a", "sensor_b")),
+    )
+    OUTPUTS = (
+        Output("magmesh/{vehicle}/dmc", "features, credibility and validity per epoch"),
+        Output("magmesh/fleet/{shard}/dmc", "the same verdicts of every vehicle per input frame, with the same seqs"),
+        declare.alarm("dmc", "raised after raise_after_s of invalid epochs, cleared after clear_after_s of valid "
+                      "ones"),
+    )
     ADOPTS_RESTORED_ALARMS = True  # the latch takes the mesh's alarm state (_sync_latches)
-    PRODUCES = ("dmc", "alarm/dmc")
 
     # ---- hooks for implementations ---------------------------------------------------------
     def make_fleet(self) -> Any:
@@ -119,10 +153,6 @@ class DmcDetectorService(Service):
     def required_sensors(self) -> tuple[str, ...]:
         """Sensors whose compensation parameters an epoch needs."""
         return self.sensors
-
-    def subscriptions(self) -> list[str]:
-        p = self.vehicle_pattern
-        return [keys.clean_mag(p, s) for s in self.sensors] + [keys.cal_params(p, s) for s in self.sensors]
 
     @property
     def fleet(self) -> Any:
