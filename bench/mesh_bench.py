@@ -264,6 +264,7 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
             time.sleep(0.01)
         cpu0 = {k: _cpu_s(p.pid) for k, p in procs.items()}
         cpu0["fleet"] = _cpu_s(fleet.pid)
+        cpu0["router+sink"] = _cpu_s(os.getpid())  # this process: the Zenoh router and the counting sink
         t_start = time.time()
         rss = {}
         time.sleep(duration_s * 0.8)
@@ -287,6 +288,7 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         drained = sink.n >= expected
         t_end = sink.t_last
         cpu1 = {k: _cpu_s(p.pid) for k, p in procs.items()}
+        cpu1["router+sink"] = _cpu_s(os.getpid())
         wall = max(t_end - t_start, 1e-6)
         statuses = {}
         if kind in ("pipeline", "ingest"):
@@ -346,7 +348,7 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
             "age_ms_p99": round(float(np.percentile(age, 99)), 2) if age is not None else None,
             "vehicle_window_s": window_s if v2_fleet else None,
             "frame_window_s": frame_s if (kind == "pipeline" and wire in ("v2", "v3")) else None,
-            "cpu_pct": {k: round(100 * (cpu1[k] - cpu0[k]) / wall, 1) for k in procs}
+            "cpu_pct": {k: round(100 * (cpu1[k] - cpu0[k]) / wall, 1) for k in (*procs, "router+sink")}
                        | {"fleet": round(100 * (cpu_fleet - cpu0["fleet"]) / (duration_s * 0.8), 1)},
             "rss_mb": {k: round(v, 1) for k, v in rss.items()},
             "alive": alive,
