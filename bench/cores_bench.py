@@ -560,7 +560,7 @@ def calibration_service(vehicles: int = 500, warm_s: float = 12.0, frames: int =
     # the reference with the declination the service found (its IGRF lookups are not what is timed)
     ref = {v: VehicleCalibration(v, CalibrationSettings(), OnlineSettings(), declination_rad=-0.1) for v in names}
     t0 = time.process_time()
-    for key, m in msgs:
+    for _key, m in msgs:
         vc = ref[m["vehicle"]]
         if m["type"] == "mag":
             sc = vc.on_mag(m["sensor"], m["t_s"], m["b_nt"])
