@@ -1,12 +1,6 @@
 """Calibration: fit each magnetometer's hard/soft iron and publish the compensated field.
 
-Consumes  magmesh/{vehicle}/clean/mag/{sensor}   samples to fit (Two-Step LS or ARLS, 2-D or 3-D)
-          magmesh/{vehicle}/clean/imu            roll/pitch for the online EKF
-          magmesh/{vehicle}/clean/gnss           course for the online GNSS-aided hard-iron EKF
-Produces  magmesh/{vehicle}/cal/mag/{sensor}     h = M (m − offset), calibrated=true, param_id
-          magmesh/{vehicle}/cal/params/{sensor}  the parameter set in use; republished on change and
-                                                 answered by query (late joiners)
-
+What it consumes and produces is declared on :class:`Calibration` (``INPUTS``, ``OUTPUTS``; ``--help`` lists them).
 Parameter sets persist as JSON under ``state_dir()/calibration/`` and are reloaded on start; the
 manifest's ``mag_params`` table (status "manifest") is used until a fit or a saved set exists. A
 fresh fit replaces the set in use only when it fits the current samples better (see core.py).
@@ -28,7 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from magmesh import magcal, paths
+from magmesh import declare, magcal, paths
+from magmesh.declare import Input, Output, setting
 from magmesh.runtime import Service
 from schemas import frame as fleetframe
 from schemas import keys
@@ -41,33 +36,42 @@ from .fleet import FleetCalibration, GnssIn, ImuIn, MagIn
 
 @dataclass(frozen=True)
 class Settings:
-    tick_s: float = 1.0  # fit attempts and persistence run from the tick
-    method: str = "arls"  # arls | ls
-    model: str = "auto"  # auto | 2d | 3d
-    window_s: float = 600.0  # fit window, s of sample time
-    sample_interval_s: float = 0.05  # decimation of the fit window, s
-    refit_interval_s: float = 5.0  # fit attempt period, s of sample time
-    fit_budget_frac: float = 0.04  # share of one core fits may take (CPU time); 0: no limit (fit when due)
-    window_max_samples: int = 0  # fit window bound, samples; 0: what window_s / sample_interval_s allows
-    field_radius_nt: float = 0.0  # > 0: scale |h| to this; 0: the fitted radius
-    improve_ratio: float = 0.95  # a new set must have a residual below this × the current one's
-    k0: float = 1.5  # IGG-III lower threshold, standardised residuals
-    k1: float = 3.0  # IGG-III upper threshold
-    min_samples: int = 150
-    min_coverage_2d: float = 0.75  # share of 10° heading bins a 2-D fit needs
-    min_coverage_3d: float = 0.55  # share of sphere cells a 3-D fit needs
-    online_ekf: bool = True  # run the GNSS-aided hard-iron EKF
-    ekf_prior_std_nt: float = 5000.0
-    ekf_heading_noise_deg: float = 2.0
-    ekf_min_speed_m_s: float = 3.0
-    ekf_gate_sigma: float = 3.0
-    ekf_random_walk_nt_sqrt_s: float = 30.0  # how fast the hard iron may change (process noise)
-    ekf_tilt: str = "level"  # level (roll = pitch = 0, as a car's 2-D compass is read) | accel (IMU tilt)
-    ekf_kinds: str = "car"  # manifest vehicle kinds whose GNSS course is their heading (comma-separated);
-    #                         vehicles without a manifest kind are served too
-    publish_cal_mag: bool = True  # publish cal/mag (set false to publish parameters only)
-    persist: bool = True  # keep parameter sets on disk
-    state_subdir: str = "calibration"
+    tick_s: float = setting(1.0, "fit attempts that waited for the budget and persistence run from this tick", gt=0)
+    method: str = setting("arls", "arls: ARLS with IGG-III weights (robust); ls: Two-Step least squares",
+                          choices=("arls", "ls"))
+    model: str = setting("auto", "auto: 3-D when the attitude coverage allows, else 2-D (horizontal ellipse)",
+                         choices=("auto", "2d", "3d"))
+    window_s: float = setting(600.0, "fit window: samples older than this (sample time) leave it", gt=0)
+    sample_interval_s: float = setting(0.05, "decimation of the fit window: at most one sample per interval", lo=0)
+    refit_interval_s: float = setting(5.0, "fit attempt period, sample time", gt=0)
+    fit_budget_frac: float = setting(0.04, "share of one core fits may take (CPU time); 0: no limit (fit when due)",
+                                     lo=0)
+    window_max_samples: int = setting(0, "fit window bound; 0: what window_s / sample_interval_s allows", lo=0)
+    field_radius_nt: float = setting(0.0, "> 0: scale the compensated field to this strength; 0: the fitted radius",
+                                     lo=0)
+    improve_ratio: float = setting(0.95, "a new set replaces the one in use only with a residual below this × its "
+                                   "residual", gt=0, hi=1)
+    k0: float = setting(1.5, "IGG-III lower threshold (standardised residuals): full weight below it")
+    k1: float = setting(3.0, "IGG-III upper threshold: zero weight above it")
+    min_samples: int = setting(150, "samples a fit needs at least")
+    min_coverage_2d: float = setting(0.75, "share of the 10° heading bins a 2-D fit needs", lo=0, hi=1)
+    min_coverage_3d: float = setting(0.55, "share of the sphere cells a 3-D fit needs", lo=0, hi=1)
+    online_ekf: bool = setting(True, "run the GNSS-aided online hard-iron EKF")
+    ekf_prior_std_nt: float = setting(5000.0, "EKF: 1-σ of the initial offset estimate, per axis", gt=0)
+    ekf_heading_noise_deg: float = setting(2.0, "EKF: magnetometer heading noise + sideslip, 1-σ", gt=0)
+    ekf_min_speed_m_s: float = setting(3.0, "EKF: below this speed the GNSS course is not the heading")
+    ekf_gate_sigma: float = setting(3.0, "EKF: innovation gate, standard deviations", gt=0)
+    ekf_random_walk_nt_sqrt_s: float = setting(30.0, "EKF process noise: how fast the hard iron may change")
+    ekf_tilt: str = setting("level", "level: roll = pitch = 0 (as a car's 2-D compass is read); accel: IMU tilt",
+                            choices=("level", "accel"))
+    ekf_kinds: str = setting("car", "manifest vehicle kinds whose GNSS course is their heading (comma-separated); "
+                             "vehicles without a manifest kind are served too")
+    publish_cal_mag: bool = setting(True, "publish cal/mag (false: publish parameters only)")
+    persist: bool = setting(True, "keep parameter sets on disk (state_dir()/state_subdir) and reload them on start")
+    state_subdir: str = setting("calibration", "directory of the saved parameter sets under state_dir()")
+
+    def __post_init__(self) -> None:
+        declare.check(self)
 
 
 def _gist(reason: str) -> str:
@@ -83,17 +87,22 @@ class Calibration(Service):
     role = "calibration"
     impl = "calibration"
     Settings = Settings
-    CONSUMES = ("clean/mag/{sensor}", "clean/imu", "clean/gnss")
-    PRODUCES = ("cal/mag/{sensor}", "cal/params/{sensor}")
+    INPUTS = (
+        Input("magmesh/{vehicle}/clean/mag/{sensor}", "samples to fit (Two-Step LS or ARLS, 2-D or 3-D) and to "
+              "compensate", sensors="*"),
+        Input("magmesh/{vehicle}/clean/imu", "roll/pitch for the online EKF", when="online_ekf"),
+        Input("magmesh/{vehicle}/clean/gnss", "course for the online GNSS-aided hard-iron EKF", when="online_ekf"),
+    )
+    OUTPUTS = (
+        Output("magmesh/{vehicle}/cal/mag/{sensor}", "h = M (m − offset), calibrated=true, param_id",
+               when="publish_cal_mag"),
+        Output("magmesh/fleet/{shard}/cal", "the compensated samples of a fleet frame's vehicles, per input frame",
+               when="publish_cal_mag"),
+        Output("magmesh/{vehicle}/cal/params/{sensor}", "the parameter set in use; republished on change and "
+               "answered by query (late joiners)"),
+    )
 
     # ---- wiring -----------------------------------------------------------------------------
-    def subscriptions(self) -> list[str]:
-        p = self.vehicle_pattern
-        subs = [keys.clean_mag(p, "*")]
-        if self.settings.online_ekf:
-            subs += [keys.clean_imu(p), keys.clean_gnss(p)]
-        return subs
-
     def queryables(self) -> dict:
         return {keys.cal_params(self.vehicle_pattern, "*"): self._answer_params}
 
@@ -104,8 +113,6 @@ class Calibration(Service):
             refit_interval_s=s.refit_interval_s, field_radius_nt=s.field_radius_nt, improve_ratio=s.improve_ratio,
             k0=s.k0, k1=s.k1, min_samples=s.min_samples, min_coverage_2d=s.min_coverage_2d,
             min_coverage_3d=s.min_coverage_3d, window_max_samples=s.window_max_samples)
-        if s.ekf_tilt not in ("level", "accel"):
-            raise ValueError(f"ekf_tilt must be 'level' or 'accel', got {s.ekf_tilt!r}")
         self.online_settings = OnlineSettings(
             enabled=s.online_ekf, tilt_source=s.ekf_tilt,
             ekf=online_ekf.EkfSettings(prior_std_nt=s.ekf_prior_std_nt,
