@@ -95,7 +95,7 @@ class SettingInfo:
     def allowed(self) -> str:
         """What the setting allows, in words: ``> 0``, ``[0, 1]``, ``(0, 5]``, ``arls | ls`` (``""``: not declared)."""
         if self.choices is not None:
-            return " | ".join(str(c) for c in self.choices)
+            return " | ".join('""' if c == "" else str(c) for c in self.choices)
         low = (f"[{_num(self.lo)}" if self.lo is not None else f"({_num(self.gt)}") \
             if self.lo is not None or self.gt is not None else None
         high = (f"{_num(self.hi)}]" if self.hi is not None else f"{_num(self.lt)})") \

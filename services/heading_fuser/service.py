@@ -1,14 +1,8 @@
 """Heading fuser service: clean IMU + calibrated magnetometer + DMC verdict → fused heading.
 
-CONSUMES  magmesh/{vehicle}/clean/imu             gyro + accelerometer (drives the filter's clock)
-          magmesh/{vehicle}/cal/mag/{sensor}      calibrated field from the calibration service
-          magmesh/{vehicle}/clean/mag/{sensor}    fallback when no cal/mag arrives: compensated here with the
-                                                  latest cal/params, else the manifest's ``mag_params``
-          magmesh/{vehicle}/cal/params/{sensor}   parameters for that fallback
-          magmesh/{vehicle}/dmc                   the DMC's ``valid`` flag (docs/methods.md#dmc)
-          (the clean/, cal/mag and dmc streams also as fleet frames, magmesh/fleet/{shard}/{clean,cal,dmc}: on_frame)
-PRODUCES  magmesh/{vehicle}/heading               heading/pitch/roll, 1-σ, mode, mag innovation and test ratio
-          magmesh/{vehicle}/alarm/heading         heading σ past ``heading_alarm_std_rad`` while not magnetic
+What it consumes and produces is declared on :class:`HeadingFuser` (``INPUTS``, ``OUTPUTS``; ``--help`` lists
+them); the clean/, cal/mag and dmc streams also arrive as fleet frames (magmesh/fleet/{shard}/{clean,cal,dmc}:
+on_frame).
 
 The filter is :class:`services.heading_fuser.core.HeadingFilter` (``--impl ekf``, the default; run by its compiled
 twin: every vehicle a slot of one shared :class:`services.heading_fuser.compiled.FleetHeading`, unless
@@ -30,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from magmesh import declare
+from magmesh.declare import Input, Output, setting
 from magmesh.magcal import MagParams
 from magmesh.runtime import Service
 from schemas import keys
@@ -50,19 +46,29 @@ _MODE_CODE = {m: i for i, m in enumerate(core.MODES)}
 
 @dataclass(frozen=True)
 class Settings(core.Settings):
-    """Service settings: every filter setting (see core.Settings) plus the wiring ones below."""
+    """Service settings: every filter setting (see core.Settings: described by its comments) plus the wiring ones
+    below."""
 
-    sensor: str = "1"  # which magnetometer steers the heading
-    profile: str = ""  # base settings (profiles.py); "" → the vehicle's heading_profile, else road_vehicle
-    publish_period_s: float = 0.1  # heading messages at most this often (sample time; 0: every IMU sample)
-    cal_timeout_s: float = 1.0  # without cal/mag for this long, fall back to clean/mag + parameters
-    dmc_timeout_s: float = 2.0  # a DMC verdict older than this is ignored (the filter's own checks remain)
-    dmc_wait_wall_s: float = 1.0  # a magnetometer sample waits at most this long (wall clock) for its verdict
-    mag_wait_s: float = 0.2  # the IMU waits at most this long (sample time) for the magnetometer stream;
-    # later samples are levelled with the attitude of their own time (kept for a few seconds)
-    max_imu_gap_s: float = 1.0  # a longer gap in the IMU stream restarts the filter
-    alarm_clear_frac: float = 0.8  # clear the alarm below this fraction of heading_alarm_std_rad
-    compiled: bool = True  # the compiled filter (compiled.py, numba; same results); false: core.HeadingFilter
+    sensor: str = setting("1", "which magnetometer steers the heading")
+    profile: str = setting("", "base settings (profiles.py); \"\" → the vehicle's heading_profile, else road_vehicle",
+                           choices=("", *profiles.PROFILES))
+    publish_period_s: float = setting(0.1, "heading messages at most this often (sample time; 0: every IMU sample)",
+                                      lo=0)
+    cal_timeout_s: float = setting(1.0, "without cal/mag for this long, fall back to clean/mag + parameters", lo=0)
+    dmc_timeout_s: float = setting(2.0, "a DMC verdict older than this is ignored (the filter's own checks remain)",
+                                   lo=0)
+    dmc_wait_wall_s: float = setting(1.0, "a magnetometer sample waits at most this long (wall clock) for its verdict",
+                                     lo=0)
+    mag_wait_s: float = setting(0.2, "the IMU waits at most this long (sample time) for the magnetometer stream; "
+                                "later samples are levelled with the attitude of their own time (kept for a few "
+                                "seconds)", lo=0)
+    max_imu_gap_s: float = setting(1.0, "a longer gap in the IMU stream restarts the filter", lo=0)
+    alarm_clear_frac: float = setting(0.8, "clear the alarm below this fraction of heading_alarm_std_rad", lo=0)
+    compiled: bool = setting(True, "the compiled filter (compiled.py, numba; same results); false: core.HeadingFilter")
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        declare.check(self)
 
 
 class VehicleState:
@@ -113,9 +119,20 @@ class HeadingFuser(Service):
     role = "heading_fuser"
     impl = "ekf"
     Settings = Settings
-    CONSUMES = ("clean/imu", "cal/mag/{sensor}", "clean/mag/{sensor}", "cal/params/{sensor}", "dmc")
+    INPUTS = (
+        Input("magmesh/{vehicle}/clean/imu", "gyro + accelerometer (drives the filter's clock)"),
+        Input("magmesh/{vehicle}/cal/mag/{sensor}", "calibrated field from the calibration service", sensors="sensor"),
+        Input("magmesh/{vehicle}/clean/mag/{sensor}", "fallback when no cal/mag arrives: compensated here with the "
+              "latest cal/params, else the manifest's mag_params", sensors="sensor"),
+        Input("magmesh/{vehicle}/cal/params/{sensor}", "parameters for that fallback", sensors="sensor"),
+        Input("magmesh/{vehicle}/dmc", "the DMC's valid flag (docs/methods.md#dmc)"),
+    )
+    OUTPUTS = (
+        Output("magmesh/{vehicle}/heading", "heading/pitch/roll, 1-σ, mode, mag innovation and test ratio"),
+        declare.alarm("heading", "raised when the heading σ passes heading_alarm_std_rad while not magnetic; cleared "
+                      "when magnetic again or σ below alarm_clear_frac × that"),
+    )
     ADOPTS_RESTORED_ALARMS = True  # a restored raised heading alarm stays until the filter's σ falls again
-    PRODUCES = ("heading", "alarm/heading")
 
     def __init__(self, *a, **kw):
         super().__init__(*a, **kw)
@@ -143,10 +160,6 @@ class HeadingFuser(Service):
     def on_stop(self) -> None:
         self._report_drops()
         super().on_stop()
-
-    def subscriptions(self) -> list[str]:
-        p, s = self.vehicle_pattern, self.settings.sensor
-        return [keys.clean_imu(p), keys.cal_mag(p, s), keys.clean_mag(p, s), keys.cal_params(p, s), keys.dmc(p)]
 
     def profile_name(self, vehicle: str) -> str:
         cfg = self.vehicles_config.get(vehicle, {}) or {}
