@@ -23,7 +23,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from magmesh import declare
 from magmesh.align import CoverWait
+from magmesh.declare import Input, Output, setting
 from magmesh.geomap import GridMap, core_field_enu_nt, load_map
 from magmesh.runtime import Service, build_settings
 from schemas import keys
@@ -34,34 +36,42 @@ from .core import AcceptSettings, FilterSettings, GeomagMatcher, MatcherSettings
 
 @dataclass(frozen=True)
 class Settings:
-    map: str = "synthetic:7"  # default map spec (a vehicle table's `map` overrides it)
-    n_samples: int = 20  # match length N
-    window_samples: int = 0  # Hausdorff pairing window along the strip; -1: the paper's unordered set
-    rank_frac: float = 1.0  # partial Hausdorff rank (1: classic)
-    lambda_nt: float = 8.4  # SSDA / feasibility threshold λ, nT
-    subdivisions: int = 3  # fine-match subdivisions per cell (2–4)
-    prematch_score: str = "centre"  # centre | corners
-    search_radius_m: float = 3000.0  # half-width of the search square around the (corrected) INS start; 0: whole map
-    runner_up_exclusion_m: float = 200.0  # the runner-up must start farther than this from the match, m
-    demean: bool = False  # match mean-removed sequences (unknown constant bias; slower: no SSDA pruning)
-    heading_search_deg: float = 0.0  # also try the INS track rotated by up to ± this (INS heading error)
-    heading_step_deg: float = 1.0
-    match_every_samples: int = 5  # match each time this many new samples arrived
-    m_agree: int = 2  # M of the M-of-N rule
-    n_window: int = 3  # N of the M-of-N rule
-    agree_radius_m: float = 250.0  # fixes agree when their INS corrections differ by less, m
-    min_margin_nt: float = 0.3  # runner-up margin below this: ambiguous
-    max_hausdorff_nt: float = 30.0  # best distance above this: rejected
-    divergence_alarm_m: float = 1000.0  # raise alarm/match when |accepted fix − INS| exceeds this, m
-    fix_std_m: float = 50.0  # INS-error filter: 1-σ of an accepted fix per axis
-    gate_sigma: float = 5.0  # INS-error filter: innovation gate
-    lat_deg: float = 45.4  # default reference place of the map (IGRF core field)
-    lon_deg: float = -75.7
-    alt_m: float = 300.0
-    ins_buffer: int = 200  # INS samples kept for time interpolation (and field samples waiting for the INS)
-    ins_max_wait_s: float = 10.0  # wall-clock seconds a field sample waits for the INS to reach its time
-    max_ins_gap_s: float = 30.0  # a field sample farther than this from any INS sample is dropped
-    restart_jump_s: float = 60.0  # INS time going back more than this: a new run, the vehicle's matcher restarts
+    map: str = setting("synthetic:7", "default map spec: a file under data/ or synthetic[:seed] (a vehicle table's "
+                       "`map` overrides it)")
+    n_samples: int = setting(20, "match length N", lo=2)
+    window_samples: int = setting(0, "Hausdorff pairing window along the strip; -1: the paper's unordered set")
+    rank_frac: float = setting(1.0, "partial Hausdorff rank (1: classic)", gt=0, hi=1)
+    lambda_nt: float = setting(8.4, "SSDA / feasibility threshold λ", gt=0)
+    subdivisions: int = setting(3, "fine-match subdivisions per cell (the paper: 2–4)", lo=1, hi=16)
+    prematch_score: str = setting("centre", "one-cell pre-match score at the cell centre or its corners (paper §3.1 a "
+                                  "/ b)", choices=("centre", "corners"))
+    search_radius_m: float = setting(3000.0, "half-width of the search square around the (corrected) INS start; 0: "
+                                     "whole map")
+    runner_up_exclusion_m: float = setting(200.0, "the runner-up must start farther than this from the match")
+    demean: bool = setting(False, "match mean-removed sequences (unknown constant bias; slower: no SSDA pruning)")
+    heading_search_deg: float = setting(0.0, "also try the INS track rotated by up to ± this (INS heading error)")
+    heading_step_deg: float = setting(1.0, "rotation step of that search")
+    match_every_samples: int = setting(5, "match each time this many new samples arrived")
+    m_agree: int = setting(2, "M of the M-of-N rule: fixes that must agree (the current one included)", lo=1)
+    n_window: int = setting(3, "N of the M-of-N rule: last fixes considered (≥ m_agree)", lo=1)
+    agree_radius_m: float = setting(250.0, "fixes agree when their INS corrections differ by less", gt=0)
+    min_margin_nt: float = setting(0.3, "runner-up margin below this: ambiguous, never a fix")
+    max_hausdorff_nt: float = setting(30.0, "best distance above this: rejected")
+    divergence_alarm_m: float = setting(1000.0, "raise alarm/match when |accepted fix − INS| exceeds this (cleared "
+                                        "below 0.8 × this)")
+    fix_std_m: float = setting(50.0, "INS-error filter: 1-σ of an accepted fix per axis", gt=0)
+    gate_sigma: float = setting(5.0, "INS-error filter: innovation gate", gt=0)
+    lat_deg: float = setting(45.4, "default reference place of the map (IGRF core field): latitude")
+    lon_deg: float = setting(-75.7, "default reference place of the map: longitude")
+    alt_m: float = setting(300.0, "default reference place of the map: altitude")
+    ins_buffer: int = setting(200, "INS samples kept for time interpolation (and field samples waiting for the INS)")
+    ins_max_wait_s: float = setting(10.0, "wall-clock seconds a field sample waits for the INS to reach its time")
+    max_ins_gap_s: float = setting(30.0, "a field sample farther than this from any INS sample is dropped")
+    restart_jump_s: float = setting(60.0, "INS time going back more than this: a new run, the vehicle's matcher "
+                                    "restarts")
+
+    def __post_init__(self) -> None:
+        declare.check(self)
 
 
 class VehicleMatch:
@@ -104,17 +114,20 @@ class GeomagMatcherService(Service):
     role = "geomag_matcher"
     impl = "hausdorff_ssda"
     Settings = Settings
-    CONSUMES = ("clean/mag/{sensor} (f_nt)", "clean/ins")
+    INPUTS = (
+        Input("magmesh/{vehicle}/clean/mag/{sensor}", "the scalar total field (f_nt) to match", sensors="*"),
+        Input("magmesh/{vehicle}/clean/ins", "the INS navigation the field samples are placed on"),
+    )
+    OUTPUTS = (
+        Output("magmesh/{vehicle}/fix/geomag", "every match's outcome: accepted, rejected or ambiguous"),
+        declare.alarm("match", "raised while an accepted fix is more than divergence_alarm_m from the INS, cleared "
+                      "below 0.8 × that"),
+    )
     ADOPTS_RESTORED_ALARMS = True  # a restored raised match alarm stays until a fix shows the divergence gone
-    PRODUCES = ("fix/geomag", "alarm/match")
 
     def __init__(self, *a, **kw):
         super().__init__(*a, **kw)
         self._maps: dict[str, GridMap] = {}
-
-    def subscriptions(self) -> list[str]:
-        p = self.vehicle_pattern
-        return [keys.clean_mag(p, "*"), keys.clean_ins(p)]
 
     def _map(self, spec: str) -> GridMap:
         if spec not in self._maps:
