@@ -40,74 +40,75 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from magmesh import declare
+from magmesh.declare import setting
+
 INNOVATION_TESTS = ("robust", "paper")
 
 
 @dataclass(frozen=True)
 class TrackMonitorSettings:
     # ---- track-deviation detector (paper eq. 6) ----
-    track_threshold_m: float = 1.0  # raise when d exceeds this (paper: 1 m)
-    track_clear_m: float = 0.5  # clear when d stays below this ...
-    clear_hold_s: float = 2.0  # ... for this long (every detector's hysteresis hold)
-    track_persist_s: float = 0.15  # d must exceed the threshold this long (≥ 2 GNSS epochs at 10 Hz)
-    arm_within_m: float = 1.0  # the track detector arms once d has stayed below this on a route ...
-    arm_hold_s: float = 5.0  # ... for this long (the leg has been acquired)
-    gnss_fix_types: tuple = ("rtk_fixed",)  # fix types good enough to trust d
-    gnss_min_sats: int = 6
-    gnss_max_pdop: float = 3.0
-    gnss_max_horiz_std_m: float = 0.1  # stated 1-σ accuracy, when the receiver gives one
-    route_margin_m: float = 5.0  # along-track slack before A and beyond B where d is still monitored
+    track_threshold_m: float = setting(1.0, "raise alarm/track when the cross-track deviation d exceeds this (paper: "
+                                       "1 m)", gt=0)
+    track_clear_m: float = setting(0.5, "clear when d stays below this for clear_hold_s (< track_threshold_m)", lo=0)
+    clear_hold_s: float = setting(2.0, "every detector's hysteresis hold: the clear condition must last this long",
+                                  lo=0)
+    track_persist_s: float = setting(0.15, "d must exceed the threshold this long (≥ 2 GNSS epochs at 10 Hz)", lo=0)
+    arm_within_m: float = setting(1.0, "the track detector arms once d has stayed below this on a route for "
+                                  "arm_hold_s")
+    arm_hold_s: float = setting(5.0, "... for this long (the leg has been acquired)")
+    gnss_fix_types: tuple = setting(("rtk_fixed",), "GNSS fix types good enough to trust d")
+    gnss_min_sats: int = setting(6, "satellites a trusted GNSS fix has at least")
+    gnss_max_pdop: float = setting(3.0, "PDOP of a trusted GNSS fix at most")
+    gnss_max_horiz_std_m: float = setting(0.1, "stated 1-σ accuracy of a trusted GNSS fix at most, when the receiver "
+                                          "gives one")
+    route_margin_m: float = setting(5.0, "along-track slack before A and beyond B where d is still monitored", lo=0)
     # ---- heading-innovation detector ----
-    innovation_test: str = "robust"  # "paper": |e| > kσ per sample; "robust": median + CUSUM (see module doc)
-    innovation_k_sigma: float = 5.0  # gate of the paper's per-sample test (paper: 5σ)
-    median_k_sigma: float = 6.0  # gate of the robust test's running median, in its own σ (its tails are
-    # heavier than Gaussian: tilt-estimate errors and gusts move it for seconds)
-    innovation_sigma_rad: float = 0.0  # σ of e on undisturbed flight; 0: learn it
-    median_sigma_rad: float = 0.0  # σ of the running median of e; 0: learn it
-    block_sigma_rad: float = 0.0  # σ of block means of clipped e; 0: learn it
-    warmup_s: float = 15.0  # the first seconds of the attitude stream (take-off transients) are not tested
-    learn_s: float = 30.0  # then learn σ over this much (assumed undisturbed) flight
-    sigma_floor_rad: float = 0.001  # lower bound for learned σ
-    median_window_s: float = 0.6
-    gate_persist_s: float = 0.3  # the median must stay beyond kσ this long
-    block_s: float = 0.5  # CUSUM block length
-    clip_sigma: float = 3.0  # Huber clip of e before block averaging, in σ
-    cusum_drift: float = 3.0  # ν, in block σ
-    cusum_threshold: float = 15.0  # h, in block σ
-    innovation_clear_sigma: float = 2.5  # clear when the median |e| and block means stay below this, in σ
-    burst_sigma: float = 8.0  # a sample this far (in σ) from the running median is a burst ...
-    burst_min_rad: float = 0.035  # ... and at least this far (2°; the only gate while σ is learned)
-    burst_max_s: float = 0.5  # a burst lasting this long is a step disturbance
-    fc_mag_gain_per_s: float = 1.0  # magnetometer gain k of the flight controller's heading filter (0: unknown)
-    max_attitude_gap_s: float = 1.0  # a longer gap restarts the median window and the CUSUM
+    innovation_test: str = setting("robust", "paper: |e| > kσ per sample; robust: running median + CUSUM (see the "
+                                   "module doc)", choices=INNOVATION_TESTS)
+    innovation_k_sigma: float = setting(5.0, "gate of the paper's per-sample test (paper: 5σ)", gt=0)
+    median_k_sigma: float = setting(6.0, "gate of the robust test's running median, in its own σ (its tails are "
+                                    "heavier than Gaussian: tilt-estimate errors and gusts move it for seconds)", gt=0)
+    innovation_sigma_rad: float = setting(0.0, "σ of e on undisturbed flight; 0: learn it", lo=0)
+    median_sigma_rad: float = setting(0.0, "σ of the running median of e; 0: learn it", lo=0)
+    block_sigma_rad: float = setting(0.0, "σ of block means of clipped e; 0: learn it", lo=0)
+    warmup_s: float = setting(15.0, "the first seconds of the attitude stream (take-off transients) are not tested",
+                              lo=0)
+    learn_s: float = setting(30.0, "then σ is learned over this much (assumed undisturbed) flight", gt=0)
+    sigma_floor_rad: float = setting(0.001, "lower bound for a learned σ", gt=0)
+    median_window_s: float = setting(0.6, "window of the running median of e (robust test)", gt=0)
+    gate_persist_s: float = setting(0.3, "the median must stay beyond kσ this long", lo=0)
+    block_s: float = setting(0.5, "CUSUM block length", gt=0)
+    clip_sigma: float = setting(3.0, "Huber clip of e before block averaging, in σ", gt=0)
+    cusum_drift: float = setting(3.0, "CUSUM drift ν, in block σ", lo=0)
+    cusum_threshold: float = setting(15.0, "CUSUM threshold h, in block σ", gt=0)
+    innovation_clear_sigma: float = setting(2.5, "clear when the median |e| and the block means stay below this, in σ "
+                                            "(≤ innovation_k_sigma)", gt=0)
+    burst_sigma: float = setting(8.0, "a sample this far (in σ) from the running median is a burst ...")
+    burst_min_rad: float = setting(0.035, "... and at least this far (2°; the only gate while σ is learned)")
+    burst_max_s: float = setting(0.5, "a burst lasting this long is a step disturbance")
+    fc_mag_gain_per_s: float = setting(1.0, "magnetometer gain k of the flight controller's heading filter (0: "
+                                       "unknown)")
+    max_attitude_gap_s: float = setting(1.0, "a longer gap restarts the median window and the CUSUM")
     # ---- field strength (holds the combined verdict; never raises it: motors modulate |B|, paper §0) ----
-    field_k_sigma: float = 5.0  # |B| deviates when its running median is this many σ from the reference ...
-    field_min_dev_nt: float = 400.0  # ... and at least this far (≈ 0.7 % of a 0.6 G field; turns move |B| by the
-    # residual hard iron, a few hundred nT)
-    field_window_s: float = 1.0  # running-median window of |B|
-    field_ref_nt: float = 0.0  # undisturbed |B| at the magnetometer; 0: learn it (same windows as σ)
-    field_sigma_nt: float = 0.0  # σ of the running median of |B| on undisturbed flight; 0: learn it
+    field_k_sigma: float = setting(5.0, "|B| deviates when its running median is this many σ from the reference ...",
+                                   gt=0)
+    field_min_dev_nt: float = setting(400.0, "... and at least this far (≈ 0.7 % of a 0.6 G field; turns move |B| by "
+                                      "the residual hard iron, a few hundred nT)", lo=0)
+    field_window_s: float = setting(1.0, "running-median window of |B|", gt=0)
+    field_ref_nt: float = setting(0.0, "undisturbed |B| at the magnetometer; 0: learn it (same windows as σ)", lo=0)
+    field_sigma_nt: float = setting(0.0, "σ of the running median of |B| on undisturbed flight; 0: learn it", lo=0)
     # ---- combined verdict ----
-    anomaly_clear_hold_s: float = 10.0
+    anomaly_clear_hold_s: float = setting(10.0, "alarm/mag_anomaly clears once both detectors (and |B|) have been "
+                                          "quiet this long", lo=0)
 
     def __post_init__(self) -> None:
-        if self.innovation_test not in INNOVATION_TESTS:
-            raise ValueError(f"innovation_test must be one of {', '.join(INNOVATION_TESTS)}, "
-                             f"got {self.innovation_test!r}")
-        for name in ("track_threshold_m", "innovation_k_sigma", "median_k_sigma", "learn_s", "median_window_s", "block_s",
-                     "field_k_sigma", "field_window_s",
-                     "clip_sigma", "cusum_threshold", "sigma_floor_rad"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
-        if not (0 <= self.track_clear_m < self.track_threshold_m):
+        declare.check(self)
+        if not (self.track_clear_m < self.track_threshold_m):
             raise ValueError(f"track_clear_m must be in [0, track_threshold_m), got {self.track_clear_m}")
-        if not (0 < self.innovation_clear_sigma <= self.innovation_k_sigma):
+        if not (self.innovation_clear_sigma <= self.innovation_k_sigma):
             raise ValueError("innovation_clear_sigma must be in (0, innovation_k_sigma]")
-        for name in ("clear_hold_s", "track_persist_s", "anomaly_clear_hold_s", "warmup_s",
-                     "innovation_sigma_rad", "median_sigma_rad", "block_sigma_rad", "gate_persist_s",
-                     "field_ref_nt", "field_sigma_nt", "field_min_dev_nt", "cusum_drift", "route_margin_m"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name} must be ≥ 0, got {getattr(self, name)!r}")
 
     def replace(self, **changes) -> TrackMonitorSettings:
         return dataclasses.replace(self, **changes)

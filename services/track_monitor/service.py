@@ -1,13 +1,7 @@
 """Track monitor: cross-track deviation, heading-innovation and combined magnetic-anomaly alarms.
 
-Consumes  magmesh/{vehicle}/clean/route      the planned line A → B
-          magmesh/{vehicle}/clean/gnss       RTK position (pos_enu_m), velocity and fix quality
-          magmesh/{vehicle}/clean/attitude   the vehicle's own heading and the magnetometer heading it fuses
-          magmesh/{vehicle}/clean/mag/{sensor} field strength: the combined verdict is held while |B| is off
-Produces  magmesh/{vehicle}/track                    d, along-track progress, detector states (per GNSS epoch)
-          magmesh/{vehicle}/alarm/track              d > 1 m on trusted GNSS
-          magmesh/{vehicle}/alarm/heading_innovation |ψ_mag − ψ_att| test (paper 5σ, or robust median + CUSUM)
-          magmesh/{vehicle}/alarm/mag_anomaly        the combined verdict, naming the detector that fired
+What it consumes and produces is declared on :class:`TrackMonitorService` (``INPUTS``, ``OUTPUTS``; ``--help`` lists
+them).
 
 The logic lives in core.py. σ of the innovation is learned on the first undisturbed minute of each vehicle
 and kept under ``state_dir()/track_monitor/`` for the next flights (``persist_sigma``). A vehicle's manifest
@@ -21,7 +15,8 @@ import math
 import os
 from dataclasses import dataclass, replace
 
-from magmesh import paths
+from magmesh import declare, paths
+from magmesh.declare import Input, Output, setting
 from magmesh.runtime import Service
 from schemas import keys
 from services.physical import refuse_unphysical
@@ -31,37 +26,42 @@ from .core import AlarmEvent, TrackMonitor, TrackMonitorSettings, _Hysteresis, m
 
 @dataclass(frozen=True)
 class Settings(TrackMonitorSettings):
-    tick_s: float = 2.0  # persistence of learned σ runs from the tick
-    persist_sigma: bool = True  # save learned σ per vehicle and reuse it on the next start
-    state_subdir: str = "track_monitor"
-    mag_sensor: str = "1"  # magnetometer whose field strength holds the combined verdict ("" to ignore)
-    mag_source: str = "clean"  # clean: clean/mag/{sensor}; cal: cal/mag/{sensor} (calibration service output)
-    mag_match_s: float = 0.05  # an attitude sample without a magnetometer heading takes it from a field
-    # sample at most this far in time (levelled with the attitude's roll/pitch, + the vehicle's declination_rad)
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if self.mag_source not in ("clean", "cal"):
-            raise ValueError(f"mag_source must be clean or cal, got {self.mag_source!r}")
+    tick_s: float = setting(2.0, "persistence of learned σ runs from this tick", gt=0)
+    persist_sigma: bool = setting(True, "save learned σ per vehicle and reuse it on the next start")
+    state_subdir: str = setting("track_monitor", "directory of the saved σ and routes under state_dir()")
+    mag_sensor: str = setting("1", "magnetometer whose field strength holds the combined verdict (\"\" to ignore)")
+    mag_source: str = setting("clean", "clean: clean/mag/{sensor}; cal: cal/mag/{sensor} (calibration service output)",
+                              choices=("clean", "cal"))
+    mag_match_s: float = setting(0.05, "an attitude sample without a magnetometer heading takes it from a field sample "
+                                 "at most this far in time (levelled with the attitude's roll/pitch, + the vehicle's "
+                                 "declination_rad)")
 
 
 class TrackMonitorService(Service):
     role = "track_monitor"
     impl = "track_monitor"
     Settings = Settings
-    CONSUMES = ("clean/route", "clean/gnss", "clean/attitude", "clean/mag/{sensor} or cal/mag/{sensor}")
+    INPUTS = (
+        Input("magmesh/{vehicle}/clean/route", "the planned line A → B"),
+        Input("magmesh/{vehicle}/clean/gnss", "RTK position (pos_enu_m), velocity and fix quality"),
+        Input("magmesh/{vehicle}/clean/attitude", "the vehicle's own heading and the magnetometer heading it fuses"),
+        Input("magmesh/{vehicle}/clean/mag/{sensor}", "field strength: the combined verdict is held while |B| is off",
+              sensors="mag_sensor", when=("mag_source", "clean")),
+        Input("magmesh/{vehicle}/cal/mag/{sensor}", "the same from the calibration service's output",
+              sensors="mag_sensor", when=("mag_source", "cal")),
+    )
+    OUTPUTS = (
+        Output("magmesh/{vehicle}/track", "d, along-track progress, detector states (per GNSS epoch)"),
+        declare.alarm("track", "d > track_threshold_m on trusted GNSS for track_persist_s; cleared below track_clear_m "
+                      "for clear_hold_s"),
+        declare.alarm("heading_innovation", "|ψ_mag − ψ_att| test (paper kσ, or robust median + CUSUM); cleared "
+                      "within innovation_clear_sigma for clear_hold_s"),
+        declare.alarm("mag_anomaly", "the combined verdict, naming the detector that fired; cleared after "
+                      "anomaly_clear_hold_s of quiet"),
+    )
     # a restored raised alarm is each detector's own latch again (new_vehicle): it clears on the detector's clear
     # condition held for its hold time, never because a restart has not seen the condition yet
     ADOPTS_RESTORED_ALARMS = True
-    PRODUCES = ("track", "alarm/track", "alarm/heading_innovation", "alarm/mag_anomaly")
-
-    def subscriptions(self) -> list[str]:
-        p = self.vehicle_pattern
-        subs = [keys.clean_route(p), keys.clean_gnss(p), keys.clean_attitude(p)]
-        if self.settings.mag_sensor:
-            build = keys.clean_mag if self.settings.mag_source == "clean" else keys.cal_mag
-            subs.append(build(p, self.settings.mag_sensor))
-        return subs
 
     # ---- per-vehicle state --------------------------------------------------------------------
     def _sigma_path(self, vehicle: str):
