@@ -31,7 +31,6 @@ class AlarmToggler(Service):
     role = "alarm_toggler"
     impl = "toggler"
     Settings = Settings
-    PRODUCES = ("alarm/{source}",)
 
     def on_start(self) -> None:
         self.transitions = 0

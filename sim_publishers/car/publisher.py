@@ -13,6 +13,8 @@ from __future__ import annotations
 from collections.abc import Iterator
 from dataclasses import dataclass, fields
 
+from magmesh import declare
+from magmesh.declare import Output, setting
 from magmesh.runtime import SimPublisher
 
 from . import core
@@ -20,28 +22,24 @@ from . import core
 
 @dataclass(frozen=True)
 class CarPublisherSettings:
-    layout: str = "urban_a"  # interference layout: clean | urban_a | urban_b | urban_c | paper_a | paper_b | paper_c
-    seed: int = 1  # route and noise of the first lap (lap k uses seed + k)
-    vehicle_seed: int = 7  # hard/soft iron of the car's magnetometers (the manifest's mag_params match 7)
-    duration_s: float = 300.0  # length of one drive, s
-    speed: float = 1.0  # × real time; 0 = as fast as possible
-    loop: bool = False  # restart the drive when it ends, time running on
-    same_route_each_lap: bool = False  # loop the identical drive instead of a new route per lap
-    truth: bool = True  # publish truth/pose, truth/field, truth/sources
-    mag_rate_hz: float = 50.0
-    imu_rate_hz: float = 100.0
-    gnss_rate_hz: float = 5.0
-    truth_rate_hz: float = 10.0
-    mag_noise_nt: float = 30.0  # 1-σ per axis
-    profile: str = "default"  # "paper_streets": HMR3300 compasses at 8 Hz, congested streets (core.PAPER_STREETS)
+    layout: str = setting("urban_a", "interference layout", choices=tuple(core.LAYOUTS))
+    seed: int = setting(1, "route and noise of the first lap (lap k uses seed + k)")
+    vehicle_seed: int = setting(7, "hard/soft iron of the car's magnetometers (the manifest's mag_params match 7)")
+    duration_s: float = setting(300.0, "length of one drive")
+    speed: float = setting(1.0, "× real time; 0 = as fast as possible", lo=0)
+    loop: bool = setting(False, "restart the drive when it ends, time running on")
+    same_route_each_lap: bool = setting(False, "loop the identical drive instead of a new route per lap")
+    truth: bool = setting(True, "publish truth/pose, truth/field, truth/sources")
+    mag_rate_hz: float = setting(50.0, "magnetometer sample rate")
+    imu_rate_hz: float = setting(100.0, "IMU sample rate")
+    gnss_rate_hz: float = setting(5.0, "GNSS fix rate")
+    truth_rate_hz: float = setting(10.0, "truth message rate")
+    mag_noise_nt: float = setting(30.0, "magnetometer noise, 1-σ per axis")
+    profile: str = setting("default", "paper_streets: HMR3300 compasses at 8 Hz, congested streets "
+                           "(core.PAPER_STREETS)", choices=("default", "paper_streets"))
 
     def __post_init__(self):
-        if self.speed < 0:
-            raise ValueError(f"speed must be ≥ 0, got {self.speed}")
-        if self.layout not in core.LAYOUTS:
-            raise ValueError(f"layout {self.layout!r} is unknown; choose one of {', '.join(core.LAYOUTS)}")
-        if self.profile not in ("default", "paper_streets"):
-            raise ValueError(f"profile {self.profile!r} is unknown; choose default or paper_streets")
+        declare.check(self)
         self.sim_settings(0)  # range checks of the simulator
 
     def sim_settings(self, lap: int) -> core.CarSimSettings:
@@ -82,8 +80,13 @@ class CarPublisher(SimPublisher):
     impl = "car"
     vehicle = "car-1"
     Settings = CarPublisherSettings
-    CONSUMES = ()
-    PRODUCES = ("raw/mag/1", "raw/mag/2", "raw/imu", "raw/gnss", "truth/pose", "truth/field", "truth/sources")
+    OUTPUTS = (
+        Output("magmesh/{vehicle}/raw/mag/{sensor}", "sensors 1 and 2, the differential compass, at mag_rate_hz"),
+        Output("magmesh/{vehicle}/raw/imu", "gyro + accelerometer at imu_rate_hz"),
+        Output("magmesh/{vehicle}/raw/gnss", "GNSS fixes at gnss_rate_hz"),
+        *(Output("magmesh/{vehicle}/truth/{what}", f"ground truth: {w}", what=w, when="truth")
+          for w in ("pose", "field", "sources")),
+    )
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)

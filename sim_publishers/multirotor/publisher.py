@@ -18,6 +18,8 @@ import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 
+from magmesh import declare
+from magmesh.declare import Output, setting
 from magmesh.runtime import SimPublisher
 from schemas import keys
 
@@ -28,22 +30,21 @@ EARTH_RADIUS_M = 6378137.0
 
 @dataclass(frozen=True)
 class MultirotorPublisherSettings:
-    seed: int = 1  # noise, wind and glitches of the first leg (leg k uses seed + k)
-    speed: float = 1.0  # × real time; 0 = as fast as possible
-    loop: bool = False  # fly the leg again when it ends, time running on
-    duration_s: float = 150.0  # length of one leg, s
-    route_length_m: float = 1000.0  # A → B, due north from the take-off point
-    disturbance: str = "slow_ramp"  # none | step | fast_ramp | slow_ramp | ramp
-    onset_s: float = 60.0
-    ramp_rate_g_s: float = 0.0  # 0: the paper's rate of the chosen ramp
-    disturbance_max_g: float = 0.12
-    disturbance_hold_s: float = 20.0  # then removed (0: stays until the end of the leg)
-    truth: bool = True
-    truth_rate_hz: float = 10.0
+    seed: int = setting(1, "noise, wind and glitches of the first leg (leg k uses seed + k)")
+    speed: float = setting(1.0, "× real time; 0 = as fast as possible", lo=0)
+    loop: bool = setting(False, "fly the leg again when it ends, time running on")
+    duration_s: float = setting(150.0, "length of one leg")
+    route_length_m: float = setting(1000.0, "A → B, due north from the take-off point")
+    disturbance: str = setting("slow_ramp", "the magnetometer disturbance flown into", choices=core.DISTURBANCES)
+    onset_s: float = setting(60.0, "time of the leg at which the disturbance starts")
+    ramp_rate_g_s: float = setting(0.0, "0: the paper's rate of the chosen ramp")
+    disturbance_max_g: float = setting(0.12, "the disturbance grows to at most this")
+    disturbance_hold_s: float = setting(20.0, "then held this long and removed (0: stays until the end of the leg)")
+    truth: bool = setting(True, "publish truth/pose and truth/sources")
+    truth_rate_hz: float = setting(10.0, "truth message rate")
 
     def __post_init__(self):
-        if self.speed < 0:
-            raise ValueError(f"speed must be ≥ 0, got {self.speed}")
+        declare.check(self)
         self.sim_settings(0)  # range checks of the simulator
 
     def sim_settings(self, lap: int) -> core.MultirotorSettings:
@@ -118,8 +119,16 @@ class MultirotorPublisher(SimPublisher):
     impl = "multirotor"
     vehicle = "drone-1"
     Settings = MultirotorPublisherSettings
-    CONSUMES = ()
-    PRODUCES = ("raw/route", "raw/imu", "raw/mag/1", "raw/attitude", "raw/gnss", "truth/pose", "truth/sources")
+    OUTPUTS = (
+        Output("magmesh/{vehicle}/raw/route", "the planned line, at the start of each leg"),
+        Output("magmesh/{vehicle}/raw/imu", "gyro + accelerometer at 50 Hz"),
+        Output("magmesh/{vehicle}/raw/mag/{sensor}", "sensor 1 at 50 Hz"),
+        Output("magmesh/{vehicle}/raw/attitude", "the flight controller's heading with the magnetometer heading it "
+               "fuses, at 50 Hz"),
+        Output("magmesh/{vehicle}/raw/gnss", "rtk_fixed at 10 Hz"),
+        *(Output("magmesh/{vehicle}/truth/{what}", f"ground truth: {w}", what=w, when="truth")
+          for w in ("pose", "sources")),
+    )
 
     def produce(self) -> Iterator[tuple[float, str, str, dict]]:
         return multirotor_events(self.settings, self.vehicle)

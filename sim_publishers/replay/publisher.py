@@ -13,6 +13,8 @@ from __future__ import annotations
 from collections.abc import Iterator
 from dataclasses import dataclass
 
+from magmesh import declare
+from magmesh.declare import Output, setting
 from magmesh.runtime import SimPublisher
 
 from . import core
@@ -20,23 +22,19 @@ from . import core
 
 @dataclass(frozen=True)
 class ReplaySettings:
-    dataset: str = "broad:32_disturbed_attached_magnet_1cm"  # broad:<trial> | car_circles | kok:eight | kok:square
-    speed: float = 1.0  # × real time; 0 = as fast as possible
-    loop: bool = False
-    seed: int = 0  # the data is recorded, nothing is random; kept for the publisher interface
-    rate_hz: float = 100.0  # BROAD: IMU/mag block-averaged to about this rate (285.7 Hz recorded)
-    truth_rate_hz: float = 10.0  # BROAD: truth messages per second
-    start_s: float = 0.0  # play from this recording time
-    duration_s: float = 0.0  # play this long (0 = to the end)
-    sensor: str = "1"
+    dataset: str = setting("broad:32_disturbed_attached_magnet_1cm", "the recording: broad:<trial> | car_circles | "
+                           "kok:eight | kok:square")
+    speed: float = setting(1.0, "× real time; 0 = as fast as possible", lo=0)
+    loop: bool = setting(False, "repeat the recording, time running on")
+    seed: int = setting(0, "the data is recorded, nothing is random; kept for the publisher interface")
+    rate_hz: float = setting(100.0, "BROAD: IMU/mag block-averaged to about this rate (285.7 Hz recorded)", gt=0)
+    truth_rate_hz: float = setting(10.0, "BROAD: truth messages per second", gt=0)
+    start_s: float = setting(0.0, "play from this recording time", lo=0)
+    duration_s: float = setting(0.0, "play this long (0 = to the end)", lo=0)
+    sensor: str = setting("1", "the sensor id the magnetometer is published as")
 
     def __post_init__(self):
-        if self.speed < 0:
-            raise ValueError(f"speed must be ≥ 0, got {self.speed}")
-        if self.rate_hz <= 0 or self.truth_rate_hz <= 0:
-            raise ValueError("rate_hz and truth_rate_hz must be > 0")
-        if self.start_s < 0 or self.duration_s < 0:
-            raise ValueError("start_s and duration_s must be ≥ 0")
+        declare.check(self)
 
 
 def replay_events(settings: ReplaySettings, vehicle: str) -> Iterator[tuple[float, str, str, dict]]:
@@ -64,8 +62,14 @@ class ReplayPublisher(SimPublisher):
     impl = "replay"
     vehicle = "replay-1"
     Settings = ReplaySettings
-    CONSUMES = ()
-    PRODUCES = ("raw/imu", "raw/mag/{sensor}", "raw/gnss", "raw/ins", "truth/pose", "truth/field", "truth/sources")
+    OUTPUTS = (
+        Output("magmesh/{vehicle}/raw/imu", "the recording's IMU"),
+        Output("magmesh/{vehicle}/raw/mag/{sensor}", "its magnetometer, as sensor `sensor`"),
+        Output("magmesh/{vehicle}/raw/gnss", "its GNSS, where it has one"),
+        Output("magmesh/{vehicle}/raw/ins", "its INS, where it has one"),
+        *(Output("magmesh/{vehicle}/truth/{what}", f"the recording's ground truth: {w}", what=w)
+          for w in ("pose", "field", "sources")),
+    )
 
     def produce(self) -> Iterator[tuple[float, str, str, dict]]:
         self.log.info("replaying %s as vehicle %s at %s× real time", self.settings.dataset, self.vehicle,

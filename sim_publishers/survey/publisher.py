@@ -14,6 +14,8 @@ from __future__ import annotations
 from collections.abc import Iterator
 from dataclasses import dataclass
 
+from magmesh import declare
+from magmesh.declare import Output, setting
 from magmesh.runtime import SimPublisher
 from schemas import keys
 
@@ -22,30 +24,29 @@ from . import core
 
 @dataclass(frozen=True)
 class SurveyPublisherSettings:
-    map: str = "synthetic:7"  # map spec; the matcher must use the same map (manifest vehicle table `map`)
-    sensor: str = "1"
-    speed: float = 1.0  # × real time; 0 = as fast as possible
-    loop: bool = False  # keep flying the pattern
-    loop_laps: int = 100  # laps simulated when looping
-    laps: int = 1  # laps when not looping
-    speed_m_s: float = 30.0
-    period_s: float = 5.0
-    snr: float = 10.0
-    ins_error0_e_m: float = 1000.0
-    ins_error0_n_m: float = 500.0
-    ins_drift_e_m_s: float = 0.25
-    ins_drift_n_m_s: float = -0.15
-    ins_heading_bias_deg: float = 0.0  # INS heading error (dead-reckoned track rotated clockwise)
-    ins_walk_m_sqrt_s: float = 0.5  # INS position random walk
-    lat_deg: float = 45.4
-    lon_deg: float = -75.7
-    alt_m: float = 300.0
-    truth: bool = True
-    seed: int = 1
+    map: str = setting("synthetic:7", "map spec; the matcher must use the same map (manifest vehicle table `map`)")
+    sensor: str = setting("1", "the sensor id of the scalar + vector magnetometer")
+    speed: float = setting(1.0, "× real time; 0 = as fast as possible", lo=0)
+    loop: bool = setting(False, "keep flying the pattern")
+    loop_laps: int = setting(100, "laps simulated when looping")
+    laps: int = setting(1, "laps when not looping")
+    speed_m_s: float = setting(30.0, "ground speed")
+    period_s: float = setting(5.0, "sample period (the paper: 5 s)")
+    snr: float = setting(10.0, "σ_map / σ_noise: the anomaly map's spread over the measurement noise")
+    ins_error0_e_m: float = setting(1000.0, "INS position error at the start, east")
+    ins_error0_n_m: float = setting(500.0, "INS position error at the start, north")
+    ins_drift_e_m_s: float = setting(0.25, "INS drift rate, east")
+    ins_drift_n_m_s: float = setting(-0.15, "INS drift rate, north")
+    ins_heading_bias_deg: float = setting(0.0, "INS heading error (dead-reckoned track rotated clockwise)")
+    ins_walk_m_sqrt_s: float = setting(0.5, "INS position random walk")
+    lat_deg: float = setting(45.4, "where the map lies (IGRF core field): latitude")
+    lon_deg: float = setting(-75.7, "longitude")
+    alt_m: float = setting(300.0, "altitude")
+    truth: bool = setting(True, "publish truth/pose")
+    seed: int = setting(1, "noise and INS errors")
 
     def __post_init__(self):
-        if self.speed < 0:
-            raise ValueError(f"speed must be ≥ 0, got {self.speed}")
+        declare.check(self)
         keys.check_id(self.sensor, "sensor")
         self.sim_settings()
 
@@ -86,8 +87,12 @@ class SurveyPublisher(SimPublisher):
     impl = "survey"
     vehicle = "survey-1"
     Settings = SurveyPublisherSettings
-    CONSUMES = ()
-    PRODUCES = ("raw/mag/{sensor} (f_nt)", "raw/ins", "truth/pose")
+    OUTPUTS = (
+        Output("magmesh/{vehicle}/raw/mag/{sensor}", "f_nt, the scalar total field, and b_nt, the co-located vector "
+               "sensor"),
+        Output("magmesh/{vehicle}/raw/ins", "dead-reckoned position, velocity and heading"),
+        Output("magmesh/{vehicle}/truth/{what}", "ground truth: pose", what="pose", when="truth"),
+    )
 
     def produce(self) -> Iterator[tuple[float, str, str, dict]]:
         self.log.info("%s on map %s at %s× real time; %s", self.vehicle, self.settings.map,
