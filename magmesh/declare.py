@@ -194,7 +194,7 @@ def settings_table(cls: type | None, width: int = 118) -> str:
         if len(left) > lead:  # a long default or range: the description starts on the next line
             lines.append(left.rstrip())
             left = " " * lead
-        wrapped = textwrap.wrap(r[5], max(30, width - lead)) or [""]
+        wrapped = textwrap.wrap(r[5], max(30, width - lead), break_on_hyphens=False) or [""]
         lines.append(left + wrapped[0])
         lines += [" " * lead + x for x in wrapped[1:]]
     return "\n".join(lines)
@@ -240,8 +240,9 @@ def _class_comments(src: str) -> dict[str, str]:
     body = ast.parse(src).body[0].body
     out: dict[str, str] = {}
     block, prev_end, prev_trailing, prev_name = "", 0, "", ""
-    for node in body:
-        between = [ln for ln in sorted(own) if prev_end < ln < node.lineno]
+    for node in [*body, None]:  # (None: the comments after the last statement)
+        start = node.lineno if node is not None else max(own, default=0) + 1
+        between = [ln for ln in sorted(own) if prev_end < ln < start]
         cont: list[int] = []  # lines continuing the previous field's trailing comment
         text = prev_trailing
         for ln in between:
@@ -262,6 +263,8 @@ def _class_comments(src: str) -> dict[str, str]:
                 run.insert(0, ln)
             block = " ".join(own[ln] for ln in run)
         prev_trailing = ""
+        if node is None:
+            break
         if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
             t = trailing.get(node.end_lineno) or trailing.get(node.lineno) or ""
             out[node.target.id] = t or block
@@ -473,7 +476,8 @@ def streams_help(cls: type, width: int = 118) -> str:
         lines = [f"{title}:"]
         for d in decls:
             lead = f"  {d.short.ljust(w)}  "
-            wrapped = textwrap.wrap(d.help_line(), max(30, width - max(len(lead), w + 4))) or [""]
+            wrapped = textwrap.wrap(d.help_line(), max(30, width - max(len(lead), w + 4)),
+                                    break_on_hyphens=False) or [""]
             if len(lead) > w + 4:
                 lines.append(lead.rstrip())
                 lead = " " * (w + 4)

@@ -65,6 +65,23 @@ class Settings(core.Settings):
     max_imu_gap_s: float = setting(1.0, "a longer gap in the IMU stream restarts the filter", lo=0)
     alarm_clear_frac: float = setting(0.8, "clear the alarm below this fraction of heading_alarm_std_rad", lo=0)
     compiled: bool = setting(True, "the compiled filter (compiled.py, numba; same results); false: core.HeadingFilter")
+    # filter settings whose comment in core.Settings is only its group's heading: described here (default: core's)
+    init_tilt_std_rad: float = setting(core.Settings.init_tilt_std_rad, "initial 1-σ of roll and pitch", lo=0)
+    init_heading_std_rad: float = setting(core.Settings.init_heading_std_rad, "initial 1-σ of the heading", lo=0)
+    use_field_check: bool = setting(core.Settings.use_field_check, "judge the field's strength and dip against the "
+                                    "reference (window means and each sample): a field off by more than the "
+                                    "tolerances is not fused")
+    adaptive_noise: bool = setting(core.Settings.adaptive_noise, "adaptive magnetometer noise (§2): R_m multiplied by "
+                                   "adaptive_gain_variance or adaptive_gain_heading while the field is not quasi-static")
+    quasi_static_window_s: float = setting(core.Settings.quasi_static_window_s, "sliding window of the quasi-static "
+                                           "field test (strength and dip variance, heading change against the gyro)",
+                                           gt=0)
+    adaptive_gain_variance: float = setting(core.Settings.adaptive_gain_variance, "k1: R_m multiplier while the "
+                                            "variance test fails", lo=0)
+    adaptive_gain_heading: float = setting(core.Settings.adaptive_gain_heading, "k2: R_m multiplier while the "
+                                           "heading-change test fails", lo=0)
+    use_dmc: bool = setting(core.Settings.use_dmc, "follow the DMC verdict (§1): the gyro alone while it says the "
+                            "magnetic heading is invalid")
 
     def __post_init__(self) -> None:
         super().__post_init__()

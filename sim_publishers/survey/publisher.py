@@ -40,8 +40,8 @@ class SurveyPublisherSettings:
     ins_heading_bias_deg: float = setting(0.0, "INS heading error (dead-reckoned track rotated clockwise)")
     ins_walk_m_sqrt_s: float = setting(0.5, "INS position random walk")
     lat_deg: float = setting(45.4, "where the map lies (IGRF core field): latitude")
-    lon_deg: float = setting(-75.7, "longitude")
-    alt_m: float = setting(300.0, "altitude")
+    lon_deg: float = setting(-75.7, "where the map lies: longitude")
+    alt_m: float = setting(300.0, "where the map lies: altitude")
     truth: bool = setting(True, "publish truth/pose")
     seed: int = setting(1, "noise and INS errors")
 
