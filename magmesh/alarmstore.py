@@ -15,6 +15,8 @@ import json
 import os
 from pathlib import Path
 
+from .paths import write_atomic
+
 #: transitions appended before the snapshot is rewritten
 COMPACT_EVERY = 2000
 
@@ -85,9 +87,7 @@ class AlarmStore:
     def compact(self, state: dict) -> None:
         """Write ``state`` as the snapshot (atomically) and empty the log."""
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self.path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(state))
-        os.replace(tmp, self.path)
+        write_atomic(self.path, json.dumps(state))
         if self._fd is not None:
             os.close(self._fd)
             self._fd = None

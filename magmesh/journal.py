@@ -19,6 +19,8 @@ import struct
 import threading
 from pathlib import Path
 
+from .paths import write_atomic
+
 SLOTS = 8192  # keys live at once (in + out); a key beyond that is not journalled (counted in ``full``); the slots
 # of keys freed as idle (:meth:`Journal.forget`) are used again
 _EMPTY = -(2**63)
@@ -107,9 +109,7 @@ class Journal:
         names = [""] * self.n_slots  # a free slot has no name (and holds the empty value)
         for k, i in self.slot.items():
             names[i] = k
-        tmp = self.index_path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(names))
-        os.replace(tmp, self.index_path)
+        write_atomic(self.index_path, json.dumps(names))
         if self._log_fd is not None:
             os.close(self._log_fd)
             self._log_fd = None

@@ -19,3 +19,12 @@ def state_dir() -> Path:
     d = Path(os.environ.get("MAGMESH_STATE_DIR", Path.home() / ".local" / "state" / "magmesh"))
     d.mkdir(parents=True, exist_ok=True)
     return d
+
+
+def write_atomic(path: Path, text: str) -> None:
+    """Replace the file ``path`` with ``text`` atomically: written to a temporary file beside it (``path`` with the
+    suffix ``.tmp``), then renamed over it (``os.replace``), so a crash never leaves half a file. One writer per file
+    at a time (the temporary file is shared)."""
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)

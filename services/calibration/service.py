@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import re
 from dataclasses import dataclass
 
@@ -368,9 +367,7 @@ class Calibration(Service):
             if cur is None or cur.status not in ("ok", "converging"):
                 continue
             path = d / f"{_safe(vehicle)}__{_safe(sid)}.json"
-            tmp = path.with_suffix(".tmp")
-            tmp.write_text(json.dumps({"vehicle": vehicle, "sensor": sid, "record": cur.to_json()}, indent=1))
-            os.replace(tmp, path)  # atomic: a crash never leaves half a file
+            paths.write_atomic(path, json.dumps({"vehicle": vehicle, "sensor": sid, "record": cur.to_json()}, indent=1))
         self.dirty.clear()
 
     def _load_saved(self) -> dict[str, dict[str, ParamRecord]]:

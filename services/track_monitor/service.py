@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from dataclasses import dataclass, replace
 
 from magmesh import declare, paths
@@ -123,9 +122,7 @@ class TrackMonitorService(Service):
             try:  # for a restart after a crash (the route is published once per leg)
                 path = self._route_path(info.vehicle)
                 path.parent.mkdir(parents=True, exist_ok=True)
-                tmp = path.with_suffix(".tmp")
-                tmp.write_text(json.dumps({k: msg[k] for k in ("a_enu_m", "b_enu_m", "route_id")}))
-                os.replace(tmp, path)
+                paths.write_atomic(path, json.dumps({k: msg[k] for k in ("a_enu_m", "b_enu_m", "route_id")}))
             except OSError as e:
                 self.log.warning("%s: could not save the route for a restart: %s", info.vehicle, e)
         elif stream == "gnss":
@@ -201,12 +198,11 @@ class TrackMonitorService(Service):
             return  # wait for the field reference too, then save both
         path = self._sigma_path(vehicle)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"innovation_test": self.settings.innovation_test,
-                                   "innovation_sigma_rad": inn.sigma_rad, "median_sigma_rad": inn.median_sigma_rad,
-                                   "block_sigma_rad": inn.block_sigma_rad,
-                                   "field_ref_nt": mon.field.ref_nt, "field_sigma_nt": mon.field.sigma_nt}))
-        os.replace(tmp, path)
+        paths.write_atomic(path, json.dumps({"innovation_test": self.settings.innovation_test,
+                                             "innovation_sigma_rad": inn.sigma_rad,
+                                             "median_sigma_rad": inn.median_sigma_rad,
+                                             "block_sigma_rad": inn.block_sigma_rad, "field_ref_nt": mon.field.ref_nt,
+                                             "field_sigma_nt": mon.field.sigma_nt}))
         mon.saved_sigma = True
         self.log.info("%s: innovation σ saved to %s", vehicle, path)
 
