@@ -270,7 +270,7 @@ DRIVE_CASES = {
     "imu_only": dict(profile="imu_only", kw={}, drive=dict(reset_at=40.0)),
     "everything": dict(profile="road_vehicle",
                        kw=dict(hard_iron_tracking=True, disturbed_noise_gain=20.0, rest_detection=True,
-                               gravity_lpf_tau_s=2.0, mag_delay_s=0.01, accel_update_period_s=0.03,
+                               gravity_lpf_tau_s=2.0, gravity_lpf_order=2, mag_delay_s=0.01, accel_update_period_s=0.03,
                                mag_update_period_s=0.04, gyro_rate_noise_frac_rt_hz=0.01, mag_vector_fusion=False,
                                use_dmc=True, rejection_timeout_s=1.0, ref_field_nt=0.0),
                        drive=dict(dmc_flip_frac=0.02, late_every=5)),
@@ -295,7 +295,8 @@ def test_interleaved_slots_give_exactly_the_single_slot_results():
     rows_a, decl = drive_rows(4, "urban_b", 30.0, dmc_flip_frac=0.02, late_every=9)
     cases.append((profiles.settings("road_vehicle", declination_rad=decl), rows_a))
     cases.append((profiles.settings("imu_only"), broad_rows("07_", 0, 4000)))
-    cases.append((profiles.settings("road_vehicle", hard_iron_tracking=True, disturbed_noise_gain=10.0),
+    cases.append((profiles.settings("road_vehicle", hard_iron_tracking=True, disturbed_noise_gain=10.0,
+                                    gravity_lpf_tau_s=1.5),
                   synth_rows(20.0, extra_field=lambda t: np.array([0.0, 4000.0, 0.0]) * (8 < t < 14))))
     cases.append((profiles.settings("imu_only", mag_delay_max_s=0.08), synth_rows(15.0, rate_hz=200.0, mag_every=1)))
     # alone, each in a fleet of its own

@@ -86,6 +86,7 @@ class Settings:
     gravity_lpf_tau_s: float = 0.0  # its time constant (0: the raw accelerometer is gravity)
     gravity_lpf_noise_m_s2: float = 0.3  # 1-σ of that estimate as specific force
     gravity_lpf_order: int = 1  # 1: first-order low-pass; 2: second-order Butterworth of the same time constant
+    gravity_lpf_in_estimate: bool = False  # low-pass in the frame of the filter's own attitude (VQF's), not the gyro's
     # (VQF's: −40 dB/decade, a 1 Hz back-and-forth acceleration attenuated ~9× more than by the first-order one)
     # rest detection (gyro and accelerometer quiet): then the accelerometer is gravity, and the gyro's
     # zero rate observes its bias; the sensor noise is learned online while at rest
@@ -571,9 +572,12 @@ class HeadingFilter:
         Gravity is constant in that frame and the specific force of a bounded motion (a translation
         back and forth, a tap) averages out over ``gravity_lpf_tau_s``; the gyro's drift over that
         time is what remains (bias-corrected gyro: a few hundredths of a degree)."""
-        Rg = _qmat(self._qg)
-        a_i = Rg @ np.asarray(accel, float)
         s = self.settings
+        # the gyro-only frame drifts with the gyro's scale and misalignment errors in fast turns, and the
+        # average then mixes gravity seen from frames turned apart; the filter's own attitude is corrected
+        # (its heading corrections turn about the vertical and leave gravity where it is)
+        Rg = _qmat(self.q if s.gravity_lpf_in_estimate else self._qg)
+        a_i = Rg @ np.asarray(accel, float)
         if s.gravity_lpf_order == 2:
             b0, b1, b2, a1, a2 = butterworth2(s.gravity_lpf_tau_s, dt)
             if self._acc_lp_i is None or self.at_rest:  # at rest the accelerometer is gravity: restart there

@@ -35,6 +35,7 @@ _IMU_ONLY = dict(
     gravity_lpf_tau_s=3.0,
     gravity_lpf_noise_m_s2=0.3,
     gravity_lpf_order=2,  # VQF's second-order Butterworth: a 1 Hz back-and-forth acceleration leaks ~9× less into tilt
+    gravity_lpf_in_estimate=True,  # in the filter's own (corrected) frame, as VQF: the gyro-only one drifts in fast turns
     rest_detection=True,
     # magnetometer: per-axis noise at rest ≈ 700 nT; lag estimated online
     mag_noise_nt=3000.0,
