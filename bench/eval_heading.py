@@ -93,7 +93,7 @@ def run_filter_on_drive(drive, settings, dmc_valid: np.ndarray | None, use_mag: 
 
     f = HeadingFilter(settings)
     t_imu, t_mag = drive.gyro_t_s, drive.t_s
-    mag = drive.params1.compensate(drive.mag1_nt)
+    mag = drive.params1.apply(drive.mag1_nt)
     gyro, acc = drive.gyro_rad_s.tolist(), drive.accel_m_s2
     n = len(t_mag)
     heading = np.full(n, np.nan)
@@ -124,7 +124,7 @@ def _run_compiled_on_drive(drive, settings, dmc_valid, use_mag: bool):
     from services.heading_fuser import compiled
 
     t_imu, t_mag = np.asarray(drive.gyro_t_s, float), np.asarray(drive.t_s, float)
-    mag = drive.params1.compensate(drive.mag1_nt)
+    mag = drive.params1.apply(drive.mag1_nt)
     n = len(t_mag)
     # the reference steps the IMU only up to the last magnetometer epoch
     n_imu = int(np.searchsorted(t_imu, t_mag[-1] + 1e-9, side="right"))
@@ -196,7 +196,7 @@ def evaluate_drive(layout: str, seed: int, duration_s: float, dmc_model=None) ->
                  "zone_frac": float(np.mean(zone)), "dmc_invalid_frac": float(np.mean(~valid))}
     # magnetometer only: compass 1 levelled with the accelerometer sample at (or just before) each epoch
     k = np.clip(np.searchsorted(d.gyro_t_s, d.t_s, side="right") - 1, 0, len(d.gyro_t_s) - 1)
-    h_mag = tilt_compensated_headings(d.params1.compensate(d.mag1_nt), d.accel_m_s2[k], d.declination_rad)
+    h_mag = tilt_compensated_headings(d.params1.apply(d.mag1_nt), d.accel_m_s2[k], d.declination_rad)
     out["mag_only"] = _err_stats(np.degrees(maths.angle_diff(h_mag, truth)), zone)
     decl = float(d.declination_rad)
     h, _, _ = run_filter_on_drive(d, sim_settings(declination_rad=decl), None, use_mag=False)

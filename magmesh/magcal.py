@@ -15,12 +15,14 @@ fitted matrices are the symmetric positive-definite root ``M = R · sqrtm(W)`` o
 horizontal field strength.
 
 This module is shared by the calibration service (which fits parameters) and every consumer of
-``cal/params`` (the DMC detector, the heading fuser), which only apply them.
+``cal/params`` (the DMC detector, the heading fuser), which only apply them: :class:`MagParams` is the one
+parameter type of all of them.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -28,17 +30,31 @@ import numpy as np
 
 @dataclass(frozen=True)
 class MagParams:
-    """One calibration parameter set, ``h = M (m − offset)``.
+    """One calibration parameter set, ``h = M (m − offset)``: the one type of it in the code base (the calibration
+    service fits it; the DMC detector and the heading fuser apply it). Mirrors the ``cal_params`` message fields
+    (see schemas/messages.py).
 
-    Mirrors the ``cal_params`` message fields (see schemas/messages.py).
+    ``model`` "3d": ``field_radius_nt`` is the total field strength (a tilt-invariant |h|); "2d": the horizontal
+    field strength of a horizontal (ellipse) fit, and :meth:`strength` takes the horizontal components.
+    ``param_id`` is the set's id where its holder keeps it with the parameters (a consumer of ``cal/params``;
+    "manifest" for a manifest table); the calibration service keeps it in its ``ParamRecord`` instead.
     """
 
     offset_nt: tuple[float, float, float] = (0.0, 0.0, 0.0)
     matrix: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)  # row-major 3×3
     field_radius_nt: float = 50_000.0
     model: str = "3d"  # "2d" | "3d"
+    param_id: str = ""
     observable: tuple[bool, bool, bool] = (True, True, True)
     extra: dict = field(default_factory=dict, compare=False)
+
+    def __post_init__(self):
+        if len(self.offset_nt) != 3 or len(self.matrix) != 9:
+            raise ValueError("offset_nt needs 3 values and matrix 9 (row-major 3×3)")
+        if not (self.field_radius_nt > 0 and math.isfinite(self.field_radius_nt)):
+            raise ValueError(f"field_radius_nt must be a positive number, got {self.field_radius_nt!r}")
+        if self.model not in ("2d", "3d"):
+            raise ValueError(f"model must be '2d' or '3d', got {self.model!r}")
 
     @property
     def offset(self) -> np.ndarray:
@@ -51,27 +67,50 @@ class MagParams:
     @classmethod
     def from_arrays(cls, offset, M, radius: float, model: str = "3d", observable=(True, True, True)) -> MagParams:
         return cls(
-            tuple(float(x) for x in np.asarray(offset, float).ravel()),
-            tuple(float(x) for x in np.asarray(M, float).ravel()),
-            float(radius),
-            model,
-            tuple(bool(x) for x in observable),
+            offset_nt=tuple(float(x) for x in np.asarray(offset, float).ravel()),
+            matrix=tuple(float(x) for x in np.asarray(M, float).ravel()),
+            field_radius_nt=float(radius),
+            model=model,
+            observable=tuple(bool(x) for x in observable),
         )
 
     @classmethod
-    def from_message(cls, msg: dict) -> MagParams:
-        """Build from a decoded ``cal_params`` message or a manifest ``mag_params`` table."""
+    def from_message(cls, msg: Mapping) -> MagParams:
+        """From a decoded ``cal_params`` message or a manifest ``mag_params`` table, a missing field taken as the
+        identity's (what the calibration service and the heading fuser read)."""
         return cls(
-            tuple(float(x) for x in msg.get("offset_nt", (0.0, 0.0, 0.0))),
-            tuple(float(x) for x in msg.get("matrix", (1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0))),
-            float(msg.get("field_radius_nt", 50_000.0)),
-            str(msg.get("model", "3d")),
-            tuple(bool(x) for x in msg.get("observable", (True, True, True))),
+            offset_nt=tuple(float(x) for x in msg.get("offset_nt", (0.0, 0.0, 0.0))),
+            matrix=tuple(float(x) for x in msg.get("matrix", (1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0))),
+            field_radius_nt=float(msg.get("field_radius_nt", 50_000.0)),
+            model=str(msg.get("model", "3d")),
+            observable=tuple(bool(x) for x in msg.get("observable", (True, True, True))),
+        )
+
+    @classmethod
+    def from_mapping(cls, d: Mapping, param_id: str | None = None) -> MagParams:
+        """From a manifest table or a ``cal_params`` message that must give offset_nt, matrix and field_radius_nt
+        (``KeyError`` otherwise; the DMC detector's reading), with its ``param_id`` (given, the mapping's, else
+        "manifest")."""
+        matrix = np.asarray(d["matrix"], float).ravel()
+        return cls(
+            offset_nt=tuple(float(x) for x in d["offset_nt"]),
+            matrix=tuple(float(x) for x in matrix),
+            field_radius_nt=float(d["field_radius_nt"]),
+            model=str(d.get("model", "3d")),
+            param_id=str(param_id if param_id is not None else d.get("param_id", "manifest")),
+            observable=tuple(bool(x) for x in d.get("observable", (True, True, True))),
         )
 
     def apply(self, m_nt) -> np.ndarray:
         """Compensated field h = M (m − offset) for one sample (3,) or many (N×3), nT."""
         return apply(m_nt, self.offset, self.M)
+
+    def strength(self, h) -> np.ndarray:
+        """Field strength of compensated samples: |h|, or for a 2-D model the horizontal |h_xy|, nT."""
+        h = np.asarray(h, float)
+        if self.model == "2d":
+            return np.hypot(h[..., 0], h[..., 1])
+        return np.linalg.norm(h, axis=-1)
 
 
 IDENTITY = MagParams()
@@ -132,10 +171,7 @@ def embed_2d(b2, M2) -> tuple[np.ndarray, np.ndarray]:
 
 def field_strength_residual(m_nt, params: MagParams) -> np.ndarray:
     """|h| − R per sample (2-D models use the horizontal components), nT."""
-    h = params.apply(m_nt)
-    if params.model == "2d":
-        return np.hypot(h[..., 0], h[..., 1]) - params.field_radius_nt
-    return np.linalg.norm(h, axis=-1) - params.field_radius_nt
+    return params.strength(params.apply(m_nt)) - params.field_radius_nt
 
 
 def offset_error_pct(b_est, b_true, field_nt: float) -> float:

@@ -74,9 +74,9 @@ def test_compensation_and_heading():
     for hdg in np.radians([0, 45, 170, 300]):
         h = maths.body_to_enu(hdg).T @ B_ENU
         m = np.linalg.solve(M, h) + off  # the sensor reading whose compensation is h
-        np.testing.assert_allclose(p.compensate(m), h, atol=1e-6)
-        assert abs(p.strength(p.compensate(m)) - p.field_radius_nt) < 1e-6
-        assert abs(maths.angle_diff(core.compass_heading(p.compensate(m), maths.declination_rad(B_ENU)), hdg)) < 1e-9
+        np.testing.assert_allclose(p.apply(m), h, atol=1e-6)
+        assert abs(p.strength(p.apply(m)) - p.field_radius_nt) < 1e-6
+        assert abs(maths.angle_diff(core.compass_heading(p.apply(m), maths.declination_rad(B_ENU)), hdg)) < 1e-9
     with pytest.raises(ValueError):
         CompassParams((0, 0, 0), (1, 0, 0), 1.0)
     with pytest.raises(ValueError):

@@ -114,14 +114,14 @@ class ParamRecord:
 
     def to_json(self) -> dict:
         d = asdict(self)
-        d["params"] = {k: v for k, v in asdict(self.params).items() if k != "extra"}
+        d["params"] = {k: v for k, v in asdict(self.params).items() if k not in ("extra", "param_id")}  # (the record's)
         return d
 
     @classmethod
     def from_json(cls, d: dict) -> ParamRecord:
         p = d["params"]
         params = magcal.MagParams(tuple(p["offset_nt"]), tuple(p["matrix"]), float(p["field_radius_nt"]),
-                                  p.get("model", "3d"), tuple(p.get("observable", (True, True, True))))
+                                  p.get("model", "3d"), observable=tuple(p.get("observable", (True, True, True))))
         return cls(params, **{k: v for k, v in d.items() if k != "params"})
 
 

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from magmesh import maths
+from magmesh.magcal import MagParams
 
 TEST_NAMES = ("dm", "ddm", "dh", "ddh")
 
@@ -38,54 +39,10 @@ TEST_NAMES = ("dm", "ddm", "dh", "ddh")
 # ---- static compensation ----------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class CompassParams:
-    """Static compensation of one compass: h = M (m − offset), |h| ≈ field_radius_nt undisturbed.
-
-    ``model`` "3d": the radius is the total field strength (tilt-invariant Δm); "2d": the radius is
-    the horizontal field strength (the paper's ellipse fit) and Δm uses the horizontal components.
-    """
-
-    offset_nt: tuple[float, float, float]
-    matrix: tuple[float, ...]  # 9, row-major
-    field_radius_nt: float
-    model: str = "3d"
-    param_id: str = "manifest"
-
-    def __post_init__(self):
-        if len(self.offset_nt) != 3 or len(self.matrix) != 9:
-            raise ValueError("offset_nt needs 3 values and matrix 9 (row-major 3×3)")
-        if not (self.field_radius_nt > 0 and math.isfinite(self.field_radius_nt)):
-            raise ValueError(f"field_radius_nt must be a positive number, got {self.field_radius_nt!r}")
-        if self.model not in ("2d", "3d"):
-            raise ValueError(f"model must be '2d' or '3d', got {self.model!r}")
-
-    @classmethod
-    def from_mapping(cls, d: Mapping, param_id: str | None = None) -> CompassParams:
-        """From a manifest table or a ``cal_params`` message (offset_nt, matrix, field_radius_nt[, model])."""
-        matrix = np.asarray(d["matrix"], float).ravel()
-        return cls(
-            offset_nt=tuple(float(x) for x in d["offset_nt"]),
-            matrix=tuple(float(x) for x in matrix),
-            field_radius_nt=float(d["field_radius_nt"]),
-            model=str(d.get("model", "3d")),
-            param_id=str(param_id if param_id is not None else d.get("param_id", "manifest")),
-        )
-
-    @property
-    def M(self) -> np.ndarray:
-        return np.asarray(self.matrix, float).reshape(3, 3)
-
-    def compensate(self, b_nt) -> np.ndarray:
-        """h = M (m − offset) for one sample (3,) or many (N×3)."""
-        b = np.asarray(b_nt, float)
-        return (b - np.asarray(self.offset_nt)) @ self.M.T
-
-    def strength(self, h) -> np.ndarray:
-        h = np.asarray(h, float)
-        if self.model == "2d":
-            return np.hypot(h[..., 0], h[..., 1])
-        return np.linalg.norm(h, axis=-1)
+#: a compass's static compensation h = M (m − offset), |h| ≈ field_radius_nt undisturbed: the project's one parameter
+#: type (magmesh.magcal.MagParams; "3d": the radius is the total field strength, a tilt-invariant Δm; "2d": the
+#: horizontal one, the paper's ellipse fit, and Δm uses the horizontal components). The DMC's name for it.
+CompassParams = MagParams
 
 
 def compass_heading(h, declination_rad: float = 0.0):
@@ -132,7 +89,7 @@ class Features:
     rates_ready: np.ndarray  # N bool: the rate windows were full
 
 
-def _raw_features(h1, h2, p1: CompassParams, p2: CompassParams, declination_rad: float, dh_ref_rad: float):
+def _raw_features(h1, h2, p1: MagParams, p2: MagParams, declination_rad: float, dh_ref_rad: float):
     dm = np.stack([p1.strength(h1) - p1.field_radius_nt, p2.strength(h2) - p2.field_radius_nt], axis=-1)
     hd1 = compass_heading(h1, declination_rad)
     hd2 = compass_heading(h2, declination_rad)
@@ -144,8 +101,8 @@ def features_batch(
     t_s,
     b1_nt,
     b2_nt,
-    p1: CompassParams,
-    p2: CompassParams,
+    p1: MagParams,
+    p2: MagParams,
     declination_rad: float = 0.0,
     settings: FeatureSettings | None = None,
 ) -> Features:
@@ -153,7 +110,7 @@ def features_batch(
     s = settings or FeatureSettings()
     t = np.asarray(t_s, float)
     n = len(t)
-    dm, dh, hd1, hd2 = _raw_features(p1.compensate(b1_nt), p2.compensate(b2_nt), p1, p2, declination_rad,
+    dm, dh, hd1, hd2 = _raw_features(p1.apply(b1_nt), p2.apply(b2_nt), p1, p2, declination_rad,
                                      s.dh_ref_rad)
     # segments split at gaps: windows never reach across a gap
     seg = np.concatenate([[0], np.cumsum(np.diff(t) > s.max_gap_s)]) if n else np.zeros(0, int)
@@ -193,7 +150,7 @@ class FeatureTracker:
         self._seg_start_t: float | None = None
         self._last_t: float | None = None
 
-    def update(self, t_s: float, b1_nt, b2_nt, p1: CompassParams, p2: CompassParams,
+    def update(self, t_s: float, b1_nt, b2_nt, p1: MagParams, p2: MagParams,
                declination_rad: float = 0.0) -> Features:
         s = self.settings
         if self._last_t is not None and (t_s - self._last_t > s.max_gap_s or t_s <= self._last_t):
@@ -201,7 +158,7 @@ class FeatureTracker:
         if self._seg_start_t is None:
             self._seg_start_t = t_s
         self._last_t = t_s
-        dm, dh, hd1, hd2 = _raw_features(p1.compensate(b1_nt), p2.compensate(b2_nt), p1, p2, declination_rad,
+        dm, dh, hd1, hd2 = _raw_features(p1.apply(b1_nt), p2.apply(b2_nt), p1, p2, declination_rad,
                                          s.dh_ref_rad)
         dh = float(dh)
         self._raw.append((t_s, dm, dh))
@@ -436,7 +393,7 @@ class ThresholdDetector:
         failed = tuple(sorted((k for k, v in ratios.items() if v >= 1.0), key=lambda k: -ratios[k]))
         return not failed, ratios, failed
 
-    def update(self, t_s: float, b1_nt, b2_nt, p1: CompassParams, p2: CompassParams,
+    def update(self, t_s: float, b1_nt, b2_nt, p1: MagParams, p2: MagParams,
                declination_rad: float = 0.0) -> Decision:
         f = self.tracker.update(t_s, b1_nt, b2_nt, p1, p2, declination_rad)
         ok, ratios, failed = self._decide(f, self.settings.thresholds)
@@ -547,7 +504,7 @@ class SingleCompassDetector(ThresholdDetector):
 
     impl = "single"
 
-    def update(self, t_s: float, b1_nt, b2_nt, p1: CompassParams, p2: CompassParams,
+    def update(self, t_s: float, b1_nt, b2_nt, p1: MagParams, p2: MagParams,
                declination_rad: float = 0.0) -> Decision:
         f = self.tracker.update(t_s, b1_nt, b1_nt, p1, p1, declination_rad)
         f.dm_nt[:, 1] = 0.0

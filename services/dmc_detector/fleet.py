@@ -50,6 +50,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from magmesh.align import REASONS
+from magmesh.magcal import MagParams
 
 from . import core
 from . import fcm as fcm_mod
@@ -635,7 +636,7 @@ class FleetDetector:
         self._means_n[slot] = self._means_head[slot] = 0
         self._seg_start[slot] = self._last_t[slot] = math.nan
 
-    def set_params(self, slot: int, p_a: core.CompassParams, p_b: core.CompassParams | None,
+    def set_params(self, slot: int, p_a: MagParams, p_b: MagParams | None,
                    declination_rad: float = 0.0, dh_ref_rad: float | None = None) -> None:
         """Static compensation of the slot's two compasses (``single``: ``p_b`` is not used), its declination and
         Δh_r (None: the settings' ``dh_ref_rad``). The windows are not restarted: call :meth:`restart_features`
@@ -1040,7 +1041,7 @@ def warm() -> dict:
     t0 = time.perf_counter()
     k = _kernels()
     out["import_numba_s"] = time.perf_counter() - t0
-    p = core.CompassParams((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), 5e4)
+    p = MagParams((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), 5e4)
     det = FleetDetector(capacity=1)
     s = det.add()
     det.set_params(s, p, p)

@@ -31,8 +31,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from magmesh import maths
+from magmesh.magcal import MagParams
 
-from .core import AlarmLatch, CompassParams, Decision, HysteresisSettings, compass_heading, reason_sentence
+from .core import AlarmLatch, Decision, HysteresisSettings, compass_heading, reason_sentence
 
 
 @dataclass(frozen=True)
@@ -106,8 +107,8 @@ class QuasiStaticDetector:
             self._gyro.popleft()
         return self._drain(t_s)
 
-    def add_mag(self, t_s: float, b_nt, params: CompassParams, declination_rad: float = 0.0) -> list[Decision]:
-        h = params.compensate(b_nt)
+    def add_mag(self, t_s: float, b_nt, params: MagParams, declination_rad: float = 0.0) -> list[Decision]:
+        h = params.apply(b_nt)
         self._pending.append((t_s, h, float(params.strength(h) - params.field_radius_nt), declination_rad))
         imu_t = self._last_imu[0] if self._last_imu else -math.inf
         return self._drain(imu_t, mag_t=t_s)

@@ -20,12 +20,13 @@ import numpy as np
 from magmesh import declare
 from magmesh.align import REASONS, TimeAligner
 from magmesh.declare import Input, Output, setting
+from magmesh.magcal import MagParams
 from magmesh.runtime import Service
 from schemas import keys
 from services.physical import refuse_unphysical
 
 from . import core, fleet
-from .core import CompassParams, FeatureSettings, HysteresisSettings, Thresholds
+from .core import FeatureSettings, HysteresisSettings, Thresholds
 
 # ---- settings every implementation shares (one declaration each) ------------------------------------
 
@@ -95,7 +96,7 @@ class VehicleState:
     aligner: TimeAligner | None  # joins the two compasses of single samples by sample time (magmesh/align.py)
     detector: Any  # the per-vehicle detector of an implementation without a fleet core (quasistatic), else None
     declination_rad: float = 0.0
-    params: dict[str, CompassParams] = field(default_factory=dict)
+    params: dict[str, MagParams] = field(default_factory=dict)
     param_origin: dict[str, str] = field(default_factory=dict)  # sensor → "manifest" | "cal"
     ignored_2d: dict[str, str] = field(default_factory=dict)  # sensor → 2-D cal/params id not used (3-D held)
     warned_2d: bool = False
@@ -220,7 +221,7 @@ class DmcDetectorService(Service):
             sensor = str(sensor)
             if sensor in self.required_sensors:
                 try:
-                    st.params[sensor] = CompassParams.from_mapping(table, param_id="manifest")
+                    st.params[sensor] = MagParams.from_mapping(table, param_id="manifest")
                     st.param_origin[sensor] = "manifest"
                 except (KeyError, ValueError, TypeError) as e:
                     self.log.error("vehicle %s: manifest mag_params.%s unusable: %s", vehicle, sensor, e)
@@ -257,7 +258,7 @@ class DmcDetectorService(Service):
                           msg["param_id"], msg["status"])
             return
         try:
-            p = CompassParams.from_mapping(msg)
+            p = MagParams.from_mapping(msg)
         except (KeyError, ValueError) as e:
             self.count_drop(info.key, "unusable_params")
             self.log.error("vehicle %s sensor %s: unusable cal/params: %s", info.vehicle, info.sensor, e)
