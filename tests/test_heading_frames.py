@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 import zenoh
 
+from magmesh.latch import AlarmLatch
 from magmesh.magcal import MagParams
 from magmesh.paths import DEPLOY_DIR
 from magmesh.runtime import Runner
@@ -512,14 +513,15 @@ _OLD_TRANSITIONS: list = []
 
 
 def _old_service(svc: HeadingFuser, v: str, msgs, clock):
-    """The service's rules before fleet frames: ReferenceJoin + CompiledHeadingFilter + _step_imu's outputs."""
+    """The service's rules before fleet frames: ReferenceJoin + CompiledHeadingFilter + _step_imu's outputs, the
+    alarm by the project's latch (magmesh/latch.py: the compiled join's rule is held to it here)."""
     s = svc.settings
     f = compiled.CompiledHeadingFilter(svc.core_settings(v))
     j = fleet.ReferenceJoin(s.cal_timeout_s, s.dmc_timeout_s, s.dmc_wait_wall_s, s.mag_wait_s, s.max_imu_gap_s)
     p = MagParams.from_message(svc.vehicles_config[v]["mag_params"]["1"])
     j.params = (p.offset.tolist(), p.M.tolist())
     out, alarms = [], []
-    raised, last_pub = False, -math.inf
+    latch, last_pub = AlarmLatch(0.0, 0.0), -math.inf  # the project's latch: at once both ways
     for tw, _, info, msg in msgs:
         clock[0] = tw * 0.9
         if info.kind == "clean" and info.stream == "imu":
@@ -538,13 +540,13 @@ def _old_service(svc: HeadingFuser, v: str, msgs, clock):
             if not f.aligned:
                 continue
             h_std = f.internal_states.heading_std_rad
-            if not raised and f.flags.heading_uncertain:
-                raised = True
+            change = latch.update(t, f.mode == "magnetic" or h_std < s.alarm_clear_frac * s.heading_alarm_std_rad,
+                                  f.flags.heading_uncertain)
+            if change == "raised":
                 alarms.append(("raised", t, h_std, f"heading uncertainty {math.degrees(h_std):.1f}° after "
                                f"{f.internal_states.time_since_mag_fused_s:.0f} s without a usable magnetometer "
                                f"(mode {f.mode})"))
-            elif raised and (f.mode == "magnetic" or h_std < s.alarm_clear_frac * s.heading_alarm_std_rad):
-                raised = False
+            elif change == "cleared":
                 alarms.append(("cleared", t, h_std, f"heading uncertainty back to {math.degrees(h_std):.1f}° "
                                f"(mode {f.mode})"))
             if t - last_pub >= s.publish_period_s - 1e-9:

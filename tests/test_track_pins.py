@@ -22,6 +22,7 @@ import math
 import numpy as np
 import pytest
 
+from magmesh.latch import AlarmLatch
 from magmesh.maths import body_to_enu
 from services.track_monitor.core import (
     FieldStrengthMonitor,
@@ -29,7 +30,6 @@ from services.track_monitor.core import (
     RunningMedian,
     TrackMonitor,
     TrackMonitorSettings,
-    _Hysteresis,
     cross_track,
     learn_sigmas,
     mag_heading,
@@ -128,15 +128,20 @@ def test_running_median_matches_numpy_over_the_window_edge_included():
     assert len(rm) == 0 and rm.push(1.0, 3.0) == 3.0
 
 
-def test_hysteresis_clears_after_the_hold_exactly():
-    h = _Hysteresis(raised=True, raised_t_s=0.0)
-    assert not h.clear_step(True, 1.0, 2.0) and h.quiet_since_s == 1.0
-    assert not h.clear_step(True, 2.75, 2.0)
-    assert not h.clear_step(False, 2.875, 2.0) and h.quiet_since_s is None  # not quiet: the hold restarts
-    assert not h.clear_step(True, 3.0, 2.0)
-    assert not h.clear_step(True, 4.875, 2.0)
-    assert h.clear_step(True, 5.0, 2.0)  # quiet for exactly the hold
-    assert _Hysteresis().clear_step(True, 7.0, 0.0)
+def test_the_alarm_latch_clears_after_the_hold_exactly():
+    """The detectors' latch (magmesh/latch.py, holds counted exactly): a raised alarm clears once its clear
+    condition has held for exactly the hold."""
+    h = AlarmLatch(0.0, 2.0, slack_s=0.0)
+    h.adopt(True, 0.0)
+    assert h.update(1.0, True) is None and h.state()["valid_since"] == 1.0
+    assert h.update(2.75, True) is None
+    assert h.update(2.875, False, False) is None and h.state()["valid_since"] is None  # not quiet: the hold restarts
+    assert h.update(3.0, True) is None
+    assert h.update(4.875, True) is None
+    assert h.update(5.0, True) == "cleared" and not h.raised  # quiet for exactly the hold
+    h = AlarmLatch(0.0, 0.0, slack_s=0.0)
+    h.adopt(True)
+    assert h.update(7.0, True) == "cleared"
 
 
 # ---- the track detector ---------------------------------------------------------------------------

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from magmesh import maths
+from magmesh import latch, maths
 from magmesh.magcal import MagParams
 
 TEST_NAMES = ("dm", "ddm", "dh", "ddh")
@@ -251,51 +251,13 @@ class HysteresisSettings:
             raise ValueError("raise_after_s and clear_after_s must be ≥ 0")
 
 
-class AlarmLatch:
-    """Raise after ``raise_after_s`` of continuous invalid epochs, clear after ``clear_after_s`` of valid.
-
-    Separate starting and continuing conditions, so a flickering test cannot make the alarm flap.
-    ``update`` returns "raised", "cleared" or None (no transition).
-    """
-
-    def __init__(self, settings: HysteresisSettings | None = None):
-        self.settings = settings or HysteresisSettings()
-        self.reset()
-
-    def reset(self):
-        self.raised = False
-        self.raised_t_s: float | None = None
-        self._invalid_since: float | None = None
-        self._valid_since: float | None = None
-
-    def update(self, t_s: float, valid: bool) -> str | None:
-        s = self.settings
-        if valid:
-            self._invalid_since = None
-            if self._valid_since is None:
-                self._valid_since = t_s
-            if self.raised and t_s - self._valid_since >= s.clear_after_s - 1e-9:
-                self.raised = False
-                return "cleared"
-        else:
-            self._valid_since = None
-            if self._invalid_since is None:
-                self._invalid_since = t_s
-            if not self.raised and t_s - self._invalid_since >= s.raise_after_s - 1e-9:
-                self.raised = True
-                self.raised_t_s = t_s
-                return "raised"
-        return None
-
-    def adopt(self, raised: bool, raised_t_s: float | None = None) -> None:
-        """Take over an alarm state decided elsewhere (a live swap): the run timers are kept, so a
-        condition that has already been absent for ``clear_after_s`` clears at the next epoch."""
-        self.raised = bool(raised)
-        self.raised_t_s = raised_t_s if raised else None
-
-    def state(self) -> dict:
-        return {"raised": self.raised, "raised_t_s": self.raised_t_s, "invalid_since": self._invalid_since,
-                "valid_since": self._valid_since}
+def AlarmLatch(settings: HysteresisSettings | None = None) -> latch.AlarmLatch:
+    """The detector's alarm latch: :class:`magmesh.latch.AlarmLatch` (the project's one) with the hold times of
+    ``settings``: raised after ``raise_after_s`` of continuous invalid epochs, cleared after ``clear_after_s`` of
+    valid ones; ``update(t_s, valid)`` returns "raised", "cleared" or None. The fleet kernel (fleet.py) is the
+    same rule compiled and is tested against this."""
+    s = settings or HysteresisSettings()
+    return latch.AlarmLatch(s.raise_after_s, s.clear_after_s)
 
 
 def latch_batch(t_s, valid, settings: HysteresisSettings | None = None) -> np.ndarray:

@@ -27,6 +27,7 @@ from magmesh import declare
 from magmesh.align import CoverWait
 from magmesh.declare import Input, Output, setting
 from magmesh.geomap import GridMap, core_field_enu_nt, load_map
+from magmesh.latch import AlarmLatch
 from magmesh.runtime import Service, build_settings
 from schemas import keys
 from services.physical import refuse_unphysical
@@ -74,6 +75,10 @@ class Settings:
         declare.check(self)
 
 
+#: alarm/match clears when an accepted fix is within this fraction of divergence_alarm_m of the INS
+CLEAR_FRAC = 0.8
+
+
 class VehicleMatch:
     """Per-vehicle state: the matcher, recent INS samples, field samples waiting for INS."""
 
@@ -83,7 +88,9 @@ class VehicleMatch:
         self.ins_p: deque = deque(maxlen=buffer)
         # field samples (t_s, f_nt) wait until the INS reaches their time (magmesh/align.py)
         self.wait = CoverWait(max_wait_s=max_wait_s, max_pending=buffer, stream="field")
-        self.alarm_raised = False
+        # alarm/match: raised at once when an accepted fix is beyond divergence_alarm_m of the INS, cleared at once
+        # when one is within 0.8 × that (in between it stays as it is)
+        self.alarm = AlarmLatch(0.0, 0.0)
         self.unusable = False  # its map or settings failed to load: its samples are counted as drops
 
     def reset(self) -> None:
@@ -162,7 +169,7 @@ class GeomagMatcherService(Service):
 
     def new_vehicle(self, vehicle: str) -> VehicleMatch:
         st = VehicleMatch(self.settings.ins_buffer, self.settings.ins_max_wait_s)
-        st.alarm_raised = self.holds_alarm(vehicle, "match")  # after a restart: the latch as the mesh knows it
+        st.alarm.adopt(self.holds_alarm(vehicle, "match"))  # after a restart: the latch as the mesh knows it
         return st
 
     def _build_matcher(self, vehicle: str) -> GeomagMatcher | None:
@@ -247,13 +254,12 @@ class GeomagMatcherService(Service):
             self.log.debug("%s: match %s (d_H %.2f nT, margin %s)", vehicle, fix.status, r.hausdorff_nt, r.margin_nt)
             return
         thr = ms.divergence_alarm_m
-        if fix.divergence_m > thr and not state.alarm_raised:
-            state.alarm_raised = True
+        change = state.alarm.update(fix.t_s, fix.divergence_m < CLEAR_FRAC * thr, fix.divergence_m > thr)
+        if change == "raised":
             self.alarm(vehicle, "match", "raised", "warning",
                        f"INS position is {fix.divergence_m:.0f} m from the accepted geomagnetic fix "
                        f"(limit {thr:.0f} m)", fix.divergence_m, thr, fix.t_s, unit="m")
-        elif fix.divergence_m < 0.8 * thr and state.alarm_raised:
-            state.alarm_raised = False
+        elif change == "cleared":
             self.alarm(vehicle, "match", "cleared", "warning",
                        f"INS position within {fix.divergence_m:.0f} m of the accepted geomagnetic fix",
                        fix.divergence_m, thr, fix.t_s, unit="m")
@@ -265,5 +271,5 @@ class GeomagMatcherService(Service):
                 continue
             s = st.matcher.internal_states
             out[v] = {**{k: (None if isinstance(x, float) and not math.isfinite(x) else x) for k, x in s.items()},
-                      **st.matcher.flags, "alarm": st.alarm_raised}
+                      **st.matcher.flags, "alarm": st.alarm.raised}
         return {"matchers": out}

@@ -42,6 +42,7 @@ import numpy as np
 
 from magmesh import declare
 from magmesh.declare import setting
+from magmesh.latch import AlarmLatch
 
 INNOVATION_TESTS = ("robust", "paper")
 
@@ -208,22 +209,10 @@ class RunningMedian:
 # ---- detectors --------------------------------------------------------------------------------
 
 
-@dataclass
-class _Hysteresis:
-    """Raised/cleared state with a clear hold time."""
-
-    raised: bool = False
-    raised_t_s: float | None = None
-    quiet_since_s: float | None = None
-
-    def clear_step(self, quiet: bool, t_s: float, hold_s: float) -> bool:
-        """Advance the clear condition; True when the alarm should clear now."""
-        if not quiet:
-            self.quiet_since_s = None
-            return False
-        if self.quiet_since_s is None:
-            self.quiet_since_s = t_s
-        return t_s - self.quiet_since_s >= hold_s
+def _latch(raise_after_s: float, clear_hold_s: float) -> AlarmLatch:
+    """A detector's alarm latch (magmesh/latch.py): raise after ``raise_after_s`` of its raise condition, clear after
+    ``clear_hold_s`` of its clear condition, holds counted exactly."""
+    return AlarmLatch(raise_after_s, clear_hold_s, slack_s=0.0)
 
 
 class TrackDetector:
@@ -236,8 +225,9 @@ class TrackDetector:
     def reset(self) -> None:
         self.armed = False
         self.arm_since_s: float | None = None
-        self.state = _Hysteresis()
-        self.above_since_s: float | None = None
+        # raised once d has stayed above the threshold on trusted GNSS for track_persist_s; cleared once trusted
+        # GNSS has shown the vehicle back below the clear level for clear_hold_s
+        self.state = _latch(self.s.track_persist_s, self.s.clear_hold_s)
         self.cross_track_m: float | None = None
         self.cross_track_signed_m: float | None = None
         self.along_track_m: float | None = None
@@ -277,29 +267,19 @@ class TrackDetector:
             else:
                 self.arm_since_s = None
             return events
-        if not self.state.raised:
-            trusted = gnss_ok and on_leg
-            if trusted and d > s.track_threshold_m:
-                if self.above_since_s is None:
-                    self.above_since_s = t_s
-                if t_s - self.above_since_s >= s.track_persist_s:
-                    self.state = _Hysteresis(raised=True, raised_t_s=t_s)
-                    events.append(AlarmEvent(
-                        "track", "raised", t_s,
-                        f"cross-track deviation {d:.2f} m exceeds {s.track_threshold_m:g} m on trusted GNSS "
-                        f"({along:.0f} m along route {route.route_id})",
-                        d, s.track_threshold_m, "m", "critical", t_s))
-            else:
-                self.above_since_s = None
-        else:
-            # clear only on trusted GNSS showing the vehicle back on the line
-            if self.state.clear_step(gnss_ok and d < s.track_clear_m, t_s, s.clear_hold_s):
-                events.append(AlarmEvent(
-                    "track", "cleared", t_s,
-                    f"cross-track deviation {d:.2f} m back below {s.track_clear_m:g} m for {s.clear_hold_s:g} s",
-                    d, s.track_clear_m, "m", "critical", self.state.raised_t_s))
-                self.state = _Hysteresis()
-                self.above_since_s = None
+        # raise on trusted GNSS off the line; clear only on trusted GNSS showing the vehicle back on it
+        change = self.state.update(t_s, gnss_ok and d < s.track_clear_m, gnss_ok and on_leg and d > s.track_threshold_m)
+        if change == "raised":
+            events.append(AlarmEvent(
+                "track", "raised", t_s,
+                f"cross-track deviation {d:.2f} m exceeds {s.track_threshold_m:g} m on trusted GNSS "
+                f"({along:.0f} m along route {route.route_id})",
+                d, s.track_threshold_m, "m", "critical", t_s))
+        elif change == "cleared":
+            events.append(AlarmEvent(
+                "track", "cleared", t_s,
+                f"cross-track deviation {d:.2f} m back below {s.track_clear_m:g} m for {s.clear_hold_s:g} s",
+                d, s.track_clear_m, "m", "critical", self.state.raised_t_s))
         return events
 
 
@@ -322,7 +302,8 @@ class InnovationDetector:
         self.learning_samples: list[tuple[float, float, float]] = []
         self._t_first: float | None = None
         self._restart()
-        self.state = _Hysteresis()
+        # raised at once when a test fires; cleared once quiet (and not firing) for clear_hold_s
+        self.state = _latch(0.0, s.clear_hold_s)
         self.innovation_rad: float | None = None
         self.test_ratio: float | None = None
         self.n_bursts = 0
@@ -461,19 +442,17 @@ class InnovationDetector:
             else:
                 detail = (f"persistent heading innovation (CUSUM {g:.1f} > {s.cusum_threshold:g} block σ; "
                           f"last block mean {math.degrees(bm or 0.0):+.2f}°)")
-        if not self.state.raised:
-            if fired:
-                self.state = _Hysteresis(raised=True, raised_t_s=t_s)
-                events.append(AlarmEvent("heading_innovation", "raised", t_s,
-                                         f"{detail}: the magnetometer heading disagrees with the attitude",
-                                         math.degrees(level), math.degrees(thr), "deg", "warning", t_s))
-        elif self.state.clear_step(quiet and not fired, t_s, s.clear_hold_s):
+        change = self.state.update(t_s, quiet and not fired, fired)
+        if change == "raised":
+            events.append(AlarmEvent("heading_innovation", "raised", t_s,
+                                     f"{detail}: the magnetometer heading disagrees with the attitude",
+                                     math.degrees(level), math.degrees(thr), "deg", "warning", t_s))
+        elif change == "cleared":
             events.append(AlarmEvent("heading_innovation", "cleared", t_s,
                                      f"heading innovation back within {s.innovation_clear_sigma:g}σ for "
                                      f"{s.clear_hold_s:g} s", math.degrees(level),
                                      math.degrees(clear_thr), "deg", "warning",
                                      self.state.raised_t_s))
-            self.state = _Hysteresis()
             self.cusum_pos = self.cusum_neg = 0.0
         return events
 
@@ -588,7 +567,8 @@ class TrackMonitor:
         self.track.reset()
         self.innovation.reset()
         self.field.reset()
-        self.anomaly = _Hysteresis()
+        # raised by the first detector that raises; cleared once both are quiet (and |B| back) for the hold
+        self.anomaly = _latch(0.0, self.settings.anomaly_clear_hold_s)
         self.anomaly_source: str | None = None
         self.t_s: float | None = None
         self.n_gnss = 0
@@ -637,27 +617,22 @@ class TrackMonitor:
         the field strength (when known) is back at its undisturbed reference."""
         s = self.settings
         out = list(events)
-        if not self.anomaly.raised:
-            for ev in events:
-                if ev.state == "raised":
-                    self.anomaly = _Hysteresis(raised=True, raised_t_s=t_s)
-                    self.anomaly_source = ev.source
-                    name = "track deviation" if ev.source == "track" else "heading innovation"
-                    out.append(AlarmEvent("mag_anomaly", "raised", t_s,
-                                          f"magnetic anomaly: the {name} detector fired first ({ev.reason})",
-                                          ev.value, ev.threshold, ev.unit, "critical", t_s))
-                    break
-        else:
-            quiet = (not self.track.state.raised and not self.innovation.state.raised
-                     and not self.field.deviating)
-            if self.anomaly.clear_step(quiet, t_s, s.anomaly_clear_hold_s):
-                fs = "" if self.field.learning else ", field strength back at its reference"
-                out.append(AlarmEvent("mag_anomaly", "cleared", t_s,
-                                      f"magnetic anomaly cleared: track and heading innovation quiet{fs} for "
-                                      f"{s.anomaly_clear_hold_s:g} s (raised by {self.anomaly_source})",
-                                      None, None, "", "critical", self.anomaly.raised_t_s))
-                self.anomaly = _Hysteresis()
-                self.anomaly_source = None
+        first = next((ev for ev in events if ev.state == "raised"), None)
+        quiet = not self.track.state.raised and not self.innovation.state.raised and not self.field.deviating
+        change = self.anomaly.update(t_s, quiet, first is not None)
+        if change == "raised":
+            self.anomaly_source = first.source
+            name = "track deviation" if first.source == "track" else "heading innovation"
+            out.append(AlarmEvent("mag_anomaly", "raised", t_s,
+                                  f"magnetic anomaly: the {name} detector fired first ({first.reason})",
+                                  first.value, first.threshold, first.unit, "critical", t_s))
+        elif change == "cleared":
+            fs = "" if self.field.learning else ", field strength back at its reference"
+            out.append(AlarmEvent("mag_anomaly", "cleared", t_s,
+                                  f"magnetic anomaly cleared: track and heading innovation quiet{fs} for "
+                                  f"{s.anomaly_clear_hold_s:g} s (raised by {self.anomaly_source})",
+                                  None, None, "", "critical", self.anomaly.raised_t_s))
+            self.anomaly_source = None
         return out
 
     # ---- outputs ------------------------------------------------------------------------------

@@ -20,7 +20,7 @@ from magmesh.runtime import Service
 from schemas import keys
 from services.physical import refuse_unphysical
 
-from .core import AlarmEvent, TrackMonitor, TrackMonitorSettings, _Hysteresis, mag_heading
+from .core import AlarmEvent, TrackMonitor, TrackMonitorSettings, mag_heading
 
 
 @dataclass(frozen=True)
@@ -77,11 +77,10 @@ class TrackMonitorService(Service):
         mon = TrackMonitor(s)
         mon.saved_sigma = False
         mon.last_mag = None
-        for source, owner, attr in (("track", mon.track, "state"), ("heading_innovation", mon.innovation, "state"),
-                                    ("mag_anomaly", mon, "anomaly")):
+        for source, latch in (("track", mon.track.state), ("heading_innovation", mon.innovation.state),
+                              ("mag_anomaly", mon.anomaly)):
             if self.holds_alarm(vehicle, source):  # after a restart: the latch as the mesh knows it
-                setattr(owner, attr, _Hysteresis(raised=True,
-                                                 raised_t_s=self.held_alarm_raised_t_s(vehicle, source)))
+                latch.adopt(True, self.held_alarm_raised_t_s(vehicle, source))
                 if source == "mag_anomaly":
                     mon.anomaly_source = "an earlier run"
         if getattr(self._rt, "resumed_from", None) is not None:
