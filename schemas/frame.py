@@ -38,6 +38,7 @@ import msgspec
 import numpy as np
 
 from . import keys
+from .batch import stream_type as batch_stream_type
 from .messages import MAX_STR, MESSAGES, SchemaError
 
 VERSION = 3
@@ -48,7 +49,6 @@ MAX_ROWS = 1 << 22
 #: vehicles one frame may name
 MAX_VEHICLES = 1 << 16
 MAX_STREAMS = 64
-_SAMPLE_TYPES = ("mag", "imu", "gnss", "ins", "route", "attitude")
 
 #: what :meth:`Stream.column` gives for an optional field a row does not carry
 ABSENT = type("Absent", (), {"__repr__": lambda self: "ABSENT", "__bool__": lambda self: False})()
@@ -73,19 +73,17 @@ def _fields(msg_type: str) -> dict:
 
 @lru_cache(maxsize=4096)
 def stream_type(name: str) -> str:
-    """Message type of a stream name inside a frame (``mag/1`` → mag, ``dmc`` → dmc); SchemaError if unknown."""
-    head, _, sensor = name.partition("/")
-    if head == "dmc" and not sensor:
+    """Message type of a stream name inside a frame (``mag/1`` → mag, ``dmc`` → dmc); SchemaError if unknown.
+    The sample streams are named as in a batch (:func:`schemas.batch.stream_type`)."""
+    if name == "dmc":
         return "dmc"
-    if head not in _SAMPLE_TYPES or (head == "mag") != bool(sensor):
+    try:
+        return batch_stream_type(name)
+    except SchemaError as e:
+        if "unknown stream" not in e.problem:
+            raise
         raise SchemaError("streams", f"names an unknown stream {name[:64]!r} (expected mag/<sensor>, imu, gnss, "
-                          "ins, route, attitude or dmc)")
-    if sensor:
-        try:
-            keys.check_id(sensor, "sensor")
-        except keys.KeyError_ as e:
-            raise SchemaError("streams", str(e)) from None
-    return head
+                          "ins, route, attitude or dmc)") from None
 
 
 @dataclass
