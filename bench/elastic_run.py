@@ -128,12 +128,19 @@ def reference_transitions(clean: dict[str, list[dict]], manifest: Path, start_t:
 
     class _Rt:
         mode = "active"
+        alarm_adopted = 0  # alarm states never come from elsewhere here
 
         def __init__(self, svc):
             self.svc, self.alarm_published, self.raised, self.vehicle_state, self.out = svc, {}, {}, {}, []
 
         def publish(self, key, msg_type, vehicle, t_s, fields):
             return {}
+
+        def publish_rows(self, msg_type, keys_, vehicles, t_s, cols, mirror=None):
+            return [0] * len(keys_)
+
+        def raised_alarm(self, key):
+            return dict(self.raised.get(key) or {})
 
         def publish_alarm(self, key, vehicle, t_s, fields):
             if self.alarm_published.get(key, "cleared") == fields["state"]:
@@ -280,6 +287,21 @@ def check_run(data: list[tuple[str, Any]], final: dict[str, dict], kills: list[d
             "dmc_outputs": sum(len(x) for x in dmc.values())}
 
 
+def output_lag(items: list[tuple[str, Any, float]]) -> dict:
+    """How far the dmc outputs trailed the fleet: arrival at the subscriber minus the sample time (the fleet
+    stamps each sample with the wall clock when it publishes it), in seconds: p50, p99, max and the last 10 s of
+    outputs' p50 (a group that keeps up stays at tens of ms; one falling behind grows through the run)."""
+    import numpy as np
+
+    lag = np.array([t - m["t_s"] for _k, m, t in items if isinstance(m, dict) and "t_s" in m], float)
+    if not lag.size:
+        return {"lag_s_p50": None, "lag_s_p99": None, "lag_s_max": None, "lag_s_last10_p50": None}
+    t_arr = np.array([t for _k, m, t in items if isinstance(m, dict) and "t_s" in m], float)
+    tail = lag[t_arr >= t_arr.max() - 10.0]
+    return {"lag_s_p50": round(float(np.percentile(lag, 50)), 3), "lag_s_p99": round(float(np.percentile(lag, 99)), 3),
+            "lag_s_max": round(float(lag.max()), 3), "lag_s_last10_p50": round(float(np.percentile(tail, 50)), 3)}
+
+
 def dump(path: Path, obj: Any) -> None:
     path.write_text(json.dumps(obj, default=str, indent=1))
 
@@ -317,11 +339,12 @@ class Collector:
 
 def run_scenario(work: Path, n_vehicles: int, instances: int, steps: list[tuple], duration_s: float,
                  port: int | None = None, seed: int = 1, settle_timeout_s: float = 90.0,
-                 end_after_steps_s: float | None = None) -> dict:
+                 end_after_steps_s: float | None = None, save_data: bool = False) -> dict:
     """Run the fleet and the group under ``magmesh up`` and play ``steps``: ``("kill",)`` (SIGKILL a member that
     holds vehicles, chosen with ``seed``; the supervisor restarts it and it rejoins), ``("scale", n)``
     (``magmesh scale dmc n``), ``("wait", s)``. The fleet publishes for ``duration_s``, or stops
-    ``end_after_steps_s`` after the last step. Returns everything seen and measured."""
+    ``end_after_steps_s`` after the last step (``save_data``: what the subscribers saw also goes to
+    ``work/seen.msgpack``). Returns everything seen and measured."""
     import zenoh
 
     from magmesh import zconf
@@ -334,6 +357,7 @@ def run_scenario(work: Path, n_vehicles: int, instances: int, steps: list[tuple]
     env = {**os.environ, "MAGMESH_STATE_DIR": str(work / "state"), "PYTHONUNBUFFERED": "1"}
     rng = random.Random(seed)
     vehicles = vehicle_ids(n_vehicles)
+    load_start = [round(x, 2) for x in os.getloadavg()]  # the machine's load (1, 5, 15 min), for the conditions
     sup = subprocess.Popen([sys.executable, "-m", "magmesh", "up", str(manifest), "--quiet", "--log-dir",
                             str(work / "logs"), "--duration", str(duration_s + 300)], cwd=REPO, env=env,
                            stdout=open(work / "up.log", "ab"), stderr=subprocess.STDOUT, start_new_session=True)
@@ -430,14 +454,22 @@ def run_scenario(work: Path, n_vehicles: int, instances: int, steps: list[tuple]
         if client is not None:
             client.close()
     items = [(k, m) for c in data for k, m, _ in c.items]
+    if save_data:  # everything the subscribers saw, for a look afterwards (msgpack: key, message, arrival)
+        dump(work / "final_status.json", {"final": final, "events": events, "supervisor": sup_status})
+        with open(work / "seen.msgpack", "wb") as f:
+            for c in data:
+                for it in c.items:
+                    f.write(msgpack.packb(it))
     kills = [e for e in events if e["step"] == "kill"]
     figures = check_run(items, final, kills, manifest, vehicles)
+    figures.update(output_lag(data[0].items))
     try:
         status_json = json.loads(status_cli.stdout)
     except ValueError:
         status_json = {"error": status_cli.stdout + status_cli.stderr}
     return {"events": events, "problems": problems + figures.pop("problems"), "figures": figures, "final": final,
             "status_cli": status_json, "supervisor": sup_status, "manifest": str(manifest),
+            "load_avg": {"start": load_start, "end": [round(x, 2) for x in os.getloadavg()]},
             "fleet": _fleet_report(work / "fleet.json")}
 
 

@@ -8,6 +8,8 @@ outside on what subscribers saw (bench/elastic_run.py):
   alarm file, the supervisor restarts it and it takes its own back by hand-over. ``takeover_s``: from the kill
   until every vehicle it held has a dmc output again (arrival at a subscriber); the 2 s target is on the max.
 - ``scale``: the same fleet, 1 instance, then ``magmesh scale dmc 4`` and ``magmesh scale dmc 2`` under load.
+- ``one`` (``--one`` or ``--only one``): the sanity case, 1 instance on the same fleet and no move; its output lag
+  (arrival minus sample time) says whether one instance keeps up.
 
 Per run: dmc outputs repeated (``duplicates``), dmc seq gaps seen (``seq_missing``: outputs a killed process had
 sent that never left it) against epochs missing (a pair of clean samples without an output) and epochs counted
@@ -32,9 +34,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cars", type=int, default=30, help="simulated cars (default 30)")
     p.add_argument("--kills", type=int, default=10, help="SIGKILLs in the kill run (default 10)")
     p.add_argument("--seed", type=int, default=7, help="seed of the kill moments and victims (default 7)")
-    p.add_argument("--only", choices=("kill", "scale"), default=None, help="run only one of the two")
+    p.add_argument("--only", choices=("kill", "scale", "one"), default=None,
+                   help="run only one of them (one: the sanity run, 1 instance, no move; not in the default set)")
+    p.add_argument("--one", action="store_true", help="also the sanity run: 1 instance on the same fleet, no move")
+    p.add_argument("--one-s", type=float, default=40.0, help="seconds of the sanity run (default 40)")
     p.add_argument("--quick", action="store_true", help="10 cars, 3 kills")
-    p.add_argument("--keep", default=None, metavar="DIR", help="keep logs and state in DIR")
+    p.add_argument("--keep", default=None, metavar="DIR", help="keep logs, state and what the subscribers saw in DIR")
 
 
 def _summary(res: dict) -> dict:
@@ -47,6 +52,7 @@ def _summary(res: dict) -> dict:
     f["final_unowned"] = groups.get("unowned")
     f["final_duplicates"] = groups.get("duplicates")
     f["fleet"] = res.get("fleet")
+    f["load_avg"] = res.get("load_avg")
     return f
 
 
@@ -59,7 +65,8 @@ def run(args: argparse.Namespace) -> dict:
         steps: list[tuple] = [("wait", 2.0)]
         for _ in range(kills):
             steps += [("wait", round(rng.uniform(1.0, 6.0), 2)), ("kill",)]
-        res = run_scenario(base / "kill", cars, 3, steps, duration_s=3600.0, seed=args.seed, end_after_steps_s=3.0)
+        res = run_scenario(base / "kill", cars, 3, steps, duration_s=3600.0, seed=args.seed, end_after_steps_s=3.0,
+                           save_data=bool(args.keep))
         k = _summary(res)
         t = [e["takeover_s"] for e in res["events"] if e["step"] == "kill"]
         k.update(kills=len(t), takeover_s=t, takeover_s_max=max(t) if t else None,
@@ -68,11 +75,16 @@ def run(args: argparse.Namespace) -> dict:
         out["kill"] = k
     if args.only in (None, "scale"):
         steps = [("wait", 5.0), ("scale", 4), ("wait", 5.0), ("scale", 2), ("wait", 5.0)]
-        res = run_scenario(base / "scale", cars, 1, steps, duration_s=3600.0, seed=args.seed, end_after_steps_s=3.0)
+        res = run_scenario(base / "scale", cars, 1, steps, duration_s=3600.0, seed=args.seed, end_after_steps_s=3.0,
+                           save_data=bool(args.keep))
         out["scale"] = _summary(res)
+    if args.only == "one" or (args.only is None and args.one):
+        res = run_scenario(base / "one", cars, 1, [("wait", args.one_s)], duration_s=3600.0, seed=args.seed,
+                           end_after_steps_s=1.0, save_data=bool(args.keep))
+        out["one"] = _summary(res)
     if "kill" in out:  # the names, at the top
         out["takeover_s_max"] = out["kill"]["takeover_s_max"]
-    runs = [out[r] for r in ("kill", "scale") if r in out]
+    runs = [out[r] for r in ("kill", "scale", "one") if r in out]
     out["lost_alarm_transitions"] = sum(r["lost_alarm_transitions"] for r in runs)
     out["repeated_alarm_transitions"] = sum(r["repeated_alarm_transitions"] for r in runs)
     out["work_dir"] = str(base)
@@ -102,7 +114,12 @@ def format_text(r: dict) -> str:
                      f"{s['transitions_changed_by_moves']} vehicles differ from one detector "
                      f"({s['reference_transitions_compared']} transitions compared); scale replies {took} s, "
                      f"settled after {settle} s")
-    for name in ("kill", "scale"):
+    o = r.get("one")
+    if o:
+        lines.append(f"  one instance, no move: seq gaps {o['seq_missing']}, duplicates {o['duplicates']}, epochs missing "
+                     f"{o['epochs_missing']}; output lag p50 {o['lag_s_p50']} s, p99 {o['lag_s_p99']} s, max "
+                     f"{o['lag_s_max']} s (last 10 s p50 {o['lag_s_last10_p50']} s)")
+    for name in ("kill", "scale", "one"):
         for p in (r.get(name) or {}).get("problems", []):
             lines.append(f"  problem ({name}): {p[:400]}")
     return "\n".join(lines)

@@ -7,11 +7,16 @@ holds only (the others are skipped by design, counted in ``group.not_owned``), a
 membership changes, per vehicle, with the live-swap protocol (cut at an agreed sample time) run by the new owner:
 
 - **hand-over** (a member joined, or the holder is leaving the group): the new owner warms on the vehicle
-  (handles its input, publishes nothing) for ``warmup_s`` of sample time, then asks the holder to release it
-  (``g_release``): the holder chooses a cut ``lead_s`` ahead of the input it has handled and publishes only
-  before it; the new owner holds its own outputs at or after the cut (those it made while warming too); once the holder has passed the cut (or its input stalled for ``stall_s``) it takes the holder's seq per key
-  and alarm states for the vehicle and publishes what it held. Subscribers see every epoch once, seq continuing.
-  A member warms on at most ``MAX_WARMING`` vehicles at once (a warming vehicle costs its work twice).
+  (handles its input, publishes nothing) for ``warmup_s`` of sample time (:data:`WARMUP_S`), then asks the holder
+  to release it to itself (``g_release``): the holder chooses a cut ``lead_s`` ahead of the input it has handled,
+  and no earlier than the new owner's first input plus ``warmup_s``, and publishes only before it; the new owner
+  holds its own outputs at or after the cut (those it made while warming too); once the holder has passed the
+  cut (or its input stalled for ``stall_s``) it takes the holder's seq per key and alarm states for the vehicle,
+  publishes what it held, and tells the holder (``g_done``, again each round until it answers). Subscribers see
+  every epoch once, seq continuing. Until told, the holder goes on handling the vehicle and keeps its outputs
+  from the cut on: if the new owner goes (or stops taking the vehicle) without having published any, the holder
+  takes the vehicle back and publishes them; a vehicle already promised to one member is not released to
+  another. A member warms on at most ``MAX_WARMING`` vehicles at once (a warming vehicle costs its work twice).
 - **failure** (the holder's liveliness is gone, e.g. kill -9): the new owner takes the vehicle at once from what
   the dead members left in the state directory: their seq journals (last output seq per key, last input seq
   handled) and alarm files (a raised alarm stays raised until the new owner's logic decides). Every input the
@@ -21,8 +26,10 @@ membership changes, per vehicle, with the live-swap protocol (cut at an agreed s
   among the holders drops it at once (``group.duplicates_dropped``).
 
 A member decides to take a vehicle nobody holds only in a round in which every live member answered (a member
-slow to answer under load is never taken for one holding nothing). All state changes run in the runtime's main
-loop (posted as events, ordered with the input); the coordination thread only queries.
+slow to answer under load is never taken for one holding nothing), and takes a member for gone only when its
+liveliness token went and it does not answer a query either (a token can lapse while its member goes on
+serving). All state changes run in the runtime's main loop (posted as events, ordered with the input); the
+coordination thread only queries.
 """
 
 from __future__ import annotations
@@ -49,6 +56,11 @@ SETTLE_S = 1.0  # after its start a member takes no vehicle for this long (the m
 #: and its new owner); seen with 30 cars on 2 cores: a restarted member warming on its 16 vehicles at once, and
 #: every member then fell tens of seconds behind its input
 MAX_WARMING = 4
+#: sample time a new owner warms on a vehicle before the cut, and the least span between its first input and the
+#: cut: long enough for a service's decisions to depend only on input both instances have seen. The DMC detector's
+#: feature windows take 0.7 s and its alarm clears after 3 s of valid epochs (raises after 0.3 s): with less, a
+#: new owner's latch could clear later than the holder's would have (seen with 3 s: a clear 3.6 s late)
+WARMUP_S = 5.0
 
 
 def vehicle_of(key: str) -> str | None:
@@ -63,7 +75,7 @@ def _is_params(key: str) -> bool:
 
 
 class GroupMember:
-    def __init__(self, rt: Any, name: str, warmup_s: float = 3.0, lead_s: float = 0.5, stall_s: float = 2.0,
+    def __init__(self, rt: Any, name: str, warmup_s: float = WARMUP_S, lead_s: float = 0.5, stall_s: float = 2.0,
                  period_s: float = 0.2):
         self.rt = rt
         self.name = keys.check_id(name, "group name")
@@ -83,6 +95,11 @@ class GroupMember:
         self.held: list[tuple] = []
         self.post_cut: dict[str, float] = {}  # after a hand-over: outputs before the cut were the holder's
         self.release: dict[str, float] = {}  # vehicle -> cut: this instance hands it over
+        self.release_to: dict[str, str] = {}  # vehicle -> the member it is handed over to
+        #: outputs of a vehicle being handed over at or after its cut: published only if the hand-over fails (the
+        #: new owner went before taking it), dropped when the new owner confirms (g_done)
+        self.release_buf: dict[str, deque] = {}
+        self.done_pending: dict[str, str] = {}  # vehicle taken over -> its former holder, until it confirmed g_done
         self.passed: set[str] = set()
         self.progress: dict[str, tuple[Any, float]] = {}
         self.params_cache: dict[str, bytes] = {}
@@ -91,11 +108,12 @@ class GroupMember:
         self.warm_buf: dict[str, deque] = {}
         self.stats = {"not_owned": 0, "handovers_in": 0, "handovers_out": 0, "failovers": 0, "unrecovered": 0,
                       "duplicates_dropped": 0, "suppressed": 0, "takeover_s_max": 0.0, "last_takeover_s": None,
-                      "rounds": 0, "rounds_incomplete": 0}
+                      "rounds": 0, "rounds_incomplete": 0, "liveliness_lapses": 0, "reclaimed": 0}
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._dead_since: dict[str, float] = {}  # member -> when its liveliness was seen gone
         self._leaving_seen: set[str] = set()
+        self._lapsed: set[str] = set()  # members whose token went but that still answer (kept as live)
         self.last_holder: dict[str, str] = {}  # vehicle -> the other member last seen holding it
         self._tokens: set[str] = set()  # live instances of the role (liveliness tokens)
         self._token_sub: Any = None
@@ -128,14 +146,16 @@ class GroupMember:
         v = vehicle_of(key)
         if v is None:
             return True  # not a vehicle key: the input path refuses it with its reason
-        if v in self.owned or v in self.warming or v in self.arm or (v in self.release and v not in self.passed):
-            return True
+        if v in self.owned or v in self.warming or v in self.arm or v in self.release:
+            return True  # (a vehicle being handed over is handled until the new owner has it: see gate)
         if v not in self.seen:
+            take = self.ready and self.complete and not self.leaving and v not in self.holdings \
+                and groups.owner(v, self.members) == self.me
+            if take:  # nobody holds it: its owner takes it at once (held before it is seen: see skips)
+                self._failover(v, self._dead_state(v), None)
             if len(self.seen) < 1_000_000:
                 self.seen.add(v)
-            if self.ready and self.complete and not self.leaving and v not in self.holdings \
-                    and groups.owner(v, self.members) == self.me:
-                self._failover(v, self._dead_state(v), None)  # nobody holds it: its owner takes it at once
+            if take:
                 return True
         if payload is not None and _is_params(key) and (key in self.params_cache or
                                                         len(self.params_cache) < PARAMS_CACHE_MAX):
@@ -156,7 +176,10 @@ class GroupMember:
             if t_s < cut:
                 return True
             self.passed.add(vehicle)  # the new owner publishes from the cut on
-            self.stats["suppressed"] += 1
+            buf = self.release_buf.get(vehicle)  # (kept until it confirms: published here if it never takes it)
+            if buf is None:
+                buf = self.release_buf[vehicle] = deque(maxlen=WARM_BUFFER)
+            buf.append((key, msg_type, vehicle, t_s, fields))
             return False
         a = self.arm.get(vehicle)
         if a is not None:
@@ -188,22 +211,31 @@ class GroupMember:
             pass
         elif op == "g_release":  # a new owner takes these vehicles over: this holder chooses the cut
             lead = float(req.get("lead_s", self.lead_s))
+            to = str(req.get("from", ""))
+            nb = req.get("not_before")
             for v in list(req.get("vehicles", [])):
                 if v in self.release:
-                    continue  # already agreed: the first cut stands
+                    continue  # already agreed (with this member: the first cut stands; with another: not this one)
                 if v not in self.owned:
                     return {"ok": False, "error": f"{self.me} does not hold {v}"}
-                # ahead of every input handled here: each output before it is this holder's, the rest the new one's
+                # ahead of every input handled here: each output before it is this holder's, the rest the new one's;
+                # and no earlier than the new owner's warm-up allows (its first input plus warmup_s)
                 t = self.rt.last_in_t.get(v)
+                cut = (t if t is not None else 0.0) + lead
+                if isinstance(nb, (int, float)) and not isinstance(nb, bool) and nb > cut:
+                    cut = float(nb)
                 self.passed.discard(v)
                 # (released before it stops being held: the reader threads never see it as another's, see skips)
-                self.release[v] = (t if t is not None else 0.0) + lead
+                self.release[v] = cut
+                self.release_to[v] = to
                 self.owned.discard(v)
                 self.stats["handovers_out"] += 1
         elif op == "g_done":  # the new owner has the vehicles: forget them
             for v in req.get("vehicles", []):
                 if v in self.release:
                     del self.release[v]
+                    self.release_to.pop(v, None)
+                    self.release_buf.pop(v, None)
                     self.passed.discard(v)
                     self._forget(v)
         elif op == "g_leave":  # leave the group: the others take every vehicle over (hand-over)
@@ -227,9 +259,10 @@ class GroupMember:
             hand[v] = {"seqs": {k: s for k, s in list(rt.seq.items()) if k.startswith(pre)},
                        "drops": {k: dict(d) for k, d in list(rt.drops.items()) if k.startswith(pre)},
                        "alarms": {k: s for k, s in list(rt.alarm_published.items()) if k.startswith(pre)},
-                       "raised": raised, "last_in_t": last_in_t, "passed": passed, "cut": cut}
+                       "raised": raised, "last_in_t": last_in_t, "passed": passed, "cut": cut,
+                       "to": self.release_to.get(v)}
         return {"group": self.name, "instance": self.me, "leaving": self.leaving, "owned": sorted(list(self.owned)),
-                "releasing": hand}
+                "taking": sorted(set(self.warming) | set(self.arm)), "releasing": hand}
 
     def status(self) -> dict:
         return {"name": self.name, "members": list(self.members), "leaving": self.leaving,
@@ -247,16 +280,22 @@ class GroupMember:
         rt.first_in_t.pop(v, None)
         rt.last_in_t.pop(v, None)
 
-    def _forget(self, v: str) -> None:
-        """A vehicle handed over (or held by another): its state, raised alarms and alarm states are not ours."""
+    def _forget(self, v: str, counts_moved: bool = True) -> None:
+        """A vehicle handed over (or held by another): its state, raised alarms and alarm states are not ours.
+        ``counts_moved``: its drop counts went with it to the new owner (a hand-over carries them), so they go
+        from here too, journal included (a restart of this instance must not bring them back: counted twice)."""
         rt = self.rt
         self.owned.discard(v)
         self.post_cut.pop(v, None)
         rt.vehicle_state.pop(v, None)
         self._clear_vehicle(v)
         pre = f"{keys.ROOT}/{v}/"
-        for k in [k for k in rt.drops if k.startswith(pre)]:
-            del rt.drops[k]  # the vehicle's counts went with it to the new owner (group totals stay exact)
+        if counts_moved:
+            gone = [k for k in rt.drops if k.startswith(pre)]
+            for k in gone:
+                del rt.drops[k]  # the vehicle's counts went with it to the new owner (group totals stay exact)
+            if rt.journal is not None and gone:
+                rt.journal.forget([c + k for k in gone for c in "ult"])
         for k in [k for k in rt.alarm_published if k.startswith(pre)]:
             del rt.alarm_published[k]
         with rt.lock:
@@ -271,6 +310,40 @@ class GroupMember:
             self.stats["duplicates_dropped"] += 1
             log.warning("%s: %s is held by another member the rule prefers: dropped here", self.me, v)
 
+    def _reclaim(self, v: str) -> None:
+        """A hand-over that did not happen (the new owner went, or dropped the vehicle, before taking it): this
+        holder keeps the vehicle and publishes what it kept from the cut on (nothing was published by the other)."""
+        if v not in self.release:
+            return
+        self.owned.add(v)  # (first: see skips)
+        del self.release[v]
+        self.release_to.pop(v, None)
+        self.passed.discard(v)
+        buf = list(self.release_buf.pop(v, ()))
+        self.stats["reclaimed"] += 1
+        self.stats["handovers_out"] -= 1
+        log.warning("%s: the hand-over of %s did not happen: kept here (%d outputs from the cut on published here)",
+                    self.me, v, len(buf))
+        self.rt._release_held(buf)
+
+    def _release_lost(self, v: str, to: str, since: float | None) -> None:
+        """The member ``v`` was being handed over to is gone (or restarted) before confirming: if it published
+        anything of ``v`` (its journal's output seqs beyond this holder's), it took the vehicle and died with it —
+        taken from what it persisted, as for any dead holder; else the hand-over did not happen: kept here."""
+        if v not in self.release or self.release_to.get(v) != to:
+            return
+        other = self._dead_state(v, only=to)
+        rt = self.rt
+        if any(int(s) > rt.seq.get(k, -1) for k, s in other["seqs"].items()):
+            del self.release[v]
+            self.release_to.pop(v, None)
+            self.release_buf.pop(v, None)
+            self.passed.discard(v)
+            self.stats["handovers_out"] -= 1
+            self._failover(v, other, since)
+        else:
+            self._reclaim(v)
+
     def _replay_params(self, v: str) -> None:
         pre = f"{keys.ROOT}/{v}/"
         for k in [k for k in self.params_cache if k.startswith(pre)]:
@@ -279,10 +352,17 @@ class GroupMember:
             self.rt.handle_sample(k, payload)
 
     def _begin_warm(self, v: str, holder: str) -> None:
-        if v in self.owned or v in self.warming or v in self.arm:
+        if v in self.owned or v in self.warming or v in self.arm or v in self.release:
             return
-        self.rt.vehicle_state.pop(v, None)
+        rt = self.rt
+        rt.vehicle_state.pop(v, None)
         self._clear_vehicle(v)  # the warm-up span counts from the next input
+        # what a restart of this instance restored of the vehicle is not its own any more (another member held it
+        # since): its join losses are no restart's, its first input no gap of one
+        rt.recovering.pop(v, None)
+        pre = f"{keys.ROOT}/{v}/"
+        for k in [k for k in rt.resumed_in if k.startswith(pre)]:
+            rt.resumed_in.discard(k)
         self.warming[v] = holder
         self._replay_params(v)
 
@@ -327,11 +407,14 @@ class GroupMember:
             rt.raised.update({k: m for k, m in raised.items() if k.startswith(pre)})
         rt._persist_alarms()
 
-    def _takeover(self, v: str, hand: dict) -> None:
-        """Hand-over, last step: continue the holder's seqs and alarm states, publish what was held."""
+    def _takeover(self, v: str, hand: dict, holder: str | None = None) -> None:
+        """Hand-over, last step: continue the holder's seqs and alarm states, publish what was held; the holder is
+        told in the next round (it keeps the vehicle's outputs from the cut on until then)."""
         a = self.arm.get(v)
         if a is None:
             return
+        if holder is not None:
+            self.done_pending[v] = holder
         self._adopt(v, hand.get("seqs", {}), hand.get("alarms", {}), hand.get("raised", {}), hand.get("drops"))
         self.owned.add(v)  # (held before it stops being armed: see skips)
         del self.arm[v]
@@ -347,6 +430,10 @@ class GroupMember:
             return
         self.owned.add(v)  # (first: the reader threads queue its samples from now on, see skips)
         self._cancel(v)
+        if self.release.pop(v, None) is not None:  # (a hand-over of it from here is over)
+            self.release_to.pop(v, None)
+            self.release_buf.pop(v, None)
+            self.passed.discard(v)
         rt = self.rt
         rt.vehicle_state.pop(v, None)
         # what this instance's own run before a restart handled of v (its journal, resume_journal) and nobody
@@ -461,18 +548,36 @@ class GroupMember:
     def _round(self) -> None:
         live = self._live_members()
         now = time.monotonic()
+        states: dict[str, dict] = {}
+        # a member whose token went is gone only if it does not answer either: a token can lapse under load (its
+        # session to the router renewed) while the member goes on serving its vehicles (seen: a member taken for
+        # dead for 6 s, and both it and the member that took its vehicles published them)
+        for m in sorted(self.live - live - {self.me}):
+            st = self._query(m, {"op": "g_state"}, timeout=0.5)
+            if st is not None:
+                states[m] = st
+                live.add(m)
+                if m not in self._lapsed:
+                    self._lapsed.add(m)
+                    self.stats["liveliness_lapses"] += 1
+                    log.warning("%s: the liveliness token of %s went, but it answers: still a member", self.me, m)
+            else:
+                log.info("%s: %s is gone (no liveliness token, no answer)", self.me, m)
+        self._lapsed &= live
+        for m in live - self.live:
+            log.info("%s: %s joined", self.me, m)
         for m in self.live - live:
             self._dead_since.setdefault(m, now)
         for m in live:
             self._dead_since.pop(m, None)
         self.live = live
-        states: dict[str, dict] = {}
-        for inst in sorted(live - {self.me}):
+        for inst in sorted(live - {self.me} - set(states)):
             st = self._query(inst, {"op": "g_state"})
             if st is not None:
                 states[inst] = st
-                if st.get("leaving"):
-                    self._leaving_seen.add(inst)
+        for inst, st in states.items():
+            if st.get("leaving"):
+                self._leaving_seen.add(inst)
         self._leaving_seen &= live
         complete = len(states) == len(live) - 1
         self.stats["rounds"] += 1
@@ -499,7 +604,13 @@ class GroupMember:
             return
         for v, h in holdings.items():
             self.last_holder[v] = h
-        lead_done = []
+        # vehicles this member hands over: the member taking one went, or no longer takes it, before confirming
+        for v, to in list(self.release_to.items()):
+            if to not in live:
+                s = self._dead_since.get(to)
+                self._post(lambda v=v, to=to, s=s: self._release_lost(v, to, s))
+            elif to in states and v not in states[to].get("taking", []) and v not in states[to].get("owned", []):
+                self._post(lambda v=v, to=to: self._release_lost(v, to, None))
         warm_slots = MAX_WARMING - len(self.warming) - len(self.arm)
         for v in list(self.seen):
             mine = not self.leaving and groups.owner(v, members) == self.me
@@ -512,7 +623,9 @@ class GroupMember:
                     continue
                 hand = (st or {}).get("releasing", {}).get(v)
                 if hand is None:
-                    if st is not None and v not in st.get("owned", []):  # the holder lost it (restarted): take it
+                    if st is not None and v in st.get("owned", []):  # the holder kept it (took us for gone)
+                        self._post(lambda v=v: v in self.arm and self._cancel(v))
+                    elif st is not None:  # the holder lost it (restarted): take it
                         self._post(lambda v=v: self._failover(v, self._dead_state(v), None))
                     continue
                 t = hand.get("last_in_t")
@@ -524,8 +637,7 @@ class GroupMember:
                     self.rt.last_in_t.get(v, float("-inf")) < cut
                 if hand.get("passed") or stalled:
                     self.progress.pop(v, None)
-                    self._post(lambda v=v, hand=hand: self._takeover(v, hand))
-                    lead_done.append((holder, v))
+                    self._post(lambda v=v, hand=hand, h=holder: self._takeover(v, hand, h))
                 continue
             if v in self.owned:
                 others = holders.get(v, set())
@@ -535,34 +647,36 @@ class GroupMember:
             if complete and v in holdings and v not in self.warming and v not in self.release:
                 # alarm state restored from an earlier life of this instance, for a vehicle another member holds
                 if any(k.startswith(f"{keys.ROOT}/{v}/") for k in list(self.rt.alarm_published)):
-                    self._post(lambda v=v: v not in self.owned and v not in self.warming and self._forget(v))
-            if not mine:
-                if v in self.warming:  # the rule moved it elsewhere meanwhile
-                    self._post(lambda v=v: self._cancel(v))
-                continue
-            holder = holdings.get(v)
+                    self._post(lambda v=v: v not in self.owned and v not in self.warming and v not in self.arm
+                               and self._forget(v, counts_moved=False))
             if v in self.warming:
                 h = self.warming[v]
                 if h not in live:
                     s = self._dead_since.get(h)
                     self._post(lambda v=v, s=s: self._failover(v, self._dead_state(v), s))
                     continue
-                if complete and h != holder:  # it no longer holds it (restarted): look again next round
-                    self._post(lambda v=v: self._cancel(v))
-                    continue
                 hand = (states.get(h) or {}).get("releasing", {}).get(v)
-                if hand is not None:  # agreed before (its reply was lost): take the cut the holder chose
+                if hand is not None and hand.get("to") == self.me:
+                    # agreed before (its reply was lost): take the cut the holder chose, even if the rule has
+                    # moved the vehicle meanwhile (the holder publishes only before it: this member must take it)
                     self._call(lambda v=v, h=h, c=hand["cut"]: self._arm(v, h, c))
+                    continue
+                if not mine or hand is not None or (complete and h != holdings.get(v)):
+                    # the rule moved it elsewhere, the holder hands it to another member, or no longer holds it
+                    # (restarted): look again next round
+                    self._post(lambda v=v: v in self.warming and self._cancel(v))
                     continue
                 t0, t1 = self.rt.first_in_t.get(v), self.rt.last_in_t.get(v)
                 if t0 is not None and t1 is not None and t1 - t0 >= self.warmup_s:
-                    r = self._query(h, {"op": "g_release", "lead_s": self.lead_s, "vehicles": [v]})
+                    r = self._query(h, {"op": "g_release", "lead_s": self.lead_s, "vehicles": [v], "from": self.me,
+                                        "not_before": t0 + self.warmup_s})
                     hand = (r or {}).get("releasing", {}).get(v)
-                    if hand is not None:
+                    if hand is not None and hand.get("to") == self.me:
                         self._call(lambda v=v, h=h, c=hand["cut"]: self._arm(v, h, c))
                 continue
-            if v in self.release:
+            if not mine or v in self.release:
                 continue
+            holder = holdings.get(v)
             if holder is not None:
                 if warm_slots > 0:  # the others wait for a later round (MAX_WARMING)
                     warm_slots -= 1
@@ -570,16 +684,24 @@ class GroupMember:
             elif complete:
                 s = self._dead_since.get(self.last_holder.get(v, ""))
                 self._post(lambda v=v, s=s: self._failover(v, self._dead_state(v), s))
+        # hand-overs done: each former holder told (again each round until it confirms), so it forgets the vehicle
         done: dict[str, list[str]] = {}
-        for h, v in lead_done:
-            done.setdefault(h, []).append(v)
+        for v, h in list(self.done_pending.items()):
+            if h not in live:
+                self.done_pending.pop(v, None)
+            else:
+                done.setdefault(h, []).append(v)
         for h, vs in done.items():
-            self._query(h, {"op": "g_done", "vehicles": vs})
+            if self._query(h, {"op": "g_done", "vehicles": vs}) is not None:
+                for v in vs:
+                    if self.done_pending.get(v) == h:
+                        del self.done_pending[v]
 
-    def _dead_state(self, v: str) -> dict:
+    def _dead_state(self, v: str, only: str | None = None) -> dict:
         """What the members of the group that are not live persisted about vehicle ``v``: seq journals (the
         sample a member was handling when killed counts as handled when an output went out after it began) and
-        alarm files (the latest transition any of them published)."""
+        alarm files (the latest transition any of them published). ``only``: what that one member persisted,
+        live or not (a member restarted since)."""
         from .journal import Journal
         from .paths import state_dir
 
@@ -590,7 +712,7 @@ class GroupMember:
         d = state_dir()
         for f in sorted((d / "journal").glob(f"{self.role}.{self.name}-*.seq")):
             inst = f.name[len(self.role) + 1:-len(".seq")]
-            if inst in self.live:
+            if (inst != only) if only is not None else (inst in self.live):
                 continue
             j = Journal(f)
             prev = j.load()
@@ -614,7 +736,7 @@ class GroupMember:
                  for f in (d / "alarms").glob(f"{self.role}.{self.name}-*.{pat}")}
         for f in sorted(names):
             inst = f.name[len(self.role) + 1:-len(".json")]
-            if inst in self.live:
+            if (inst != only) if only is not None else (inst in self.live):
                 continue
             data = load(f)
             seqs = data.get("seqs", {})
