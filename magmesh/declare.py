@@ -134,7 +134,7 @@ def _num(x: float) -> str:
     return f"{x:g}" if isinstance(x, float) else str(x)
 
 
-def _type_name(tp: Any) -> str:
+def type_name(tp: Any) -> str:
     s = tp if isinstance(tp, str) else getattr(tp, "__name__", str(tp))
     return s.replace("typing.", "")
 
@@ -156,7 +156,7 @@ def settings_info(cls: type | None) -> tuple[SettingInfo, ...]:
                 comments = comment_docs(cls)
             doc = comments.get(f.name, "")
         unit = md.get("unit")
-        out.append(SettingInfo(f.name, _type_name(f.type), default, doc, unit_of(f.name) if unit is None else unit,
+        out.append(SettingInfo(f.name, type_name(f.type), default, doc, unit_of(f.name) if unit is None else unit,
                                md.get("lo"), md.get("hi"), md.get("gt"), md.get("lt"), md.get("choices")))
     return tuple(out)
 

@@ -405,7 +405,7 @@ def build_settings(cls: type | None, values: dict) -> Any:
         try:
             kw[k] = _coerce(flds[k].type, v, k)
         except ValueError:
-            raise declare.SettingError(k, v, f"is not {declare._type_name(flds[k].type)}") from None
+            raise declare.SettingError(k, v, f"is not {declare.type_name(flds[k].type)}") from None
     declare.check_values(cls, kw)
     return cls(**kw)
 
