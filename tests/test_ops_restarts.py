@@ -56,6 +56,23 @@ def one_to_one(inst: str, in_keys: list[str]) -> list[tuple[tuple[str, ...], str
     return []
 
 
+def frame_rows_keys(in_keys: list[str], tap) -> list[str]:
+    """A fleet frame input (the DMC detector's dmc frames) stands for its rows, numbered per vehicle key: the
+    per-vehicle keys the frames carried (the detector puts the same rows, same seqs, there), and restart gaps are
+    counted on those."""
+    out = [k for k in in_keys if not k.startswith("magmesh/fleet/")]
+    data = tap.snapshot()
+    for k in in_keys:
+        if not k.startswith("magmesh/fleet/"):
+            continue
+        kind = k.rsplit("/", 1)[1]
+        assert kind == "dmc", f"{k}: the check knows the per-vehicle keys of dmc frames only"
+        vehicles = {v for _, m in data.get(k, []) for v in m["vehicles"]}
+        assert vehicles, f"{k} taken but no frame seen on the mesh"
+        out += [keys.dmc(v) for v in sorted(vehicles) if keys.dmc(v) not in out]
+    return out
+
+
 class Tap:
     """Every sample on magmesh/** (decoded) with its arrival time (monotonic s)."""
 
@@ -112,7 +129,7 @@ def kill_and_wait(client, tap: Tap, inst: str) -> dict:
             break
         time.sleep(1.0)
     assert outs, f"{inst} has no steady output to watch: {before['out']}"
-    in_keys = [k for k in before["in"]]
+    in_keys = frame_rows_keys(list(before["in"]), tap)
     t_kill = time.monotonic()
     os.kill(before["pid"], signal.SIGKILL)
     while time.monotonic() - t_kill < 5 and any(
