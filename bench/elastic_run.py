@@ -11,6 +11,12 @@ The checks (:func:`check_run`) are made on what subscribers saw:
 - each vehicle's ``alarm/dmc``: seq contiguous and states alternating (no transition lost or repeated);
 - for the vehicles no kill touched (moved only by hand-overs), the alarm transitions equal those of one detector
   fed every epoch offline (the same code, the same samples): a move caused no transition and hid none.
+
+With ``frames`` the fleet publishes raw batches (binary columns, a batch per vehicle per 50 ms) to an ingest
+process with ``output = "frames"``: the members take its ``magmesh/fleet/{ingest}/clean`` frames, each cut to the
+vehicles it holds. Checked besides (:func:`check_dmc_frames`): each member's ``magmesh/fleet/{member}/dmc`` frames
+carry exactly the dmc rows it published (every row of a frame is a published per-vehicle dmc message with the
+same seq and time, every published message is in one frame, none in two).
 """
 
 from __future__ import annotations
@@ -38,9 +44,10 @@ def vehicle_ids(n: int) -> list[str]:
     return [f"bench-{i:04d}" for i in range(n)]  # bench/fleet.py's names
 
 
-def write_manifest(path: Path, n_vehicles: int, instances: int, endpoint: str) -> Path:
+def write_manifest(path: Path, n_vehicles: int, instances: int, endpoint: str, frames: bool = False) -> Path:
     """A mesh of one group process (the DMC detector) and the fleet's vehicles, each with the simulated car's
-    compensation (bench/fleet.py replays the car simulator's drive, vehicle_seed 7 as car-1)."""
+    compensation (bench/fleet.py replays the car simulator's drive, vehicle_seed 7 as car-1); ``frames``: and an
+    ingest process emitting fleet frames (20 ms)."""
     with open(REPO / "deploy" / "mesh.toml", "rb") as f:
         car = tomllib.load(f)["vehicles"]["car-1"]
     lines = ["[mesh]", f'endpoint = "{endpoint}"', "status_period_s = 0.5", ""]
@@ -51,6 +58,9 @@ def write_manifest(path: Path, n_vehicles: int, instances: int, endpoint: str) -
                       f"matrix = {list(t['matrix'])!r}", f"field_radius_nt = {t['field_radius_nt']!r}"]
     lines += ["", "[[process]]", 'name = "dmc"', 'module = "services.dmc_detector"', f"instances = {instances}",
               'args = ["--impl", "threshold"]', "settings = {}", ""]
+    if frames:
+        lines += ["[[process]]", 'name = "ingest"', 'module = "services.ingest"',
+                  'settings = { output = "frames", batch_window_s = 0.02 }', ""]
     path.write_text("\n".join(lines))
     return path
 
@@ -314,11 +324,13 @@ def free_port() -> int:
 
 
 class Collector:
-    """Every sample on a key expression, decoded, with its arrival time (wall clock)."""
+    """Every sample on a key expression, decoded (``raw``: its payload bytes), with its arrival time (wall
+    clock)."""
 
-    def __init__(self, session: Any, keyexpr: str):
+    def __init__(self, session: Any, keyexpr: str, raw: bool = False):
         import zenoh
 
+        self.raw = raw
         self.items: list[tuple[str, Any, float]] = []
         self.sub = session.declare_subscriber(keyexpr, zenoh.handlers.FifoChannel(1_000_000))
         self.thread = threading.Thread(target=self._run, daemon=True)
@@ -330,6 +342,9 @@ class Collector:
                 s = self.sub.recv()
             except Exception:  # noqa: BLE001 - the session closed
                 return
+            if self.raw:
+                self.items.append((str(s.key_expr), s.payload.to_bytes(), time.time()))
+                continue
             try:
                 m = msgpack.unpackb(s.payload.to_bytes(), strict_map_key=False)
             except Exception:  # noqa: BLE001
@@ -337,14 +352,83 @@ class Collector:
             self.items.append((str(s.key_expr), m, time.time()))
 
 
+def frame_rows(items: list[tuple[str, bytes, float]]) -> tuple[list[tuple[str, dict]], list[str]]:
+    """Fleet frames as the per-vehicle messages of their rows, ``(per-vehicle key, message)``, and the problems
+    met (a frame that does not decode, frames of one publisher missing)."""
+    from magmesh.frames import stream_key
+    from schemas import frame as fleetframe
+
+    out: list[tuple[str, dict]] = []
+    problems: list[str] = []
+    last: dict[str, int] = {}
+    for k, payload, _t in items:
+        try:
+            fr = fleetframe.decode(payload, where=k)
+        except Exception as e:  # noqa: BLE001 - reported, the run goes on
+            problems.append(f"a frame on {k} does not decode: {e}")
+            continue
+        if k in last and fr.seq != last[k] + 1:
+            problems.append(f"frames on {k} went from seq {last[k]} to {fr.seq}")
+        last[k] = fr.seq
+        for name, st in fr.streams.items():
+            g_vi, starts, ends = st.groups()
+            for i, a, b in zip(g_vi.tolist(), starts.tolist(), ends.tolist(), strict=True):
+                v = fr.vehicles[i]
+                key = stream_key(fr.kind, v, name)
+                out.extend((key, m) for m in st.messages(v, a, b))
+    return out, problems
+
+
+def check_dmc_frames(frames: list[tuple[str, bytes, float]], dmc: list[tuple[str, dict]], kills: list[dict]) -> dict:
+    """Each member's dmc frames mirror the dmc rows it published: every frame row is a published per-vehicle
+    message (same vehicle, seq, time), every published message is in exactly one frame row. A message of a
+    vehicle a killed member held may lack its frame (the member died between the two puts)."""
+    from schemas import frame as fleetframe
+
+    published = {(m["vehicle"], m["seq"]): m["t_s"] for _k, m in dmc if isinstance(m, dict)}
+    seen: dict[tuple[str, int], str] = {}
+    twice = foreign = 0
+    shards: dict[str, set[str]] = {}
+    problems: list[str] = []
+    for k, payload, _t in frames:
+        fr = fleetframe.decode(payload, where=k)
+        st = fr.streams.get("dmc")
+        if st is None:
+            continue
+        vis = st.vi.tolist()
+        for i, (sq, t) in enumerate(zip(st.seq.tolist(), st.t_s.tolist(), strict=True)):
+            v = fr.vehicles[vis[i]]
+            shards.setdefault(fr.shard, set()).add(v)
+            if (v, sq) in seen:
+                twice += 1
+                continue
+            seen[(v, sq)] = fr.shard
+            if published.get((v, sq)) != t:
+                foreign += 1
+    missing = [x for x in published if x not in seen]
+    killed = {v for e in kills for v in e["vehicles"]}
+    unexplained = [x for x in missing if x[0] not in killed]
+    if twice:
+        problems.append(f"{twice} dmc rows in two frames")
+    if foreign:
+        problems.append(f"{foreign} dmc frame rows that are no published dmc message (vehicle, seq, time)")
+    if unexplained:
+        problems.append(f"{len(unexplained)} published dmc messages in no frame, of vehicles no kill touched: "
+                        f"{unexplained[:5]}")
+    return {"problems": problems, "dmc_frame_rows": len(seen), "dmc_rows_in_two_frames": twice,
+            "dmc_frame_rows_not_published": foreign, "dmc_published_not_in_frames": len(missing),
+            "dmc_frame_shards": {s: len(vs) for s, vs in sorted(shards.items())}}
+
+
 def run_scenario(work: Path, n_vehicles: int, instances: int, steps: list[tuple], duration_s: float,
                  port: int | None = None, seed: int = 1, settle_timeout_s: float = 90.0,
-                 end_after_steps_s: float | None = None, save_data: bool = False) -> dict:
+                 end_after_steps_s: float | None = None, save_data: bool = False, frames: bool = False) -> dict:
     """Run the fleet and the group under ``magmesh up`` and play ``steps``: ``("kill",)`` (SIGKILL a member that
     holds vehicles, chosen with ``seed``; the supervisor restarts it and it rejoins), ``("scale", n)``
     (``magmesh scale dmc n``), ``("wait", s)``. The fleet publishes for ``duration_s``, or stops
     ``end_after_steps_s`` after the last step (``save_data``: what the subscribers saw also goes to
-    ``work/seen.msgpack``). Returns everything seen and measured."""
+    ``work/seen.msgpack``). ``frames``: the fleet goes through ingest as fleet frames (see the module's
+    docstring). Returns everything seen and measured."""
     import zenoh
 
     from magmesh import zconf
@@ -353,7 +437,7 @@ def run_scenario(work: Path, n_vehicles: int, instances: int, steps: list[tuple]
     work.mkdir(parents=True, exist_ok=True)
     port = port or free_port()
     ep = f"tcp/127.0.0.1:{port}"
-    manifest = write_manifest(work / "mesh.toml", n_vehicles, instances, ep)
+    manifest = write_manifest(work / "mesh.toml", n_vehicles, instances, ep, frames=frames)
     env = {**os.environ, "MAGMESH_STATE_DIR": str(work / "state"), "PYTHONUNBUFFERED": "1"}
     rng = random.Random(seed)
     vehicles = vehicle_ids(n_vehicles)
@@ -375,13 +459,21 @@ def run_scenario(work: Path, n_vehicles: int, instances: int, steps: list[tuple]
                 if time.monotonic() > deadline:
                     raise
                 time.sleep(0.3)
-        data = [Collector(client, keys.dmc("*")), Collector(client, keys.alarm("*", "dmc")),
-                Collector(client, "magmesh/*/clean/mag/*")]
+        data = [Collector(client, keys.dmc("*")), Collector(client, keys.alarm("*", "dmc"))]
+        if frames:
+            data += [Collector(client, keys.fleet_frames("clean"), raw=True),
+                     Collector(client, keys.fleet_frames("dmc"), raw=True)]
+        else:
+            data.append(Collector(client, "magmesh/*/clean/mag/*"))
         t0 = time.monotonic()
-        while time.monotonic() - t0 < settle_timeout_s and sorted(group_view(client)[0]) != members:
+        while time.monotonic() - t0 < settle_timeout_s and (sorted(group_view(client)[0]) != members or (
+                frames and not any(r.ok for r in client.liveliness().get(keys.svc_token("ingest", "ingest"),
+                                                                         timeout=2.0)))):
             time.sleep(0.3)
+        # v1 single samples straight on clean/ (as ingest would publish them), or raw batches through ingest
+        how = ["--wire", "v3", "--window", "0.05"] if frames else ["--stream", "clean"]
         fleet = subprocess.Popen([sys.executable, "-m", "bench.fleet", "--connect", ep, "--vehicles",
-                                  str(n_vehicles), "--duration", str(duration_s), "--stream", "clean"], cwd=REPO,
+                                  str(n_vehicles), "--duration", str(duration_s), *how], cwd=REPO,
                                  env=env, stdout=open(work / "fleet.json", "wb"),
                                  stderr=open(work / "fleet.log", "ab"), start_new_session=True)
         ok, view, took = wait_settled(client, vehicles, members, settle_timeout_s)
@@ -453,16 +545,25 @@ def run_scenario(work: Path, n_vehicles: int, instances: int, steps: list[tuple]
                 sup.wait(5)
         if client is not None:
             client.close()
-    items = [(k, m) for c in data for k, m, _ in c.items]
+    items = [(k, m) for c in data if not c.raw for k, m, _ in c.items]
+    frame_problems: list[str] = []
+    if frames:  # the clean samples as per-vehicle messages, from the frames that carried them
+        rows, frame_problems = frame_rows(data[2].items)
+        items += rows
     if save_data:  # everything the subscribers saw, for a look afterwards (msgpack: key, message, arrival)
         dump(work / "final_status.json", {"final": final, "events": events, "supervisor": sup_status})
         with open(work / "seen.msgpack", "wb") as f:
             for c in data:
                 for it in c.items:
-                    f.write(msgpack.packb(it))
+                    f.write(msgpack.packb(it, use_bin_type=True))
     kills = [e for e in events if e["step"] == "kill"]
     figures = check_run(items, final, kills, manifest, vehicles)
     figures.update(output_lag(data[0].items))
+    figures["frames"] = frames
+    if frames:
+        ff = check_dmc_frames(data[3].items, [(k, m) for k, m, _ in data[0].items], kills)
+        figures["problems"] += frame_problems + ff.pop("problems")
+        figures.update(ff)
     try:
         status_json = json.loads(status_cli.stdout)
     except ValueError:

@@ -17,6 +17,11 @@ sent that never left it) against epochs missing (a pair of clean samples without
 every vehicle no kill touched (moved only by hand-overs), whether its alarm transitions equal those of one
 detector fed every epoch offline (the service's own code on the same samples): a move that caused or hid a
 transition shows there. ``--quick`` runs 10 cars and 3 kills (a smoke check, not the figures of the README).
+
+``--frames``: the fleet publishes raw batches to an ingest process with ``output = "frames"``, and the members take
+its fleet frames (cut to the vehicles each holds); besides the checks above, each member's dmc frames must carry
+exactly the dmc rows it published (``dmc_rows_in_two_frames``, ``dmc_frame_rows_not_published``,
+``dmc_published_not_in_frames``).
 """
 
 from __future__ import annotations
@@ -39,6 +44,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--one", action="store_true", help="also the sanity run: 1 instance on the same fleet, no move")
     p.add_argument("--one-s", type=float, default=40.0, help="seconds of the sanity run (default 40)")
     p.add_argument("--quick", action="store_true", help="10 cars, 3 kills")
+    p.add_argument("--frames", action="store_true",
+                   help="the fleet through ingest as fleet frames (output = frames): the members take frames")
     p.add_argument("--keep", default=None, metavar="DIR", help="keep logs, state and what the subscribers saw in DIR")
 
 
@@ -60,13 +67,13 @@ def run(args: argparse.Namespace) -> dict:
     cars, kills = (10, 3) if args.quick else (args.cars, args.kills)
     rng = random.Random(args.seed)
     base = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="magmesh-eval-elastic-"))
-    out: dict = {"cars": cars, "seed": args.seed}
+    out: dict = {"cars": cars, "seed": args.seed, "frames": args.frames}
     if args.only in (None, "kill"):
         steps: list[tuple] = [("wait", 2.0)]
         for _ in range(kills):
             steps += [("wait", round(rng.uniform(1.0, 6.0), 2)), ("kill",)]
         res = run_scenario(base / "kill", cars, 3, steps, duration_s=3600.0, seed=args.seed, end_after_steps_s=3.0,
-                           save_data=bool(args.keep))
+                           save_data=bool(args.keep), frames=args.frames)
         k = _summary(res)
         t = [e["takeover_s"] for e in res["events"] if e["step"] == "kill"]
         k.update(kills=len(t), takeover_s=t, takeover_s_max=max(t) if t else None,
@@ -76,11 +83,11 @@ def run(args: argparse.Namespace) -> dict:
     if args.only in (None, "scale"):
         steps = [("wait", 5.0), ("scale", 4), ("wait", 5.0), ("scale", 2), ("wait", 5.0)]
         res = run_scenario(base / "scale", cars, 1, steps, duration_s=3600.0, seed=args.seed, end_after_steps_s=3.0,
-                           save_data=bool(args.keep))
+                           save_data=bool(args.keep), frames=args.frames)
         out["scale"] = _summary(res)
     if args.only == "one" or (args.only is None and args.one):
         res = run_scenario(base / "one", cars, 1, [("wait", args.one_s)], duration_s=3600.0, seed=args.seed,
-                           end_after_steps_s=1.0, save_data=bool(args.keep))
+                           end_after_steps_s=1.0, save_data=bool(args.keep), frames=args.frames)
         out["one"] = _summary(res)
     if "kill" in out:  # the issue's names, at the top
         out["takeover_s_max"] = out["kill"]["takeover_s_max"]
@@ -92,7 +99,8 @@ def run(args: argparse.Namespace) -> dict:
 
 
 def format_text(r: dict) -> str:
-    lines = [f"elastic roles: {r['cars']} cars, seed {r['seed']}"]
+    lines = [f"elastic roles: {r['cars']} cars, seed {r['seed']}"
+             + (", through ingest as fleet frames" if r.get("frames") else "")]
     k = r.get("kill")
     if k:
         lines.append(f"  kill: {k['kills']} SIGKILLs of a member of 3; takeover (outputs resumed) max "

@@ -136,9 +136,11 @@ class GroupMember:
         return True
 
     def holds(self, vehicle: Any) -> bool:
-        """Whether this member speaks for ``vehicle`` now (it holds it, or hands it over and has not heard that
-        the new owner took it)."""
-        return vehicle in self.owned or vehicle in self.release
+        """Whether this member speaks for ``vehicle`` now (alarm queries): it holds it, or hands it over and has
+        not passed the cut (from there on the new owner's outputs count, alarm transitions included: a holder
+        answering its own raised state after the new owner published a clear made the supervisor take the clear
+        for unconfirmed)."""
+        return vehicle in self.owned or (vehicle in self.release and vehicle not in self.passed)
 
     # ---- main loop side ---------------------------------------------------------------------------
     def admits(self, key: str, payload: bytes | None = None) -> bool:
@@ -265,7 +267,7 @@ class GroupMember:
                 "taking": sorted(set(self.warming) | set(self.arm)), "releasing": hand}
 
     def status(self) -> dict:
-        return {"name": self.name, "members": list(self.members), "leaving": self.leaving,
+        return {"name": self.name, "members": list(self.members), "leaving": self.leaving, "ready": self.ready,
                 "vehicles": sorted(self.owned)[:1000], "vehicles_total": len(self.owned),
                 "seen": sorted(self.seen)[:1000], "seen_total": len(self.seen),
                 "warming": sorted(self.warming), "taking": sorted(self.arm), "releasing": sorted(self.release),

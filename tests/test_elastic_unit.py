@@ -427,8 +427,10 @@ def test_a_hand_over_to_a_member_that_went_before_taking_the_vehicle_is_taken_ba
     r3 = g.control({"op": "g_release", "lead_s": 0.5, "vehicles": ["car-1"], "from": "dmc-3"})
     assert r3["releasing"]["car-1"]["to"] == "dmc-2"  # (dmc-3 arms only on a release to itself)
     k = "magmesh/car-1/dmc"
-    assert g.gate(k, "dmc", "car-1", cut - 0.1, {"n": 1})
+    assert g.gate(k, "dmc", "car-1", cut - 0.1, {"n": 1}) and g.holds("car-1")
     assert not g.gate(k, "dmc", "car-1", cut, {"n": 2}) and not g.gate(k, "dmc", "car-1", cut + 0.1, {"n": 3})
+    # past the cut the new owner's alarm transitions count: the holder no longer answers alarm queries for it
+    assert not g.holds("car-1")
     assert g.admits("magmesh/car-1/clean/mag/1"), "the holder goes on handling what it hands over"
     g._round()  # dmc-2 still takes it
     _run(posted)
