@@ -182,6 +182,47 @@ def wait_tokens(session, tokens: list[str], timeout: float = 30.0) -> bool:
     return False
 
 
+def _start_stage(procs: dict, tokens: list, members: dict, role: str, args: list[str], name: str, k: int, port: int,
+                 log: Path) -> None:
+    """Start one stage: one process ``name`` (``k`` = 1, under the key ``role`` of ``procs``), or ``k`` members
+    ``name-1..k`` of a group (``--group name``: the vehicles shared by rendezvous, magmesh/group_member.py),
+    under the keys ``role#i``."""
+    insts = [name] if k <= 1 else [f"{name}-{i}" for i in range(1, k + 1)]
+    members[role] = insts
+    for i, inst in enumerate(insts, 1):
+        grp = ["--group", name] if k > 1 else []
+        procs[role if k <= 1 else f"{role}#{i}"] = _spawn(["-m", *args[:1], "--instance", inst, *grp, *args[1:]],
+                                                          port, log if k <= 1 else log.with_suffix(f".{i}.log"))
+        tokens.append(keys.svc_token(role, inst))
+
+
+def wait_groups(session, members: dict, timeout: float = 60.0) -> bool:
+    """Whether every group member answers ready, seeing all the members of its group, within ``timeout`` s (its
+    first rounds done: a vehicle's first sample is then taken at once by the member the rule names)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        ok = True
+        for role, insts in members.items():
+            if len(insts) <= 1:
+                continue
+            for inst in insts:
+                g = _status(session, role, inst).get("group") or {}
+                if not g.get("ready") or sorted(g.get("members", [])) != sorted(insts):
+                    ok = False
+        if ok:
+            return True
+        time.sleep(0.3)
+    return False
+
+
+def _by_stage(d: dict) -> dict:
+    """Per-process figures summed per stage (a group's members ``role#i`` under ``role``)."""
+    out: dict = {}
+    for k, v in d.items():
+        out[k.split("#")[0]] = round(out.get(k.split("#")[0], 0.0) + v, 1)
+    return out
+
+
 def _status(session, role: str, inst: str) -> dict:
     for r in session.get(keys.svc_status(role, inst), timeout=3.0):
         if r.ok:
@@ -191,7 +232,7 @@ def _status(session, role: str, inst: str) -> dict:
 
 def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple[str, ...], tmp: Path,
              wire: str = "v3", window_s: float = 0.05, frame_s: float = 0.02, warmup_s: float | None = None,
-             extra: int = 0, extra_s: float = 0.0) -> dict:
+             extra: int = 0, extra_s: float = 0.0, instances: int = 1) -> dict:
     """One run: ``kind`` is "pipeline", "limit" or "ingest" (ingest alone, fleet frames out). ``window_s``: each
     v2 vehicle's batch window; ``frame_s``: ingest's frame window (the pipeline with v2 runs on fleet frames).
     ``warmup_s`` (paced runs; default 5 s, 0 at saturation): the fleet publishes that long first — the stages
@@ -199,7 +240,8 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
     the warm-up still counts for loss. ``extra``/``extra_s`` (the overload case): a second fleet of ``extra`` more
     vehicles publishes beside the first for the first ``extra_s`` seconds (warm-up included), then stops; the
     result then also holds ``phases``: p99 latency of the samples taken while both fleets ran and of those taken
-    in the last half of the time after."""
+    in the last half of the time after. ``instances`` (pipeline and ingest runs): each stage runs as a group of
+    that many members sharing the vehicles (CPU and memory summed per stage, losses over every member)."""
     if warmup_s is None:
         warmup_s = 0.0 if max_mode else 5.0
     import zenoh
@@ -208,29 +250,22 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
     router = zenoh.open(zconf.build_config(mode="router", listen=[f"tcp/127.0.0.1:{port}"]))
     man = _manifest(n + extra, tmp)
     procs: dict[str, subprocess.Popen] = {}
-    tokens = []
+    tokens: list[str] = []
+    members: dict[str, list[str]] = {}  # stage -> its instances
     batch_stream = None
-    ingest_args = ["-m", "services.ingest", "--instance", "b-ingest"]
+    ingest_args = ["services.ingest"]
     if kind == "ingest" or wire in ("v2", "v3"):
         ingest_args += ["--set", "output=frames", "--set", f"batch_window_s={frame_s}"]
     if kind == "ingest":
-        procs["ingest"] = _spawn(ingest_args, port, tmp / "ingest.log")
-        tokens.append(keys.svc_token("ingest", "b-ingest"))
+        _start_stage(procs, tokens, members, "ingest", ingest_args, "b-ingest", instances, port, tmp / "ingest.log")
         sink_key, batch_stream = keys.fleet_frames("clean"), "mag/2"  # (a frame's rows of stream mag/2)
     elif kind == "pipeline":
-        procs["ingest"] = _spawn(ingest_args, port, tmp / "ingest.log")
-        tokens.append(keys.svc_token("ingest", "b-ingest"))
-        procs["dmc_detector"] = _spawn(["-m", "services.dmc_detector", "--instance", "b-dmc", "--manifest", str(man)],
-                                       port, tmp / "dmc.log")
-        tokens.append(keys.svc_token("dmc_detector", "b-dmc"))
-        if "calibration" in stages:
-            procs["calibration"] = _spawn(["-m", "services.calibration", "--instance", "b-cal", "--manifest", str(man)],
-                                          port, tmp / "cal.log")
-            tokens.append(keys.svc_token("calibration", "b-cal"))
-        if "heading_fuser" in stages:
-            procs["heading_fuser"] = _spawn(["-m", "services.heading_fuser", "--instance", "b-heading", "--manifest",
-                                             str(man)], port, tmp / "heading.log")
-            tokens.append(keys.svc_token("heading_fuser", "b-heading"))
+        _start_stage(procs, tokens, members, "ingest", ingest_args, "b-ingest", instances, port, tmp / "ingest.log")
+        for role, name, log in (("dmc_detector", "b-dmc", "dmc"), ("calibration", "b-cal", "cal"),
+                                ("heading_fuser", "b-heading", "heading")):
+            if role == "dmc_detector" or role in stages:
+                _start_stage(procs, tokens, members, role, [f"services.{role}", "--manifest", str(man)], name,
+                             instances, port, tmp / f"{log}.log")
         sink_key = keys.dmc("*")
     else:
         procs["relay1"] = _spawn(["-m", "bench.relay", "--from", "raw", "--to", "clean", "--instance", "r1"], port,
@@ -244,6 +279,8 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
     try:
         if not wait_tokens(router, tokens):
             raise RuntimeError(f"{kind}: services did not come up (logs in {tmp})")
+        if instances > 1 and not wait_groups(router, members):
+            raise RuntimeError(f"{kind}: the groups of {instances} did not form (logs in {tmp})")
         sink = Sink(router, sink_key, latency=not max_mode, batch_stream=batch_stream)
         time.sleep(0.5)
         start_at = time.time() + 2.0 + (n / 500)  # the fleet declares a publisher per vehicle first
@@ -290,24 +327,20 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         cpu1 = {k: _cpu_s(p.pid) for k, p in procs.items()}
         cpu1["router+sink"] = _cpu_s(os.getpid())
         wall = max(t_end - t_start, 1e-6)
-        statuses = {}
-        if kind in ("pipeline", "ingest"):
-            statuses["ingest"] = _status(router, "ingest", "b-ingest")
-        if kind == "pipeline":
-            statuses["dmc_detector"] = _status(router, "dmc_detector", "b-dmc")
-            for role, inst in (("calibration", "b-cal"), ("heading_fuser", "b-heading")):
-                if role in procs:
-                    statuses[role] = _status(router, role, inst)
+        statuses = {}  # per stage, the status of each member
+        for role, insts in members.items():
+            statuses[role] = [_status(router, role, inst) for inst in insts]
         drops = {}  # what any stage lost or refused (a skip by design — a stream a stage does not use — is neither)
-        for name, st in statuses.items():
-            for cat in ("lost", "rejected"):
-                for r, c in (st.get(cat) or {}).items():
-                    if c:
-                        drops[f"{name}:{cat}:{r}"] = drops.get(f"{name}:{cat}:{r}", 0) + c
+        for name, sts in statuses.items():
+            for st in sts:
+                for cat in ("lost", "rejected"):
+                    for r, c in (st.get(cat) or {}).items():
+                        if c:
+                            drops[f"{name}:{cat}:{r}"] = drops.get(f"{name}:{cat}:{r}", 0) + c
         lost = max(0, expected - sink.n) + sum(drops.values())
-        if statuses.get("ingest"):
-            st = statuses["ingest"]  # samples received: in_total counts batches besides their samples
-            ing_in = st.get("in_total", 0) - st.get("batches_in", 0)
+        if statuses.get("ingest") and all(statuses["ingest"]):
+            # samples received: in_total counts batches besides their samples
+            ing_in = sum(st.get("in_total", 0) - st.get("batches_in", 0) for st in statuses["ingest"])
             lost += max(0, fl["total"] - ing_in)
         # latency only means something when paced: from the batch's publication (the goal's measure) and from
         # the sample's own time (which adds the vehicle's batching window)
@@ -348,9 +381,10 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
             "age_ms_p99": round(float(np.percentile(age, 99)), 2) if age is not None else None,
             "vehicle_window_s": window_s if v2_fleet else None,
             "frame_window_s": frame_s if (kind == "pipeline" and wire in ("v2", "v3")) else None,
-            "cpu_pct": {k: round(100 * (cpu1[k] - cpu0[k]) / wall, 1) for k in (*procs, "router+sink")}
+            "cpu_pct": _by_stage({k: 100 * (cpu1[k] - cpu0[k]) / wall for k in (*procs, "router+sink")})
                        | {"fleet": round(100 * (cpu_fleet - cpu0["fleet"]) / (duration_s * 0.8), 1)},
-            "rss_mb": {k: round(v, 1) for k, v in rss.items()},
+            "rss_mb": _by_stage(rss),
+            "instances": instances,
             "alive": alive,
             **({"extra_vehicles": extra, "extra_s": extra_s, "phases": phases} if extra else {}),
         }
@@ -359,8 +393,10 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         router.close()
 
 
-def _median_case(kind, n, duration_s, max_mode, stages, repeat, tmp, wire="v3", window_s=0.05, frame_s=0.02) -> dict:
-    runs = [run_case(kind, n, duration_s, max_mode, stages, tmp, wire, window_s, frame_s) for _ in range(repeat)]
+def _median_case(kind, n, duration_s, max_mode, stages, repeat, tmp, wire="v3", window_s=0.05, frame_s=0.02,
+                 instances=1) -> dict:
+    runs = [run_case(kind, n, duration_s, max_mode, stages, tmp, wire, window_s, frame_s, instances=instances)
+            for _ in range(repeat)]
     out = dict(runs[0])
     for k in ("sustained_samples_s", "published_samples_s", "latency_ms_p50", "latency_ms_p99", "age_ms_p99"):
         vals = [r[k] for r in runs if r[k] is not None]
@@ -414,7 +450,10 @@ def _sustained(r: dict, p99_ms: float) -> bool:
 def bench(vehicles: list[int], duration_s: float = 8.0, repeat: int = 1, stages: tuple[str, ...] | None = None,
           limit_vehicles: int | None = None, progress=None, wire: str = "v3", window_s: float = 0.05,
           p99_ms: float = 100.0, v1_ingest: bool = True, frame_s: float = 0.02, overload: bool = True,
-          overload_vehicles: int | None = None) -> dict:
+          overload_vehicles: int | None = None, instances: tuple[int, ...] = (1,)) -> dict:
+    """The whole bench. ``instances``: the scaling table is run once per count, each stage a group of that many
+    members (1: one process per stage); ``scaling`` and ``max_vehicles`` are the first count's, ``by_instances``
+    has every count's. Saturation, the v1 ingest case and the overload run use the first count."""
     stages = stages or available_stages()
     tmp = Path(tempfile.mkdtemp(prefix="magmesh-bench-"))
     say = progress or (lambda s: None)
@@ -424,12 +463,19 @@ def bench(vehicles: list[int], duration_s: float = 8.0, repeat: int = 1, stages:
     pipe_max = _median_case("pipeline", n_sat, duration_s, True, stages, repeat, tmp, wire, window_s, frame_s)
     say(f"saturation: limit (same hops, no processing), {n_sat} vehicles ({wire})")
     lim_max = _median_case("limit", n_sat, duration_s, True, stages, repeat, tmp, wire, window_s, frame_s)
-    table = []
-    for n in vehicles:
-        say(f"paced at sensor rates: pipeline, {n} vehicles ({wire})")
-        r = _median_case("pipeline", n, duration_s, False, stages, repeat, tmp, wire, window_s, frame_s)
-        r["sustained"] = _sustained(r, p99_ms)
-        table.append(r)
+    by_k = {}
+    for k in instances:
+        rows = []
+        for n in vehicles:
+            say(f"paced at sensor rates: pipeline, {n} vehicles ({wire})"
+                + (f", {k} instances per stage" if k > 1 or len(instances) > 1 else ""))
+            r = _median_case("pipeline", n, duration_s, False, stages, repeat, tmp, wire, window_s, frame_s,
+                             instances=k)
+            r["sustained"] = _sustained(r, p99_ms)
+            rows.append(r)
+        ok_k = [r["vehicles"] for r in rows if r["sustained"]]
+        by_k[str(k)] = {"scaling": rows, "max_vehicles": max(ok_k) if ok_k else 0}
+    table = by_k[str(instances[0])]["scaling"]
     ok = [r["vehicles"] for r in table if r["sustained"]]
     ratio = pipe_max["sustained_samples_s"] / max(lim_max["sustained_samples_s"], 1e-9)
     ingest_rows = []
@@ -457,6 +503,7 @@ def bench(vehicles: list[int], duration_s: float = 8.0, repeat: int = 1, stages:
         "ratio_to_limit": round(ratio, 3),
         "scaling": table,
         "max_vehicles": max(ok) if ok else 0,
+        "by_instances": by_k,
         "v1_ingest": ingest_rows,
         "v1_ingest_max_vehicles": max(ok_ing) if ok_ing else 0,
         "overload": over,
@@ -484,10 +531,18 @@ def format_text(res: dict) -> str:
                 + (", binary columns)" if wire == "v3" else ")") if wire in ("v2", "v3") else ""),
              f"saturation ({p['vehicles']} vehicles, as fast as possible): pipeline {p['sustained_samples_s']:.0f} "
              f"samples/s, no-processing limit {lim['sustained_samples_s']:.0f} samples/s → ratio "
-             f"{res['ratio_to_limit']:.2f}", "", *head]
-    lines += [_row(r) for r in res["scaling"]]
+             f"{res['ratio_to_limit']:.2f}"]
     goal = res.get("p99_goal_ms", 50.0)
-    lines.append(f"\nmax vehicles sustained (zero loss, p99 ≤ {goal:g} ms): {res['max_vehicles']}")
+    by_k = res.get("by_instances") or {"1": {"scaling": res["scaling"], "max_vehicles": res["max_vehicles"]}}
+    if len(by_k) == 1:
+        lines += ["", *head]
+    for k, t in by_k.items():
+        if len(by_k) > 1:
+            lines += ["", f"{k} instance{'s' if k != '1' else ''} per stage:", "", *head]
+        lines += [_row(r) for r in t["scaling"]]
+    lines.append(f"\nmax vehicles sustained (zero loss, p99 ≤ {goal:g} ms): "
+                 + ("; ".join(f"{t['max_vehicles']} with {k} instance{'s' if k != '1' else ''} per stage"
+                              for k, t in by_k.items()) if len(by_k) > 1 else str(res["max_vehicles"])))
     if res.get("v1_ingest"):
         lines += ["", "v1 single-sample vehicles through one ingest (fleet frames out):", "", *head]
         lines += [_row(r) for r in res["v1_ingest"]]

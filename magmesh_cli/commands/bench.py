@@ -34,6 +34,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="skip the overload run (twice the highest sustained load, then back to it)")
     m.add_argument("--overload-vehicles", type=int, default=None,
                    help="the load the overload run doubles (default: the highest sustained count)")
+    m.add_argument("--instances", default="1",
+                   help="comma-separated counts of instances per stage: the scaling table once per count, each stage "
+                        "a group of that many members sharing the vehicles (e.g. 1,2; default 1)")
     m.add_argument("--json", action="store_true")
     m.set_defaults(func=run_mesh)
     c = bsub.add_parser("cores", help="each pure core against its Python peer on the same input")
@@ -55,10 +58,18 @@ def run_mesh(args: argparse.Namespace) -> int:
 
     vehicles = [int(x) for x in args.vehicles.split(",") if x.strip()]
     stages = tuple(s.strip() for s in args.stages.split(",")) if args.stages else None
+    try:
+        instances = tuple(int(x) for x in args.instances.split(",") if x.strip())
+    except ValueError:
+        instances = ()
+    if not instances or any(not 1 <= k <= 64 for k in instances):
+        print(f"magmesh bench mesh: --instances takes counts from 1 to 64 separated by commas (e.g. 1,2), not "
+              f"{args.instances!r}", file=sys.stderr)
+        return 2
     res = bench(vehicles, args.duration, args.repeat, stages, args.saturation_vehicles,
                 progress=lambda s: print(s, file=sys.stderr, flush=True), wire=args.wire, window_s=args.window,
                 frame_s=args.frame_window, p99_ms=args.p99_ms, v1_ingest=not args.no_v1_ingest,
-                overload=not args.no_overload, overload_vehicles=args.overload_vehicles)
+                overload=not args.no_overload, overload_vehicles=args.overload_vehicles, instances=instances)
     if args.json:
         json.dump(res, sys.stdout)
         print()
