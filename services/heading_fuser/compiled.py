@@ -1275,7 +1275,7 @@ def _mag(s, x, iv, L, m0, m1, m2, dmc, t_in, W):
         p10 = T[1, 0] * R[0, 0] + T[1, 1] * R[0, 1] + T[1, 2] * R[0, 2]
         p11 = T[1, 0] * R[1, 0] + T[1, 1] * R[1, 1] + T[1, 2] * R[1, 2]
         f = mn2 / h2
-        j0, j1 = f * mn1, f * -mn0
+        j0, j1 = f * mn0, f * mn1  # ∂azimuth/∂(φ_east, φ_north), as core.py
         leak = (j0 * p00 + j1 * p10) * j0 + (j0 * p01 + j1 * p11) * j1
     r = max(var_m, s[MAG_HEADING_NOISE_FLOOR_RAD] ** 2) * gain + leak
     mode = iv[I_MODE]

@@ -751,7 +751,9 @@ class HeadingFilter:
         var_m = s.mag_noise_nt**2 / max(h2, 1.0)
         leak = 0.0
         if h2 > 1.0:  # tilt error leaks into the azimuth ∝ tan(inclination)
-            j = (mn[2] / h2) * np.array([y, -x])  # ∂azimuth/∂(φ_x, φ_y), sign irrelevant for the variance
+            # ∂azimuth/∂(φ_east, φ_north) of a nav-frame tilt φ (its sign irrelevant for the variance): a tilt about
+            # the horizontal field's own direction swings its vertical part sideways, one across it does not
+            j = (mn[2] / h2) * np.array([x, y])
             leak = float(j @ Pn[:2, :2] @ j)
         r = max(var_m, s.mag_heading_noise_floor_rad**2) * gain + leak
         if self.mode == "recovering":
