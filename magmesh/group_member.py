@@ -13,10 +13,10 @@ membership changes, per vehicle, with the live-swap protocol (cut at an agreed s
   holds its own outputs at or after the cut (those it made while warming too); once the holder has passed the
   cut (or its input stalled for ``stall_s``) it takes the holder's seq per key and alarm states for the vehicle,
   publishes what it held, and tells the holder (``g_done``, again each round until it answers). Subscribers see
-  every epoch once, seq continuing. Until told, the holder goes on handling the vehicle and keeps its outputs
-  from the cut on: if the new owner goes (or stops taking the vehicle) without having published any, the holder
-  takes the vehicle back and publishes them; a vehicle already promised to one member is not released to
-  another. A member warms on at most ``MAX_WARMING`` vehicles at once (a warming vehicle costs its work twice).
+  every epoch once, seq continuing. The holder keeps its outputs from the cut on (it stops handling the vehicle
+  there) until told: if the new owner goes (or stops taking the vehicle) without having published any, the holder
+  takes the vehicle back and publishes them (what it did not handle meanwhile is an input gap it counts); a
+  vehicle already promised to one member is not released to another. A member warms on at most ``MAX_WARMING`` vehicles at once (a warming vehicle costs its work twice).
 - **failure** (the holder's liveliness is gone, e.g. kill -9): the new owner takes the vehicle at once from what
   the dead members left in the state directory: their seq journals (last output seq per key, last input seq
   handled) and alarm files (a raised alarm stays raised until the new owner's logic decides). Every input the
@@ -148,8 +148,10 @@ class GroupMember:
         v = vehicle_of(key)
         if v is None:
             return True  # not a vehicle key: the input path refuses it with its reason
-        if v in self.owned or v in self.warming or v in self.arm or v in self.release:
-            return True  # (a vehicle being handed over is handled until the new owner has it: see gate)
+        if v in self.owned or v in self.warming or v in self.arm or (v in self.release and v not in self.passed):
+            # (a holder past the cut handles no more of the vehicle: its journal then says what it published, or
+            # kept from the cut on, which is what a new owner taking it from there after a kill -9 must know)
+            return True
         if v not in self.seen:
             take = self.ready and self.complete and not self.leaving and v not in self.holdings \
                 and groups.owner(v, self.members) == self.me
