@@ -44,10 +44,10 @@ def _check(res: dict, n_vehicles: int, n_kills: int, final_members: list[str]) -
             f"{f['reference_transitions_compared']} of moved-only vehicles equal to one detector's")
 
 
-@pytest.mark.slow  # not yet exact: after the join-loss fix 4 of 5 runs counted every missing epoch, a clean-clone
-# run counted 12 for 11 missing; out of the default suite until the count is exact
 def test_group_of_three_survives_a_kill_and_scales_to_four_and_two(tmp_path):
     # the fleet drives until the steps are done (then 2 s more): the run takes what the machine needs for them
+    # (40-80 s here, with the load average at 7-19 from other work; 10 of 10 runs passed before it came back to the
+    # default suite)
     res = run_scenario(tmp_path, 6, 3, [("wait", 2), ("kill",), ("scale", 4), ("scale", 2)], duration_s=600.0,
                        port=free_port(), seed=5, end_after_steps_s=2.0)
     _check(res, 6, 1, ["dmc-1", "dmc-2"])
