@@ -6,8 +6,12 @@ Every member computes the same owner from the same membership, without talking t
 membership moves only the vehicles that must move: a joining member takes about ``1/N`` of the vehicles (only
 from the others, never between them), a leaving one gives away only its own.
 
-The weight of (vehicle, member) is the first 8 bytes of BLAKE2b over both names: stable across processes,
-hosts and Python versions (unlike ``hash()``, which is salted per process).
+The weight of (vehicle, member) is the first 8 bytes of BLAKE2b over the vehicle's name and the member's slot:
+stable across processes, hosts and Python versions (unlike ``hash()``, which is salted per process). A member's
+slot is its number (``dmc-2`` → ``2``; a name without one is its own slot): the members of one group differ only
+there, and the groups of different stages with the same number of members give each vehicle to the members of the
+same number — ``ingest-2``'s frames then carry exactly the vehicles ``dmc-2`` and ``heading-2`` hold, so a member
+handles one upstream member's frames, not a part of every one's (co-partitioned stages).
 """
 
 from __future__ import annotations
@@ -16,9 +20,15 @@ import hashlib
 from collections.abc import Iterable
 
 
+def slot(member: str) -> str:
+    """A member's slot: the number its name ends with (``dmc-2`` → ``2``), else the whole name."""
+    head, sep, tail = member.rpartition("-")
+    return tail if sep and head and tail.isdigit() else member
+
+
 def weight(vehicle: str, member: str) -> int:
-    """The rendezvous weight of ``member`` for ``vehicle`` (64 bits, the same everywhere)."""
-    h = hashlib.blake2b(f"{vehicle}\x00{member}".encode(), digest_size=8)
+    """The rendezvous weight of ``member`` for ``vehicle`` (64 bits, the same everywhere): of its slot."""
+    h = hashlib.blake2b(f"{vehicle}\x00{slot(member)}".encode(), digest_size=8)
     return int.from_bytes(h.digest(), "big")
 
 

@@ -443,10 +443,11 @@ def test_a_hand_over_to_a_member_that_went_before_taking_the_vehicle_is_taken_ba
     assert g.gate(k, "dmc", "car-1", cut + 0.2, {})
 
 
-def test_the_owner_taking_a_new_vehicle_holds_it_before_it_is_seen():
+def test_the_owner_taking_a_new_vehicle_holds_it_before_it_is_seen(tmp_path, monkeypatch):
     """Seen at the start of a run: the first sample of a new vehicle made its owner take it, but the vehicle was
     marked seen before it was held, and a reader thread looking at that instant dropped the second sample as
     another member's (one epoch missing, an input gap). The vehicle is held before it is seen."""
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
     g, rt, posted = _member("dmc-1", ["dmc-1"], {})
     g.complete = True
     missed = []
@@ -483,3 +484,53 @@ def test_counts_that_move_with_a_handed_over_vehicle_leave_the_holders_journal(t
     left = Journal(tmp_path / "j.seq").load()
     assert "u" + m1 not in left and "t" + m1 not in left and left["u" + other] == 1 and left["i" + m1] == 50
     assert m1 not in rt.drops and rt.drops[other] == {"upstream_gap": 1}
+
+
+def test_a_frames_vehicles_are_admitted_as_one_by_one(tmp_path, monkeypatch):
+    """The runtime cuts each fleet frame to the vehicles a member handles with one mask (GroupMember.admitted, a
+    set lookup per vehicle): the same answer as admits() vehicle by vehicle, in every state a vehicle can be in,
+    a new vehicle taken by its owner at once, and the same not-owned count."""
+    from magmesh import groups
+
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))  # (a vehicle taken reads what dead members left)
+    cars = [f"car-{i}" for i in range(40)]
+    mine = [v for v in cars if groups.owner(v, ["dmc-1", "dmc-2"]) == "dmc-1"]
+
+    def setup():
+        g, rt, posted = _member("dmc-1", ["dmc-1", "dmc-2"], {})
+        g.complete = True
+        g.seen.update(cars[:30])  # car-30.. are new
+        g.holdings = {v: "dmc-2" for v in cars[:30] if v not in mine}
+        g.owned.update(mine[:3])
+        g.warming[cars[3]] = "dmc-2"
+        g.arm[cars[4]] = ("dmc-2", 5.0, 0.0)
+        g.release.update({cars[5]: 1.0, cars[6]: 1.0})
+        g.passed.add(cars[6])
+        return g
+
+    def key(v):
+        return f"magmesh/{v}/clean/mag/1"
+
+    a, b = setup(), setup()
+    one_by_one = [a.admits(key(v)) for v in cars]
+    mask = b.admitted(cars, key)
+    assert mask.tolist() == one_by_one
+    assert any(one_by_one[30:]) and not all(one_by_one[30:])  # new vehicles: the owner's taken at once
+    assert a.owned == b.owned and a.seen == b.seen and a.stats["not_owned"] == b.stats["not_owned"]
+
+
+def test_a_new_vehicle_is_taken_at_once_by_its_owner_even_after_an_incomplete_round(tmp_path, monkeypatch):
+    """A vehicle nobody holds, seen for the first time: its owner by the rule takes it at once. It used to wait
+    for a round in which every member answered: under load a round is often incomplete, and every member then
+    dropped the vehicle's first samples (not counted anywhere: no member held it)."""
+    from magmesh import groups
+
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
+    g, rt, posted = _member("dmc-1", ["dmc-1", "dmc-2"], {})
+    g.complete = False  # the last round missed dmc-2's answer
+    cars = [f"car-{i}" for i in range(10)]
+    took = [g.admits(f"magmesh/{v}/clean/mag/1") for v in cars]
+    assert took == [groups.owner(v, ["dmc-1", "dmc-2"]) == "dmc-1" for v in cars] and any(took)
+    held_elsewhere = next(v for v in (f"car-{i}" for i in range(100, 200)) if groups.owner(v, g.members) == "dmc-1")
+    g.holdings[held_elsewhere] = "dmc-2"  # held by another member in the last complete round: never taken here
+    assert not g.admits(f"magmesh/{held_elsewhere}/clean/mag/1") and held_elsewhere not in g.owned

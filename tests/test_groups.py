@@ -65,3 +65,15 @@ def test_leave_moves_only_the_leavers_vehicles():
 def test_moved_lists_nothing_for_equal_assignments():
     a = groups.assignment(CARS[:10], ["a-1"])
     assert groups.moved(a, dict(a)) == {}
+
+
+def test_stages_with_as_many_members_give_each_vehicle_to_the_members_of_the_same_number():
+    """Co-partitioned stages: a vehicle's owner in one group has the number of its owner in any other group of as
+    many members (ingest-2's frames carry exactly what dmc-2 holds), and nearly so with one member more."""
+    a = groups.assignment(CARS, ["ingest-1", "ingest-2"])
+    b = groups.assignment(CARS, ["dmc-2", "dmc-1"])
+    assert {v: groups.slot(o) for v, o in a.items()} == {v: groups.slot(o) for v, o in b.items()}
+    c = groups.assignment(CARS, ["heading-1", "heading-2", "heading-3"])
+    same = sum(groups.slot(c[v]) == groups.slot(a[v]) for v in CARS if groups.slot(c[v]) != "3")
+    assert same == sum(1 for v in CARS if groups.slot(c[v]) != "3")  # those not on the third member stay aligned
+    assert groups.slot("dmc-12") == "12" and groups.slot("dmc") == "dmc" and groups.slot("-3") == "-3"
