@@ -1524,6 +1524,8 @@ class Runner:
             self.frames_missed += fr.seq - last - 1
         self.frame_seq_in[key] = fr.seq
         admitted = self._group_admitted(fr, kind) if self.group is not None else None
+        if admitted is not None and not admitted.any():
+            return  # another group member's vehicles only (co-partitioned stages: another member's upstream shard)
         taken: dict[str, fleetframe.Stream] = {}
         done: list[tuple[StreamKeys, np.ndarray, np.ndarray]] = []
         vmask = np.zeros(len(fr.vehicles), bool)
@@ -1569,14 +1571,10 @@ class Runner:
 
     def _group_admitted(self, fr: Any, kind: str) -> np.ndarray:
         """Which of a frame's vehicles this group member handles now (held, warming or being handed over)."""
-        g = self.group
-        out = np.zeros(len(fr.vehicles), bool)
         name = next(iter(fr.streams), "imu")
         from .frames import stream_key
 
-        for i, v in enumerate(fr.vehicles):
-            out[i] = g.admits(stream_key(kind, v, name))
-        return out
+        return self.group.admitted(fr.vehicles, lambda v: stream_key(kind, v, name))
 
     def _frame_seqs(self, sk: StreamKeys, st: Any, g_vi: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> None:
         """Seq tracking of each vehicle's rows of one stream, as :meth:`_accepted` does sample by sample."""
