@@ -125,7 +125,9 @@ def check_loss_accounted(res: dict, exact: bool) -> list[str]:
         lines.append(f"ingest {raw.split('/', 2)[2]}: {missing} raw samples missing on clean, "
                      f"{counted} counted lost_during_restart, {rejected} rejected, {never_out} sent by a killed "
                      f"ingest but never out of it (a clean seq gap)")
-        assert missing == counted + rejected + never_out, lines[-1]
+        # an output numbered just before the kill (its seq journaled) may be of a sample the new process then
+        # counted lost_during_restart too (killed before the input was journaled): counted twice, never silent
+        assert counted + rejected <= missing <= counted + rejected + never_out, lines[-1]
     c1 = {m["t_s"] for m in by_key[keys.clean_mag("car-1", "1")]}
     c2 = {m["t_s"] for m in by_key[keys.clean_mag("car-1", "2")]}
     dmc = by_key.get(keys.dmc("car-1"), [])
@@ -138,8 +140,8 @@ def check_loss_accounted(res: dict, exact: bool) -> list[str]:
     never_out = _seq_gaps(dmc)
     lines.append(f"dmc: {missing} epochs missing, detector counted lost_during_restart mag/1 {l1}, mag/2 {l2}, "
                  f"{never_out} sent by a killed detector but never out of it (a dmc seq gap)")
-    if exact:
-        assert missing == max(l1, l2) + never_out, lines[-1]
+    if exact:  # (a dmc seq gap's epoch may also be counted lost_during_restart: see the ingest check above)
+        assert max(l1, l2) <= missing <= max(l1, l2) + never_out, lines[-1]
     else:
         assert max(l1, l2) + never_out <= missing <= l1 + l2 + never_out, lines[-1]
     return lines
