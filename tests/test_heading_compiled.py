@@ -365,16 +365,19 @@ def test_gate_rejection_then_recovery_slew_and_reacquisition():
     assert reasons[-1] == "magnetometer consistent and its heading agrees", reasons
 
 
-def test_dmc_outage_holds_scaled_and_full_holds_after_a_field_disturbance():
+@pytest.mark.parametrize("agreement_from_clear", [True, False])
+def test_dmc_outage_holds_scaled_and_full_holds_after_a_field_disturbance(agreement_from_clear):
     # a 0.3 s DMC-only blip (scaled holds), then a field disturbance 20–24 s (full holds), then a DMC-invalid
-    # stretch with weak fusion of the off-reference field and hard-iron tracking of a body-fixed magnet
+    # stretch with weak fusion of the off-reference field and hard-iron tracking of a body-fixed magnet; the
+    # agreement hold counted from the clear hold's start and from recovering's
     def dmc(t):
         return 0 if (5.0 <= t < 5.3 or 27.0 <= t < 28.0) else 1
 
     def extra(t):
         return np.array([0.0, 6000.0, 2000.0]) if 13.0 <= t < 17.0 else np.zeros(3)
 
-    s = core.Settings(declination_rad=DECL, disturbed_noise_gain=20.0, hard_iron_tracking=True, hard_iron_tau_s=2.0)
+    s = core.Settings(declination_rad=DECL, disturbed_noise_gain=20.0, hard_iron_tracking=True, hard_iron_tau_s=2.0,
+                      agreement_from_clear=agreement_from_clear)
     rows = synth_rows(34.0, dmc=dmc, extra_field=extra, yaw_rate=lambda t: 0.3 * math.sin(0.2 * t))
     seen = run_both(s, rows)
     reasons = [tr[3] for tr in seen["transitions"]]

@@ -110,9 +110,10 @@ HARD_IRON_MIN_INFO = 56
 RECOVERY_EXIT_RAD = 57
 HOLDS_SCALE_WITH_OUTAGE = 58
 MIN_HOLD_S = 59
-REJECTION_TIMEOUT_S = 60
-HEADING_ALARM_STD_RAD = 61
-N_SETTINGS = 62
+AGREEMENT_FROM_CLEAR = 60
+REJECTION_TIMEOUT_S = 61
+HEADING_ALARM_STD_RAD = 62
+N_SETTINGS = 63
 
 SETTING_NAMES = tuple(f.name for f in fields(core.Settings))
 assert len(SETTING_NAMES) == N_SETTINGS and all(globals()[n.upper()] == i for i, n in enumerate(SETTING_NAMES)), (
@@ -1312,6 +1313,7 @@ def _mag(s, x, iv, L, m0, m1, m2, dmc, t_in, W):
     elif mode == M_GYRO:
         if disturbed:
             x[X_CLEAR_SINCE] = NAN
+            x[X_INSIDE_SINCE] = NAN
             gain_weak = s[DISTURBED_NOISE_GAIN]
             if s[HARD_IRON_TRACKING] and dmc_valid:
                 nu_c = _hard_iron_innovation(s, x, Rm, m0, m1, m2, dt_mag, W)
@@ -1328,8 +1330,16 @@ def _mag(s, x, iv, L, m0, m1, m2, dmc, t_in, W):
                 since = x[X_LEFT_MAG_T]
                 scaled = s[HOLDS_SCALE_WITH_OUTAGE] != 0.0 and not iv[I_OUT_BAD] and not math.isnan(since)
                 x[X_OUTAGE_S] = t - since if scaled else NAN
+            if s[AGREEMENT_FROM_CLEAR] != 0.0:
+                # recovering's agreement test runs from here, on the estimate the gyro alone has carried
+                if not usable or abs(nu) > s[RECOVERY_EXIT_RAD]:
+                    x[X_INSIDE_SINCE] = NAN
+                elif math.isnan(x[X_INSIDE_SINCE]):
+                    x[X_INSIDE_SINCE] = t
             if t - x[X_CLEAR_SINCE] >= _hold(s, x, s[CLEAR_HOLD_S]):
+                inside_since = x[X_INSIDE_SINCE]
                 _set_mode(x, iv, M_REC, 5)
+                x[X_INSIDE_SINCE] = inside_since
     elif mode == M_REC:
         if disturbed:
             _set_mode(x, iv, M_GYRO, 6)

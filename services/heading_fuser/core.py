@@ -39,7 +39,8 @@ Method (docs/methods.md#heading, Liu et al.; #dmc, Hao et al.):
   magnetometer must be consistent (strength, dip, quasi-static) for ``recovery_hold_s`` before it may
   steer the heading, and then only at most ``recovery_slew_rad_s`` while its innovation is outside
   the gate: never a sudden yaw jump towards a field that may still be disturbed. Back to ``magnetic``
-  once the innovation has been inside the gate for ``recovery_hold_s``.
+  once the innovation has been inside the gate for ``recovery_hold_s`` — counted from the clear of the
+  disturbance (``agreement_from_clear``: during the clear hold the magnetometer is watched, not fused).
 """
 
 from __future__ import annotations
@@ -145,6 +146,10 @@ class Settings:
     # [min_hold_s, clear_hold_s] and [min_hold_s, recovery_hold_s] (a 0.3 s kerb-side blip does not cost 3 s)
     holds_scale_with_outage: bool = True
     min_hold_s: float = 0.2
+    # the agreement test of recovering starts when the disturbance clears: during the clear hold the magnetometer's
+    # heading is watched (not fused) against the gyro-held estimate, and that time counts towards the agreement hold
+    # (false: it starts only once recovering has begun)
+    agreement_from_clear: bool = True
     rejection_timeout_s: float = 5.0  # persistent gate rejections this long in magnetic → recovering
     # alarm
     heading_alarm_std_rad: float = 0.087  # heading σ above this while not magnetic raises the flag (5°)
@@ -783,6 +788,7 @@ class HeadingFilter:
         elif self.mode == "gyro_only":
             if disturbed:
                 self._clear_since_t = None
+                self._inside_gate_since_t = None
                 # with no DMC verdict against it, a field that is merely off its reference may still
                 # steer the heading very weakly (§2's adaptive noise taken to its limit)
                 gain_weak = s.disturbed_noise_gain
@@ -809,8 +815,17 @@ class HeadingFilter:
                     since = self._left_magnetic_t
                     scaled = s.holds_scale_with_outage and not self._outage_field_bad and since is not None
                     self._outage_s = t - since if scaled else None
+                if s.agreement_from_clear:
+                    # recovering's agreement test runs from here, on the estimate the gyro alone has carried (the
+                    # magnetometer is watched, not fused); recovering then needs only the rest of its hold
+                    if not usable or abs(nu) > s.recovery_exit_rad:
+                        self._inside_gate_since_t = None
+                    elif self._inside_gate_since_t is None:
+                        self._inside_gate_since_t = t
                 if t - self._clear_since_t >= self._hold(s.clear_hold_s):
+                    inside_since = self._inside_gate_since_t
                     self._set_mode("recovering", "disturbance cleared")
+                    self._inside_gate_since_t = inside_since
         elif self.mode == "recovering":
             if disturbed:
                 self._set_mode("gyro_only", "disturbed again while recovering")
