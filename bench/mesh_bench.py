@@ -154,8 +154,12 @@ class Sink:
 
 
 def _spawn(args: list[str], port: int, log: Path) -> subprocess.Popen:
-    # the benchmark's vehicles must not leave calibration sets or alarm states in the user's state directory
-    env = dict(os.environ, PYTHONUNBUFFERED="1", MAGMESH_LOG_LEVEL=os.environ.get("MAGMESH_BENCH_LOG_LEVEL", "WARNING"), MAGMESH_STATE_DIR=str(log.parent / "state"))
+    # the benchmark's vehicles must not leave calibration sets or alarm states in the user's state directory, and
+    # one run none for the next (a group member stopped while holding vehicles keeps its seq journal for the member
+    # taking them: the next run's member of the same name resumed it, and counted the seqs the last run's ingest
+    # numbered beyond what it had handled as upstream gaps): a state directory per run (its router's port)
+    env = dict(os.environ, PYTHONUNBUFFERED="1", MAGMESH_LOG_LEVEL=os.environ.get("MAGMESH_BENCH_LOG_LEVEL", "WARNING"),
+               MAGMESH_STATE_DIR=str(log.parent / "state" / str(port)))
     return subprocess.Popen([sys.executable, *args, "--connect", f"tcp/127.0.0.1:{port}"], cwd=paths.REPO,
                             stdout=open(log, "ab"), stderr=subprocess.STDOUT, env=env, start_new_session=True)
 
@@ -468,7 +472,7 @@ def bench(vehicles: list[int], duration_s: float = 8.0, repeat: int = 1, stages:
         rows = []
         for n in vehicles:
             say(f"paced at sensor rates: pipeline, {n} vehicles ({wire})"
-                + (f", {k} instances per stage" if k > 1 or len(instances) > 1 else ""))
+                + (f", {k} instance{'s' if k > 1 else ''} per stage" if k > 1 or len(instances) > 1 else ""))
             r = _median_case("pipeline", n, duration_s, False, stages, repeat, tmp, wire, window_s, frame_s,
                              instances=k)
             r["sustained"] = _sustained(r, p99_ms)

@@ -534,3 +534,19 @@ def test_a_new_vehicle_is_taken_at_once_by_its_owner_even_after_an_incomplete_ro
     held_elsewhere = next(v for v in (f"car-{i}" for i in range(100, 200)) if groups.owner(v, g.members) == "dmc-1")
     g.holdings[held_elsewhere] = "dmc-2"  # held by another member in the last complete round: never taken here
     assert not g.admits(f"magmesh/{held_elsewhere}/clean/mag/1") and held_elsewhere not in g.owned
+
+
+def test_bench_runs_do_not_share_a_state_directory(tmp_path, monkeypatch):
+    """bench mesh --instances: a group member stopped while holding vehicles keeps its seq journal (for the member
+    taking them); the next run's member of the same name resumed it and counted the seqs the last run's ingest had
+    numbered beyond what it handled as upstream gaps (10-60 per run, with every output delivered). Each run has its
+    own state directory."""
+    import subprocess as sp
+
+    from bench import mesh_bench
+
+    seen = []
+    monkeypatch.setattr(sp, "Popen", lambda *a, **k: seen.append(k["env"]["MAGMESH_STATE_DIR"]))
+    for port in (7001, 7002):
+        mesh_bench._spawn(["-m", "services.ingest"], port, tmp_path / "ingest.log")
+    assert len(set(seen)) == 2 and all(s.startswith(str(tmp_path)) for s in seen), seen
