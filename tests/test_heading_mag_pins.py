@@ -30,8 +30,6 @@ LEVEL = (0.0, 0.0, G)
 ZERO = (0.0, 0.0, 0.0)
 FIELD = np.array([0.0, 20000.0, -40000.0])  # level sensor facing north: |b| = 44,721 nT, dip 63.4°
 DT = 1.0 / 64.0
-# the agreement hold counted from the clear hold's start (agreement_from_clear) is pinned on its own below
-NO_AGREEMENT_FROM_CLEAR = {"agreement_from_clear": False} if hasattr(core.Settings, "agreement_from_clear") else {}
 ISOLATED = dict(init_duration_s=0.0, adaptive_noise=False, mag_vector_fusion=False, use_field_check=False)
 
 
@@ -148,6 +146,13 @@ def test_a_vertical_field_has_the_noise_of_a_unit_horizontal_part():
     p22 = f.P[2, 2]
     f.update_mag((0.0, 0.0, -45000.0))
     assert f.internal_states.mag_innovation_var_rad2 == pytest.approx(p22 + 150.0**2, rel=1e-12)
+    # a horizontal part of 1 nT: no leak term (h² must exceed 1 nT²); of 1.2 nT: the leak, (z/h)² σ² along it
+    for h, leak in ((1.0, 0.0), (1.2, (45000.0 / 1.2) ** 2 * 1e-6)):
+        g = _aligned(**ISOLATED)
+        g.P[:3, :3] = np.diag([1e-6, 1e-6, 1e-4])
+        g.update_mag((0.0, h, -45000.0))
+        want = 1e-4 + 150.0**2 / max(h * h, 1.0) + leak
+        assert g.internal_states.mag_innovation_var_rad2 == pytest.approx(want, rel=1e-9), h
 
 
 @pytest.mark.parametrize("gate", [5.0, 2.0])
@@ -167,8 +172,9 @@ def test_gate_boundary(gate):
         assert f.mode == "magnetic"
 
 
-def test_field_direction_update_when_consistent_and_quasi_static():
-    s = dict(init_duration_s=0.0, declination_rad=-0.07, mag_noise_nt=400.0)
+@pytest.mark.parametrize("noise_nt", [400.0, 50.0])  # the sensor noise above the floor; the floor above it
+def test_field_direction_update_when_consistent_and_quasi_static(noise_nt):
+    s = dict(init_duration_s=0.0, declination_rad=-0.07, mag_noise_nt=noise_nt)
     f = _aligned(**s)
     _tilted(f, 2)
     R, P0, b0 = rmat(f.q), f.P.copy(), f.bias.copy()
@@ -180,7 +186,7 @@ def test_field_direction_update_when_consistent_and_quasi_static():
     h = R.T @ u
     H = np.hstack([np.column_stack([np.cross(h, e) for e in np.eye(3)]), np.zeros((3, 3))])
     mn = R @ m
-    var = max(400.0**2 / (mn[0] ** 2 + mn[1] ** 2), 0.01**2) * (mn[0] ** 2 + mn[1] ** 2) / float(mn @ mn)
+    var = max(noise_nt**2 / (mn[0] ** 2 + mn[1] ** 2), 0.01**2) * (mn[0] ** 2 + mn[1] ** 2) / float(mn @ mn)
     K = P0 @ H.T @ np.linalg.inv(H @ P0 @ H.T + var * np.eye(3))
     dx = K @ (m / np.linalg.norm(m) - h)
     A = np.eye(6) - K @ H
@@ -336,7 +342,9 @@ def _run(f, t0, t1, field=lambda t: FIELD, dmc=lambda t: True):
     return out
 
 
-HOLDS = dict(init_duration_s=0.0, clear_hold_s=1.0, recovery_hold_s=2.0, min_hold_s=0.25, **NO_AGREEMENT_FROM_CLEAR)
+# the holds one after the other; the agreement hold counted from the clear hold's start (agreement_from_clear, the
+# default) is pinned on its own below
+HOLDS = dict(init_duration_s=0.0, clear_hold_s=1.0, recovery_hold_s=2.0, min_hold_s=0.25, agreement_from_clear=False)
 
 
 def test_dmc_only_outage_scales_both_holds():
@@ -388,11 +396,15 @@ def test_full_holds_when_the_field_checks_failed_in_the_outage():
 
 def test_disturbed_again_while_recovering():
     f = _aligned(**HOLDS, holds_scale_with_outage=False)
-    _run(f, DT, 4.0, dmc=lambda t: not (2.0 <= t < 2.5 or t >= 3.75))
+    _run(f, DT, 7.0, dmc=lambda t: not (2.0 <= t < 2.5 or t == 3.75))
     assert [tr[1:] for tr in f.transitions[1:]] == [("magnetic", "gyro_only", "DMC says invalid"),
                                                     ("gyro_only", "recovering", "disturbance cleared"),
-                                                    ("recovering", "gyro_only", "disturbed again while recovering")]
-    assert f.transitions[-1][0] == 3.75
+                                                    ("recovering", "gyro_only", "disturbed again while recovering"),
+                                                    ("gyro_only", "recovering", "disturbance cleared"),
+                                                    ("recovering", "magnetic",
+                                                     "magnetometer consistent and its heading agrees")]
+    # one disturbed sample at 3.75 s: the clear hold again from the next one, then the agreement hold
+    assert [tr[0] for tr in f.transitions[3:]] == [3.75, 3.75 + DT + 1.0, 3.75 + 2 * DT + 1.0 + 2.0]
 
 
 def test_persistent_gate_rejections_go_to_recovering_after_the_timeout():
@@ -405,8 +417,11 @@ def test_persistent_gate_rejections_go_to_recovering_after_the_timeout():
     _run(f, DT, 3.0, field=field)
     # rejected from 1/64 s, reset by the good sample at 1.25 s, rejected again from 1.25 + 1/64: strictly more
     # than 1.5 s later, recovering
-    assert f.transitions[1] == (1.25 + DT + 1.5 + DT, "magnetic", "recovering",
-                                "innovation outside the gate for too long")
+    t_rec = 1.25 + DT + 1.5 + DT
+    assert f.transitions[1] == (t_rec, "magnetic", "recovering", "innovation outside the gate for too long")
+    # the field back on the heading: the agreement hold (the full one: no outage to scale it) and magnetic
+    _run(f, 3.0, 6.0)
+    assert f.transitions[2][:3] == (3.0 + 2.0, "recovering", "magnetic")
 
 
 def test_recovery_inside_the_gate_is_slew_limited():
@@ -486,11 +501,17 @@ def test_recovering_exit_needs_the_innovation_inside_recovery_exit_for_the_hold(
     _run(f, DT, 2.5, dmc=lambda t: t < 2.0)
     _run(f, 2.5, 3.5 + DT)
     assert f.mode == "recovering"
-    # 0.02 rad off for 10 samples (outside the exit band, inside the gate), then on the field
-    off = rz(-0.02) @ FIELD
-    out = _run(f, 3.5 + DT, 4.5, field=lambda t: off if t < 3.5 + 11 * DT else FIELD)
+    # 0.02 rad off for 10 samples (outside the exit band, inside the gate), then on the field with one outlier
+    # far outside the gate: each restarts the exit hold
+    off, outlier = rz(-0.02) @ FIELD, rz(-3.0) @ FIELD
+
+    def field(t):
+        return off if t < 3.5 + 11 * DT else outlier if abs(t - (3.5 + 20 * DT)) < 1e-9 else FIELD
+
+    out = _run(f, 3.5 + DT, 4.5, field=field)
+    assert [fused for t, _, fused in out if abs(t - (3.5 + 20 * DT)) < 1e-9] == [False]  # the outlier: rejected
     back = [t for t, mode, _ in out if mode == "magnetic"]
-    assert back and back[0] > 3.5 + 11 * DT + 0.25 - 1e-9
+    assert back and back[0] == 3.5 + 21 * DT + 0.25
     assert f.transitions[-1][1:] == ("recovering", "magnetic", "magnetometer consistent and its heading agrees")
 
 
@@ -505,7 +526,7 @@ def _disturbed(**kw):
 
 @pytest.mark.parametrize("nu,dmc,gain,weak", [(0.1, True, 50.0, True), (-0.34, True, 50.0, True),
                                               (0.36, True, 50.0, False), (0.1, False, 50.0, False),
-                                              (0.1, True, 0.0, False)])
+                                              (0.1, True, 0.0, False), (0.1, True, 0.5, True)])
 def test_weak_fusion_of_a_disturbed_field(nu, dmc, gain, weak):
     f = _disturbed(disturbed_noise_gain=gain, mag_vector_fusion=False)
     t = 1.0
@@ -544,6 +565,8 @@ def test_hard_iron_slow_mean_and_its_innovation():
             0.575 if k == 4 else 0.0))
         if k < 3:
             assert out is None  # tau not yet passed
+        else:
+            assert out is not None  # from exactly tau on
     # after 0.7 s (a = 1): the mean is measured − expected exactly: the compensated field is the reference one
     assert out == pytest.approx(0.0, abs=1e-9)
     f._hard_iron = magnet.copy()
@@ -579,9 +602,10 @@ def test_hard_iron_tracking_steers_the_heading_in_gyro_only():
     assert not f._hard_iron.any() and f._hard_iron_t == 0.0  # the magnet is forgotten in magnetic mode
 
 
-def _hir_run(h, R0, path, n, dt=0.01, hi=np.array([3000.0, -2000.0, 1500.0])):
+def _hir_run(h, R0, path, n, dt=0.01, hi=(3000.0, -2000.0, 1500.0)):
     """Samples of a body turned by path(t) (the gyro-integrated attitude) from R0, with a body-fixed field hi."""
     b = np.array([0.0, 20000.0, -40000.0])
+    hi = np.asarray(hi)
     for k in range(n):
         Q = path(k * dt)
         h.add(k * dt, (R0 @ Q).T @ b + hi, qof(Q))
@@ -633,6 +657,96 @@ def test_hard_iron_from_rotation_needs_turning_about_every_axis():
     assert not g.A.any() and g.estimate() is None
 
 
+def test_hard_iron_from_rotation_spacing_and_forgetting():
+    w = np.array([0.6, -0.8, 1.0])
+    b = np.array([0.0, 20000.0, -40000.0])
+
+    def sample(t):
+        return (rexp(w * t)).T @ b, qof(rexp(w * t))
+
+    g = core.HardIronFromRotation(tau_s=0.5, min_info=0.0, baseline_s=0.25, spacing_s=0.0625)
+    g.add(0.0, *sample(0.0))
+    g.add(0.0625 - 1e-9, *sample(0.0625 - 1e-9))  # the spacing less the nanosecond slack: kept
+    assert len(g.items) == 2
+    g = core.HardIronFromRotation(tau_s=0.5, min_info=0.0, baseline_s=0.25, spacing_s=0.0625)
+    pairs = []
+    for t in (0.0, 0.25, 1.25):  # the last 1 s after the one before: more than tau, everything before forgotten
+        g.add(t, *sample(t))
+        pairs.append(g.A.copy())
+    Md = rexp(w * 1.25).T @ rexp(w * 0.25)
+    assert np.allclose(g.A, (np.eye(3) - Md).T @ (np.eye(3) - Md), atol=1e-12) and pairs[1].any()
+    # a pair from 0.8 baseline_s apart exactly (0.25 s of 0.3125 s), at any time
+    g = core.HardIronFromRotation(tau_s=0.5, min_info=0.0, baseline_s=0.3125, spacing_s=0.0625)
+    for t in (5.0, 5.0625, 5.125, 5.1875):
+        g.add(t, *sample(t))
+    assert not g.A.any()
+    g.add(5.25, *sample(5.25))
+    Md = rexp(w * 5.25).T @ rexp(w * 5.0)
+    assert np.allclose(g.A, (np.eye(3) - Md).T @ (np.eye(3) - Md), atol=1e-12)
+    # the turn between the pair's attitudes: exactly min_turn_rad counts; none at all (|w| of q*q rounding above 1)
+    q1 = qof(rexp((0.02, -0.01, 0.03)))
+    turn = 2.0 * math.acos(min(1.0, abs(core._qmul((q1[0], -q1[1], -q1[2], -q1[3]), (1.0, 0.0, 0.0, 0.0))[0])))
+    g = core.HardIronFromRotation(tau_s=0.5, min_info=0.0, min_turn_rad=turn)
+    g.add(1.0, b, (1.0, 0.0, 0.0, 0.0))
+    g.add(1.25, rexp((0.02, -0.01, 0.03)).T @ b, q1)
+    assert g.A.any()
+    q = (0.8620622389278576, 0.13060439483655198, -0.21952757388009944, -0.4377200390322391)
+    assert core._qmul((q[0], -q[1], -q[2], -q[3]), q)[0] > 1.0
+    g = core.HardIronFromRotation(tau_s=0.5, min_info=0.0)
+    g.add(1.0, b, q)
+    g.add(1.25, b, q)
+    assert not g.A.any()
+
+
+def test_hard_iron_estimate_needs_the_smallest_eigenvalue():
+    h = core.HardIronFromRotation(tau_s=2.0, min_info=1.5)
+    h.A = np.array([[2.0, 1.0, 0.0], [1.0, 2.0, 0.0], [0.0, 0.0, 3.0]])  # eigenvalues 1, 3, 3
+    h.b = h.A @ np.array([100.0, -200.0, 300.0])
+    assert h.estimate() is None
+    h.min_info = core.min_eig_sym3(2.0, 1.0, 0.0, 2.0, 0.0, 3.0)
+    assert h.min_info == pytest.approx(1.0, abs=1e-12)
+    assert np.allclose(h.estimate(), (100.0, -200.0, 300.0), atol=1e-9)  # at the limit: observable
+    h.A = np.array([[3.0, 0.0, 1.0], [0.0, 3.0, 1.0], [1.0, 1.0, 3.0]])  # 3 − √2 ≈ 1.586
+    h.min_info = 1.5
+    assert h.estimate() is not None
+    h.min_info = 1.6
+    assert h.estimate() is None
+
+
+def test_hard_iron_innovation_limits_and_wrap():
+    """From the rotation estimate: a magnet exactly at the strength tolerance is used; the compensated field's
+    strength and dip each exactly at their tolerance still count; the innovation is wrapped to ±π."""
+    f = _aligned(hard_iron_tracking=True, hard_iron_from_rotation=True, hard_iron_min_info=0.5)
+    f._hi_rot.A = np.eye(3)
+    lim = f.settings.field_strength_tol_frac * f.ref_field_nt
+    f._hi_rot.b = np.array([lim, 0.0, 0.0])
+    assert f._hard_iron_innovation(FIELD + f._hi_rot.b, np.eye(3), 0.01) == pytest.approx(0.0, abs=1e-12)
+    f._hi_rot.b = np.array([np.nextafter(lim, 0.0), 0.0, 0.0])
+    assert f._hard_iron_innovation(FIELD + f._hi_rot.b, np.eye(3), 0.01) is None
+    f._hi_rot.b = np.array([2000.0, 0.0, 0.0])
+    f.ref_field_nt, f.ref_dip_rad = 40000.0, math.atan2(40000.0, 30000.0) - 0.1
+    tol_dip = abs(math.atan2(40000.0, 30000.0) - f.ref_dip_rad)
+    m = np.array([2000.0, 30000.0, -40000.0])  # less the magnet: 50,000 nT, 0.25 above 40,000; dip 0.1 steeper
+    for strength_tol, dip_tol, used in ((0.25, tol_dip, True), (np.nextafter(0.25, 0.0), tol_dip, False),
+                                        (0.25, np.nextafter(tol_dip, 0.0), False)):
+        f.settings = core.Settings(hard_iron_tracking=True, hard_iron_from_rotation=True,
+                                   sample_strength_tol_frac=strength_tol, sample_dip_tol_rad=dip_tol)
+        assert (f._hard_iron_innovation(m, np.eye(3), 0.01) is not None) is used, (strength_tol, dip_tol)
+    # an azimuth of −3.0 rad with a declination of 0.5: −3.5 is 2π − 3.5 the short way round
+    f.settings = core.Settings(hard_iron_tracking=True, hard_iron_from_rotation=True, declination_rad=0.5,
+                               sample_strength_tol_frac=0.3, sample_dip_tol_rad=0.3)
+    m = np.array([2000.0 + 30000.0 * math.sin(-3.0), 30000.0 * math.cos(-3.0), -40000.0])
+    assert f._hard_iron_innovation(m, np.eye(3), 0.01) == pytest.approx(2 * math.pi - 3.5, abs=1e-9)
+    g = _aligned(hard_iron_tracking=True, hard_iron_tau_s=0.5, declination_rad=0.5)  # the slow mean wraps too
+    g._hard_iron_t = 1.0
+    dip = g.ref_dip_rad
+    b_ref = g.ref_field_nt * np.array([math.cos(dip) * math.sin(0.5), math.cos(dip) * math.cos(0.5), -math.sin(dip)])
+    g._hard_iron = np.array([1000.0, 0.0, 0.0])
+    m = rz(3.5) @ b_ref + g._hard_iron  # the expected field turned 3.5 rad anticlockwise: azimuth −3.0
+    out = g._hard_iron_innovation(m, np.eye(3), 0.0)  # (dt 0: the mean stays)
+    assert out == pytest.approx(2 * math.pi - 3.5, abs=1e-9)
+
+
 def test_min_eig_sym3_against_numpy():
     rng = np.random.default_rng(4)
     for _ in range(5):
@@ -643,7 +757,11 @@ def test_min_eig_sym3_against_numpy():
     assert core.min_eig_sym3(2.5, 0.0, 0.0, 2.5, 0.0, 2.5) == 2.5  # a multiple of I: p = 0
     assert core.min_eig_sym3(1.0, 0.0, 0.0, 2.0, 0.0, 3.0) == pytest.approx(1.0, abs=1e-12)
     assert core.min_eig_sym3(3.0, 0.0, 0.0, 1.0, 0.0, 2.0) == pytest.approx(1.0, abs=1e-12)
-    assert core.min_eig_sym3(1.0, 1.0, 0.0, 1.0, 0.0, 5.0) == pytest.approx(0.0, abs=1e-12)  # r at −1 clipped
+    assert core.min_eig_sym3(1.0, 1.0, 0.0, 1.0, 0.0, 5.0) == pytest.approx(0.0, abs=1e-12)
+    # a double eigenvalue, where rounding takes r a little beyond ±1: clipped
+    assert core.min_eig_sym3(0.1, 0.0, 0.0, -2.4, -2.5, -2.4) == pytest.approx(-4.9, abs=1e-12)
+    b3 = 0.3 / 3
+    assert core.min_eig_sym3(0.1 + b3, b3, b3, 0.1 + b3, b3, 0.1 + b3) == pytest.approx(0.1, abs=1e-12)
 
 
 def test_hard_iron_from_rotation_in_the_filter():
@@ -705,6 +823,10 @@ def test_rebase_learns_the_window_means_once_steady():
     assert f.ref_field_nt == pytest.approx(np.mean(strengths[-n + 1:] + [float(np.linalg.norm(mn))]), rel=1e-12)
     assert f.ref_dip_rad == pytest.approx(math.atan2(40000.0, 20000.0), abs=1e-9)
     assert f.ref_field_nt == pytest.approx(np.linalg.norm(new), rel=0.01)
+    f.rebase_field_reference()  # a second calibration change: counted again
+    for j in range(k + 1, k + 40):
+        _step(f, j * DT, _noisy_field(j, strength_sd=300.0) * 1.1, True)
+    assert f.n_rebases == 2 and not f._rebase_pending
     # a noisy window (strength variance above the limit) is no reference: still pending
     g = _aligned(quasi_static_window_s=0.5)
     g.rebase_field_reference()
@@ -728,20 +850,24 @@ def test_rebase_ends_a_field_only_gyro_only_and_not_a_dmc_one():
 
 # ---- timing: late and lagging samples, the update period ----------------------------------------------------------------
 def test_a_late_sample_is_levelled_with_the_attitude_of_its_time():
-    f = _aligned(**ISOLATED, mag_gate_sigma=1e6)
-    w = (0.0, 0.0, 0.8)
+    f = _aligned(**ISOLATED, mag_gate_sigma=1e6, hard_iron_from_rotation=True)
+    w = (0.3, -0.4, 0.8)
     for k in range(1, 11):
         f.update_imu(w, LEVEL, DT, t_s=k * DT)
     # the attitude at 4/64 s: the current estimate turned back by the gyro's motion since then
     q_then = rmat(f.q) @ rmat(f._qg).T @ rmat(f._history[3][1])
+    q_before = rmat(f.q) @ rmat(f._qg).T @ rmat(f._history[2][1])
     assert f._history[3][0] == 4 * DT
-    for t_s, R_exp in ((4 * DT, q_then), (4 * DT + 0.5 * DT, q_then), (0.0, rmat(f.q) @ rmat(f._qg).T @ rmat(
-            f._history[0][1]))):
+    for t_s, R_exp in ((4 * DT, q_then), (4 * DT + 0.5 * DT, q_then), (4 * DT - 1e-9, q_then),
+                       (4 * DT - 2e-9, q_before), (0.0, rmat(f.q) @ rmat(f._qg).T @ rmat(f._history[0][1]))):
         g = _copy(f)
         m = rz(0.2) @ FIELD
         g.update_mag(m, t_s=t_s)
         nu = ref_innovation(R_exp, g.P, m, g.settings)[0]
         assert g.internal_states.mag_innovation_rad == pytest.approx(nu, abs=1e-12), t_s
+        if t_s == 4 * DT:  # the field pair estimator gets the sample's time and the gyro attitude then
+            th, mh, qh = g._hi_rot.items[-1]
+            assert th == t_s and np.array_equal(mh, m) and qh == f._history[3][1]
     # a magnetometer lag (mag_delay_s) means the same as a late time stamp
     h = _aligned(**ISOLATED, mag_gate_sigma=1e6, mag_delay_s=6 * DT)
     for k in range(1, 11):
@@ -762,6 +888,10 @@ def _copy(f):
 
 
 def test_magnetometer_update_period_and_the_clamped_interval():
+    g = _aligned(**ISOLATED, mag_update_period_s=0.1)
+    g._last_mag_t = 0.0
+    g.update_mag(rz(-0.001) @ FIELD, t_s=0.1 - 1e-9)  # exactly the period less the nanosecond slack: taken
+    assert g._last_mag_t == 0.1 - 1e-9
     f = _aligned(**ISOLATED, mag_update_period_s=0.1)
     f._last_mag_t = 0.0
     res = []
@@ -793,6 +923,9 @@ def test_the_lag_estimator_is_fed_and_read():
     f._lag.delay_s = 0.0123
     f.update_mag(FIELD, t_s=DT)
     assert f.mag_delay_s == 0.0123 and len(f._lag._mags) == 1 and f._lag._mags[0][0] == DT
+    f.update_imu((0.0, 0.0, 0.5), LEVEL, DT, t_s=2 * DT)
+    f.update_mag(FIELD * 1.2, t_s=2 * DT)  # 20 % off the filter's reference: the estimator does not keep it
+    assert len(f._lag._mags) == 1
     assert _aligned()._lag is None
 
 
@@ -803,3 +936,259 @@ def test_dmc_verdict_flag():
         f.update_mag(FIELD, verdict, t_s=DT)
         assert f.flags.dmc_valid is valid
         assert f.mode == ("magnetic" if valid else "gyro_only")
+
+
+def test_agreement_from_clear_counts_the_clear_hold():
+    """agreement_from_clear: the agreement hold (|ν| ≤ recovery_exit_rad) starts with the clear hold; it restarts
+    whenever the heading disagrees or the disturbance returns, and recovering ends once it has lasted its hold."""
+    s = dict(HOLDS, holds_scale_with_outage=False, agreement_from_clear=True)
+
+    def back(**kw):
+        f = _aligned(**s)
+        _run(f, DT, 6.0, **kw)
+        return [tr[0] for tr in f.transitions[1:]], f
+
+    times, f = back(dmc=lambda t: not 2.0 <= t < 2.5)
+    assert times == [2.0, 3.5, 4.5]  # recovering after the 1 s clear hold, magnetic 2 s after the clear began
+    assert f.transitions[-1][2:] == ("magnetic", "magnetometer consistent and its heading agrees")
+    times, _ = back(dmc=lambda t: not 2.0 <= t < 2.5, field=lambda t: rz(-0.05) @ FIELD if 2.5 <= t < 3.0 else FIELD)
+    assert times == [2.0, 3.5, 5.0]  # 0.05 rad off (outside recovery_exit_rad) until 3.0 s: from then
+    times, _ = back(dmc=lambda t: not (2.0 <= t < 2.5 or t == 2.75))
+    assert times == [2.0, 2.75 + DT + 1.0, 2.75 + DT + 2.0]  # disturbed again at 2.75 s: both start over
+    g = _aligned(**dict(HOLDS, agreement_from_clear=True))  # scaled holds: 0.5 s each, from the same start
+    _run(g, DT, 4.0, dmc=lambda t: not 2.0 <= t < 2.5)
+    assert [tr[0] for tr in g.transitions[1:]] == [2.0, 3.0, 3.0 + DT]
+
+
+# ---- boundaries, wraps and the window's inputs -----------------------------------------------------------------------
+def test_window_full_from_three_samples():
+    w = core._Window(0.625)
+    for t in (20.0, 20.25, 20.5):
+        w.add(t, 1.0, 1.0, 0.0)
+    assert w.full(20.5)
+
+
+def test_the_innovation_is_wrapped_to_plus_minus_pi():
+    f = _aligned(**ISOLATED, declination_rad=0.6, mag_gate_sigma=1e6)
+    f.q = (1.0, 0.0, 0.0, 0.0)
+    f.update_mag(rz(3.0) @ FIELD)  # azimuth −3.0: −3.6 from the declination, 2π − 3.6 the short way
+    assert f.internal_states.mag_innovation_rad == pytest.approx(2 * math.pi - 3.6, abs=1e-12)
+
+
+def test_the_window_gets_the_magnetometer_yaw_less_the_gyro_yaw():
+    """What the quasi-static heading test compares: the filter's yaw plus the innovation (the yaw the magnetometer
+    implies) less the integrated gyro yaw, wrapped."""
+    for yaw, nu, gyro_yaw in ((0.7, 0.3, -0.4), (2.9, 0.4, -0.5), (-2.9, -0.3, 0.4)):
+        f = _aligned(**ISOLATED, mag_gate_sigma=1e-9)
+        R = Rotation.from_euler("ZYX", [yaw, 0.2, -0.1]).as_matrix()
+        f.q = qof(R)
+        f._gyro_yaw = gyro_yaw
+        b = rz(-nu) @ FIELD  # azimuth nu in the true frame: the innovation
+        f.update_mag(R.T @ b)
+        assert f.internal_states.mag_innovation_rad == pytest.approx(nu, abs=1e-12)
+        want = math.remainder(yaw + nu - gyro_yaw, 2 * math.pi)
+        assert f._window.items[-1][3] == pytest.approx(want, abs=1e-12), (yaw, nu, gyro_yaw)
+        assert abs(yaw + nu - gyro_yaw) > math.pi or yaw == 0.7  # the wrap is exercised
+
+
+def _exact_window(ms):
+    """The window's running sums as the filter keeps them (R = I, no sample leaves): means and variances."""
+    s = [0.0, 0.0, 0.0, 0.0]
+    for m in ms:
+        h2 = m[0] * m[0] + m[1] * m[1]
+        st = math.sqrt(h2 + m[2] * m[2])
+        d = math.atan2(-m[2], math.sqrt(h2))
+        s = [s[0] + st, s[1] + st * st, s[2] + d, s[3] + d * d]
+    n = len(ms)
+    mb, md = s[0] / n, s[2] / n
+    return mb, max(0.0, s[1] / n - mb * mb), md, max(0.0, s[3] / n - md * md)
+
+
+@pytest.mark.parametrize("which", ["strength", "dip", "strength_var", "dip_var", "heading"])
+def test_window_limits_are_strict(which):
+    """Each window test at exactly its limit passes; a hair below the limit, it fails. The filter stays level and
+    unturned (every sample rejected by a vanishing gate), so the window's sums are reproduced exactly here."""
+    n = 53  # the first full window: 52 · 1/64 s ≥ 0.8 s
+    ref_b, ref_dip = 32768.0, 1.0  # (a power of two: tol · B0 is exact)
+    base = dict(ISOLATED, use_field_check=True, adaptive_noise=True, mag_gate_sigma=1e-9, ref_field_nt=ref_b,
+                ref_dip_rad=ref_dip, sample_strength_tol_frac=0.5, sample_dip_tol_rad=0.5, field_strength_tol_frac=0.1)
+
+    def sample(k):
+        sgn = 1.0 if k % 2 else -1.0
+        bs = 34000.0 + (700.0 * sgn if which == "strength_var" else 0.0)
+        dip = 1.05 + (0.01 * sgn if which == "dip_var" else 0.0)
+        az = 0.0003 * k if which == "heading" else 0.0
+        return np.array([bs * math.cos(dip) * math.sin(az), bs * math.cos(dip) * math.cos(az), -bs * math.sin(dip)])
+
+    ms = [sample(k) for k in range(1, n + 1)]
+    mb, vb, md, vd = _exact_window(ms)
+    dpsi = abs(math.remainder(math.atan2(ms[-1][0], ms[-1][1]) - math.atan2(ms[0][0], ms[0][1]), 2 * math.pi))
+    limit = {"strength": ("field_strength_tol_frac", abs(mb - ref_b) / ref_b), "dip": ("field_dip_tol_rad",
+             abs(md - ref_dip)), "strength_var": ("quasi_static_var_nt2", vb), "dip_var": ("quasi_static_dip_var_rad2",
+             vd), "heading": ("quasi_static_heading_rad", dpsi)}[which]
+    if which == "strength":  # the limit is tol · B0: that product is exact
+        assert limit[1] * ref_b == abs(mb - ref_b)
+    results = []
+    for value in (limit[1], np.nextafter(limit[1], 0.0)):
+        f = _aligned(**dict(base, **{limit[0]: value}))
+        assert f.q == (1.0, 0.0, 0.0, 0.0)
+        for k, m in enumerate(ms, start=1):
+            f.update_mag(m, t_s=k * DT)
+        assert f.q == (1.0, 0.0, 0.0, 0.0) and len(f._window.items) == n
+        results.append((f.mode, f.flags.quasi_static, f.internal_states.mag_noise_gain))
+    if which in ("strength", "dip"):
+        assert [r[0] for r in results] == ["magnetic", "gyro_only"]
+    else:
+        assert [r[1:] for r in results] == [(True, 1.0), (False, 150.0 if which == "heading" else 200.0)]
+
+
+def test_the_gate_at_a_test_ratio_of_exactly_one_fuses():
+    y = 20000.0
+    x = y * math.tan(1.0)
+    while math.atan2(x, y) != 1.0:  # a field whose azimuth is exactly 1 rad
+        x = np.nextafter(x, math.inf if math.atan2(x, y) < 1.0 else 0.0)
+    f = _aligned(**ISOLATED, mag_gate_sigma=1.0, mag_heading_noise_floor_rad=0.5)
+    f.P[:3, :3] = np.diag([0.0, 0.0, 0.75])  # S = 0.75 + 0.5² = 1 = ν²
+    assert f.update_mag((x, y, -40000.0))
+    assert f.internal_states.mag_test_ratio == 1.0 and not f.flags.mag_rejected_gate
+
+
+def test_no_hard_iron_tracking_while_the_dmc_says_invalid():
+    f = _aligned(hard_iron_tracking=True, hard_iron_tau_s=0.25)
+    _run(f, DT, 1.5, field=lambda t: FIELD + np.array([6000.0, 2000.0, -1000.0]), dmc=lambda t: False)
+    assert f.mode == "gyro_only" and not f._hard_iron.any() and f._hard_iron_t == 0.0
+    g = _aligned(hard_iron_tracking=False, hard_iron_tau_s=0.25, disturbed_noise_gain=2.0)
+    g._hard_iron_t = 1.0
+    g._hard_iron = np.array([6000.0, 2000.0, -1000.0])
+    _run(g, DT, 1.5, field=lambda t: FIELD + np.array([6000.0, 2000.0, -1000.0]))
+    assert g.mode == "gyro_only" and g._hard_iron_t == 1.0  # not tracked when turned off
+
+
+@pytest.mark.parametrize("rotation", [False, True])
+def test_hard_iron_fusion_noise_with_a_noisy_field(rotation):
+    """A noisy field (its strength variance fails the window test: gain 200): the slow-mean magnet's innovation is
+    fused with the raw field's adaptive noise × hard_iron_noise_gain; the rotation estimate's with the sensor's own
+    noise × hard_iron_noise_gain."""
+    kw = dict(hard_iron_tracking=True, hard_iron_tau_s=0.25, hard_iron_noise_gain=3.0, mag_vector_fusion=False,
+              hard_iron_from_rotation=rotation, hard_iron_min_info=0.5)
+    f = _aligned(**kw)
+    magnet = np.array([0.0, 4000.0, 0.0])
+    noisy = [rz(-0.02) @ FIELD * (1.0 + (0.03 if k % 2 else -0.03)) + magnet for k in range(200)]
+    k = 0
+    for k in range(1, 96):
+        _step(f, k * DT, noisy[k], True)
+    assert f.mode == "gyro_only"
+    if rotation:
+        f._hi_rot.A, f._hi_rot.b = np.eye(3) * 1e6, magnet * 1e6
+    t = 96 * DT
+    f.update_imu(ZERO, LEVEL, DT, t_s=t)
+    R, P0 = rmat(f.q), f.P.copy()
+    m = noisy[96]
+    hi = magnet if rotation else f._hard_iron + (DT / 0.25) * ((m - R.T @ FIELD) - f._hard_iron)
+    q0 = f.q
+    f.update_mag(m, True, t_s=t)
+    gain = f.internal_states.mag_noise_gain
+    assert gain == 200.0
+    nu_c = ref_innovation(R, P0, m - hi, f.settings)[0]
+    assert f.q != q0 and abs(nu_c) > 1e-4
+    _, _, r_raw = ref_innovation(R, P0, m, f.settings, gain=1.0 if rotation else gain)
+    dx, P = ref_heading_update(R, P0, nu_c, float(R[2] @ P0[:3, :3] @ R[2]) + 3.0 * r_raw)
+    assert np.allclose(rmat(f.q), R @ rexp(dx[:3]), atol=1e-12)
+    assert np.allclose(f.P, P, atol=1e-12)
+
+
+def _dry_nu(f, m, dmc, t):
+    g = _copy(f)
+    g.update_imu(ZERO, LEVEL, DT, t_s=t)
+    g.update_mag(m, dmc, t_s=t)
+    return g.internal_states.mag_innovation_rad
+
+
+def test_weak_fusion_gate_is_strict():
+    f = _disturbed(disturbed_noise_gain=50.0, mag_vector_fusion=False)
+    m = rz(-0.2) @ FIELD * 1.08
+    nu = abs(_dry_nu(f, m, True, 1.0))
+    for gate, weak in ((nu, False), (np.nextafter(nu, 1.0), True)):
+        g = _copy(f)
+        g.settings = core.Settings(**{**g.settings.__dict__, "disturbed_gate_rad": gate})
+        g.update_imu(ZERO, LEVEL, DT, t_s=1.0)
+        q0 = g.q
+        g.update_mag(m, True, t_s=1.0)
+        assert (g.q != q0) is weak
+
+
+def test_recovering_exit_band_is_inclusive():
+    f = _aligned(**dict(HOLDS, holds_scale_with_outage=False, mag_vector_fusion=False))
+    _run(f, DT, 2.5, dmc=lambda t: t < 2.0)
+    _run(f, 2.5, 3.5 + DT)
+    assert f.mode == "recovering" and f._inside_gate_since_t is None
+    t = 3.5 + 2 * DT
+    m = rz(-0.02) @ FIELD
+    nu = abs(_dry_nu(f, m, True, t))
+    for band, inside in ((nu, True), (np.nextafter(nu, 0.0), False)):
+        g = _copy(f)
+        g.settings = core.Settings(**{**g.settings.__dict__, "recovery_exit_rad": band})
+        _step(g, t, m, True)
+        assert (g._inside_gate_since_t == t) is inside
+
+
+def test_agreement_band_during_the_clear_hold_is_inclusive():
+    f = _aligned(**dict(HOLDS, holds_scale_with_outage=False, mag_vector_fusion=False, agreement_from_clear=True))
+    _run(f, DT, 2.5, dmc=lambda t: t < 2.0)
+    assert f.mode == "gyro_only"
+    t = 2.5
+    m = rz(-0.02) @ FIELD
+    nu = abs(_dry_nu(f, m, True, t))
+    for band, inside in ((nu, True), (np.nextafter(nu, 0.0), False)):
+        g = _copy(f)
+        g.settings = core.Settings(**{**g.settings.__dict__, "recovery_exit_rad": band})
+        _step(g, t, m, True)
+        assert g.mode == "gyro_only" and (g._inside_gate_since_t == t) is inside
+
+
+def test_recovering_after_a_rebase_slews_only_once_the_new_window_is_full():
+    """A re-base empties the window: the consistency hold (and so the slew outside the gate) starts only once the
+    window is full again."""
+    s = dict(HOLDS, init_heading_std_rad=0.005, recovery_hold_s=0.25, quasi_static_var_nt2=1e12,
+             quasi_static_dip_var_rad2=10.0)
+    f = _aligned(**s)
+    _run(f, DT, 1.0, field=lambda t: FIELD * 1.08)
+    assert f.mode == "gyro_only"
+    f.q = qof(rz(0.5))
+    f.rebase_field_reference()
+    assert f.mode == "recovering" and len(f._window.items) == 0
+    first = None
+    for k in range(1, 100):
+        t = 1.0 + k * DT
+        h0 = f.heading_rad()
+        _step(f, t, FIELD * 1.08, True)
+        if first is None and abs(math.remainder(f.heading_rad() - h0, 2 * math.pi)) > 1e-6:
+            first = k
+    # the window is full at its 53rd sample (0.8 s); the hold of 0.25 s more: 16 samples
+    assert first == 53 + 16, first
+
+
+def test_a_field_failure_in_an_outage_counts_until_magnetic_again():
+    """The field checks failed in an outage: full holds after it, also for a DMC-only disturbance before the filter
+    is magnetic again; once magnetic, a DMC-only outage has scaled holds again."""
+    f = _aligned(**dict(HOLDS, quasi_static_window_s=0.25))
+
+    def field(t):
+        return FIELD * 1.4 if 2.0 <= t < 2.25 else FIELD
+
+    _run(f, DT, 3.0, field=field)
+    assert f.mode == "gyro_only" and f._outage_field_bad
+    rec = []
+    for k in range(192, 800):
+        t = k * DT
+        _step(f, t, FIELD, not 4.0 <= t < 4.25 and not 8.0 <= t < 8.25)
+        if f.transitions[-1][0] == t:
+            rec.append((t, f.transitions[-1][2]))
+        if t >= 12.0:
+            break
+    # recovering (full clear hold), a DMC-only blip at 4.0 s: gyro_only again, full holds (the field failure
+    # still counts), magnetic; a DMC-only blip at 8.0 s: scaled holds (0.25 s each)
+    modes = [m for _, m in rec]
+    assert modes == ["recovering", "gyro_only", "recovering", "magnetic", "gyro_only", "recovering", "magnetic"], rec
+    assert rec[1][0] == 4.0 and rec[2][0] == 4.25 + 1.0
+    assert rec[4][0] == 8.0 and rec[5][0] == 8.25 + 0.25 and rec[6][0] == 8.5 + DT + 0.25

@@ -126,10 +126,25 @@ def test_rest_low_pass_gain_is_capped_at_one_and_the_noise_average_at_ten_second
 
 def test_rest_needs_both_quiet_tests():
     for gyro, accel, rest in (((0.0, 0.0, 0.0), LEVEL, True), ((0.0, 0.0, 2.0), LEVEL, False),
-                              ((0.0, 0.0, 0.0), LEVEL + np.array([0.0, 2.0, 0.0]), False)):
+                              ((0.0, 2.0, 0.0), LEVEL, False), ((2.0, 0.0, 0.0), LEVEL, False),
+                              ((0.0, 0.0, 0.0), LEVEL + np.array([0.0, 2.0, 0.0]), False),
+                              ((0.0, 0.0, 0.0), LEVEL + np.array([2.0, 0.0, 0.0]), False),
+                              ((0.0, 0.0, 0.0), LEVEL + np.array([0.0, 0.0, 2.0]), False)):
         f = _aligned(rest_detection=True, rest_min_s=0.0, rest_filter_tau_s=0.5)
         f._detect_rest((0.0, 0.0, 0.0), LEVEL, DT)
         f._detect_rest(gyro, accel, DT)
+        assert f.at_rest is rest, (gyro, accel)
+    # each limit is strict: a low-passed rate (dt > tau: the sample itself) of exactly the limit is not quiet ...
+    f = _aligned(rest_detection=True, rest_min_s=0.0, rest_gyro_rad_s=0.03)
+    f._detect_rest((0.0, 0.03, 0.0), LEVEL, 1.0)
+    assert not f.at_rest
+    f._detect_rest((0.0, np.nextafter(0.03, 0.0), 0.0), LEVEL, 1.0)
+    assert f.at_rest
+    # ... nor an accelerometer deviation of exactly the limit (half-way low-pass: 0.8 − 0.4)
+    for limit, rest in ((0.4, False), (np.nextafter(0.4, 1.0), True)):
+        f = _aligned(rest_detection=True, rest_min_s=0.0, rest_filter_tau_s=0.5, rest_accel_m_s2=limit)
+        f._detect_rest((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.25)
+        f._detect_rest((0.0, 0.0, 0.0), (0.0, 0.0, 0.8), 0.25)
         assert f.at_rest is rest
 
 
@@ -276,10 +291,13 @@ def test_lag_estimator_interpolates_attitudes():
     e = core.MagLagEstimator()
     gt = np.array([0.0, 0.5, 1.0])
     q0, q1 = np.array([1.0, 0.0, 0.0, 0.0]), np.array(qof(rexp((0.0, 0.0, 0.4))))
-    gq = np.array([q0, q1, q1])
-    got = e._attitudes_at(np.array([0.25, -1.0, 0.5, 2.0]), gt, gq)
-    mid = (q0 + q1) / np.linalg.norm(q0 + q1)
-    assert np.allclose(got, [mid, q0, q1, q1], atol=1e-15)
+    q2 = np.array(qof(rexp((0.3, 0.0, 0.4))))
+    gq = np.array([q0, q1, q2])
+    got = e._attitudes_at(np.array([0.25, -1.0, 0.5, 2.0, 0.75]), gt, gq)
+    mid, mid2 = (q0 + q1) / np.linalg.norm(q0 + q1), (q1 + q2) / np.linalg.norm(q1 + q2)
+    assert np.allclose(got, [mid, q0, q1, q2, mid2], atol=1e-15)  # clipped at both ends, not extrapolated
+    got = e._attitudes_at(np.array([0.5]), np.array([0.0, 0.5, 0.5 + 1e-12]), gq)  # a near-zero interval
+    assert np.all(np.isfinite(got))
 
 
 def _lag_data(lag_s: float, n: int, rate_hz: float = 200.0, hi=(3000.0, -2000.0, 1500.0)):
@@ -344,6 +362,180 @@ def test_lag_estimator_one_pair_normal_equations():
     assert n0 == 3
 
 
+def test_lag_estimator_defaults_and_initial_state():
+    """The filter builds it as MagLagEstimator(mag_delay_max_s): a 1 ms grid to 50 ms, pairs 0.2 s apart that
+    turned half of 0.5 rad/s over it, one per 50 ms, 200 before a first estimate, 512 gyro samples kept."""
+    e = core.MagLagEstimator()
+    assert len(e.grid) == 51 and e.grid[-1] == pytest.approx(0.05) and e.step_s == 0.001
+    assert e.min_turn_rad == pytest.approx(0.05) and e.baseline_s == 0.2 and e.period_s == 0.05
+    assert e.min_samples == 200 and e._gt.shape == (512,) and e._gq.shape == (512, 4)
+    assert e.delay_s == 0.0 and e.n == 0 and np.array_equal(e.offset_nt, np.zeros(3))
+    assert np.array_equal(e.cost, np.zeros(51)) and e.A.shape == (51, 3, 3) and not e.A.any()
+    assert np.all(np.isneginf(e._gt)) and e._q == (1.0, 0.0, 0.0, 0.0)
+    assert len(core.MagLagEstimator(max_delay_s=0.02).grid) == 21
+
+
+def test_lag_estimator_renormalises_its_attitude():
+    e = core.MagLagEstimator()
+    e._q = (2.0, 0.0, 0.0, 0.0)  # (a drifted norm)
+    e.add_gyro(0.0, (0.1, 0.2, 0.3))
+    e.add_gyro(0.125, (0.1, 0.2, 0.3))
+    assert math.sqrt(sum(c * c for c in e._q)) == pytest.approx(1.0, abs=1e-15)
+    assert np.allclose(rmat(e._q), rexp(0.125 * np.array([0.1, 0.2, 0.3])), atol=1e-15)
+
+
+def _ref_pairs(gyro_t, gyro, mags, *, n_buf, grid, baseline, period, min_turn, ref_nt):
+    """The pairs the estimator should take and their sums, from its definition: the gyro attitude by trapezoids;
+    a field sample is dropped 10 % off the reference; it pairs with the newest kept sample at least a baseline older,
+    if 0.8 to 2 baselines older, at most one pair per period, with both times (less every candidate lag) inside the
+    gyro samples kept, and the pair counts if the body turned at least min_turn (candidate 0)."""
+    R = [np.eye(3)]
+    for i in range(1, len(gyro_t)):
+        R.append(R[-1] @ rexp(0.5 * (gyro[i - 1] + gyro[i]) * (gyro_t[i] - gyro_t[i - 1])))
+    index = {round(t * 256): i for i, t in enumerate(gyro_t)}
+    kept, last, pairs = [], -math.inf, []
+    A, b, c = np.zeros((len(grid), 3, 3)), np.zeros((len(grid), 3)), np.zeros(len(grid))
+    for t, m, n_gyro in mags:
+        if ref_nt and abs(np.linalg.norm(m) / ref_nt - 1.0) > 0.1:
+            continue
+        kept.append((t, m))
+        while len(kept) > 1 and kept[1][0] <= t - baseline:
+            kept.pop(0)
+        if t - last < period or n_gyro < 2:
+            continue
+        t0, m0 = kept[0]
+        if not 0.8 * baseline <= t - t0 <= 2.0 * baseline:
+            continue
+        first = gyro_t[max(0, n_gyro - n_buf)]
+        if t0 - grid[-1] < first or t > gyro_t[n_gyro - 1] + 1e-6:
+            continue
+        last = t
+        Ms = [R[index[round((t - d) * 256)]].T @ R[index[round((t0 - d) * 256)]] for d in grid]
+        if Rotation.from_matrix(Ms[0]).magnitude() < min_turn:
+            continue
+        pairs.append((t, t0))
+        for g, Md in enumerate(Ms):
+            M = np.eye(3) - Md
+            r0 = m - Md @ m0
+            A[g] += M.T @ M
+            b[g] += M.T @ r0
+            c[g] += r0 @ r0
+    return pairs, A, b, c
+
+
+# field samples (gyro sample indices): every one at first, then every other one, with a gap in between
+SCHEDULE_A = dict(n=700, n_buf=160, dense=(2, 100), sparse=[(100, 330), (488, 700)])  # gap: pair 158/256 s apart
+SCHEDULE_B = dict(n=700, n_buf=512, dense=(2, 100), sparse=[(100, 300), (480, 700)])  # gap: 180/256 s
+
+
+@pytest.mark.parametrize("sched", [SCHEDULE_A, SCHEDULE_B], ids=["buffer-short", "gap-long"])
+def test_lag_estimator_takes_the_pairs_of_its_definition(sched):
+    """256 Hz gyro from t = 3 s, field samples on a schedule, two of them 20 % off the reference; the body turns
+    fast, slowly for a while (pairs below the minimum turn), then fast again. Every pair, and the normal equations,
+    as the definition says: the first pair 0.8 baselines apart with its earlier time less the largest lag exactly
+    the first gyro time; after the gap, a pair whose earlier time is no longer in a short buffer (A), or one more
+    than two baselines apart (B)."""
+    n = sched["n"]
+    gyro_t = 3.0 + np.arange(n) / 256.0
+    x = gyro_t - 3.0
+    s = np.where((0.8 <= x) & (x < 1.2), 0.1, 1.0)
+    gyro = np.column_stack([0.4 * s * np.sin(2.0 * gyro_t), 0.5 * s * np.cos(1.3 * gyro_t), 0.6 * s])
+    b_enu = np.array([0.0, 20000.0, -40000.0])
+    R = [np.eye(3)]
+    for i in range(1, n):
+        R.append(R[-1] @ rexp(0.5 * (gyro[i - 1] + gyro[i]) / 256.0))
+    ref_nt = float(np.linalg.norm(b_enu))
+    e = core.MagLagEstimator(max_delay_s=2 / 256, step_s=1 / 256, min_rate_rad_s=0.4, min_samples=10**6,
+                             period_s=0.0625, baseline_s=0.3125, n_buf=sched["n_buf"])
+    field_at = set(range(*sched["dense"])) | {i for a, b in sched["sparse"] for i in range(a, b, 2)}
+    mags, taken = [], []
+    for i in range(n):
+        e.add_gyro(gyro_t[i], gyro[i])
+        if i not in field_at:
+            continue
+        m = R[i].T @ b_enu * (1.2 if i in (300, 520) else 1.0)
+        mags.append((gyro_t[i], m, i + 1))
+        n0 = e.n
+        e.add_mag(gyro_t[i], m, ref_nt)
+        if e.n > n0:
+            taken.append(gyro_t[i])
+    pairs, A, b, c = _ref_pairs(gyro_t, gyro, mags, n_buf=sched["n_buf"], grid=e.grid, baseline=0.3125,
+                                period=0.0625, min_turn=0.4 * 0.3125 * 0.5, ref_nt=ref_nt)
+    assert [p[0] for p in pairs] == taken and len(pairs) >= 20
+    assert pairs[0] == (3.0 + 66 / 256, 3.0 + 2 / 256)  # 0.8 baselines; 2/256 s (the largest lag) after the first gyro
+    assert np.allclose(e.A, A, atol=1e-9) and np.allclose(e.b, b, atol=1e-5) and np.allclose(e.c, c, rtol=1e-9)
+
+
+def test_lag_estimator_takes_a_sample_up_to_a_microsecond_after_the_gyro():
+    late = core.MagLagEstimator(max_delay_s=0.0, min_samples=10**6, baseline_s=0.3)
+    late.add_gyro(0.0, (0.0, 0.0, 1.0))
+    late.add_gyro(1.0, (0.0, 0.0, 1.0))
+    late.add_mag(0.5, FIELD, 0.0)
+    late.add_mag(1.0 + 1e-6, FIELD, 0.0)
+    assert late.n == 1
+    late = core.MagLagEstimator(max_delay_s=0.0, min_samples=10**6, baseline_s=0.3)
+    late.add_gyro(0.0, (0.0, 0.0, 1.0))
+    late.add_gyro(1.0, (0.0, 0.0, 1.0))
+    late.add_mag(0.5, FIELD, 0.0)
+    late.add_mag(1.0 + 2e-6, FIELD, 0.0)
+    assert late.n == 0
+
+
+def test_lag_estimator_a_pair_that_did_not_turn():
+    """The body turned, then held still: the pair's attitudes are equal, their product's w rounds a little above 1
+    (a turn of 0, not a domain error), and the pair does not count."""
+    e = core.MagLagEstimator(max_delay_s=0.0, min_samples=10**6, baseline_s=0.25)
+    for t, w in ((0.0, (0.0, 0.0, 0.0)), (0.1, (-1.9338894578858836, 1.2530809568010897, 1.6510223091108869)),
+                 (0.2, (0.0, 0.0, 0.0)), (1.0, (0.0, 0.0, 0.0))):
+        e.add_gyro(t, w)
+    q0, q1 = e._attitudes_at(np.array([0.5, 0.75]), e._gt[:4], e._gq[:4])
+    assert q1[0] * q0[0] + q1[1] * q0[1] + q1[2] * q0[2] + q1[3] * q0[3] > 1.0
+    e.add_mag(0.5, FIELD, 0.0)
+    e.add_mag(0.75, FIELD, 0.0)
+    assert e.n == 0 and e._last_t == 0.75  # looked at (the period starts), not counted
+
+
+def test_lag_estimator_solves_every_tenth_pair_from_min_samples():
+    t, gyro, mag = _lag_data(0.01, 900, rate_hz=256.0)
+    e = core.MagLagEstimator(max_delay_s=0.02, step_s=0.005, min_samples=25, period_s=0.02)
+    solved = []
+    for i in range(len(t)):
+        e.add_gyro(t[i], gyro[i])
+        cost = e.cost.copy()
+        n0 = e.n
+        e.add_mag(t[i], mag[i], 0.0)
+        if e.n > n0 and not np.array_equal(cost, e.cost):
+            solved.append(e.n)
+    assert e.n >= 50 and solved == list(range(30, e.n + 1, 10))
+    assert e.delay_s == pytest.approx(0.01, abs=0.002)
+
+
+def test_lag_estimator_regularises_an_axis_never_turned_about():
+    """Turns about z only: the information about the offset's z part is nil; the solve adds 1e-9 of the trace
+    (plus 1e-12) to the diagonal, so a little noise along z gives a bounded offset there."""
+    e = core.MagLagEstimator(max_delay_s=0.002, step_s=0.001)
+    A1 = np.diag([2.0, 3.0, 0.0])
+    e.A = np.array([A1, A1 * 1.5, A1 * 2.0])
+    e.b = np.array([[2.0, 3.0, 1e-6], [3.0, 4.5, 2e-6], [4.0, 6.0, 1e-6]])
+    e.c = np.array([10.0, 7.0, 11.0])  # the best: the middle one
+    e._solve()
+    h = np.array([np.linalg.solve(A + (1e-9 * np.trace(A) + 1e-12) * np.eye(3), bb) for A, bb in zip(e.A, e.b, strict=True)])
+    assert e.offset_nt == pytest.approx(h[1], rel=1e-9)
+    assert np.allclose(e.cost, e.c - np.einsum("gi,gi->g", e.b, h), rtol=1e-12)
+
+
+def test_lag_estimator_refines_even_a_shallow_minimum():
+    e = core.MagLagEstimator(max_delay_s=0.004, step_s=0.001)
+    e.A = np.tile(np.eye(3), (5, 1, 1))
+    e.b = np.zeros((5, 3))
+    e.c = np.array([0.9, 0.5, 0.1, 0.2, 0.4])  # curvature 0.5: still refined
+    e._solve()
+    assert e.delay_s == pytest.approx(0.002 + 0.001 * 0.5 * (0.5 - 0.2) / (0.5 - 2 * 0.1 + 0.2), abs=1e-12)
+    e.c = np.array([3.0, 2.0, 1.0, 0.0, 2.0])  # the best last but one
+    e._solve()
+    assert e.delay_s == pytest.approx(0.003 - 0.001 / 6.0, abs=1e-12)
+
+
 def test_lag_estimator_skips_what_does_not_count():
     t, gyro, mag = _lag_data(0.0, 120)
     ref = float(np.linalg.norm(mag[0]))
@@ -354,11 +546,13 @@ def test_lag_estimator_skips_what_does_not_count():
     assert len(e._mags) == 1
     e.add_mag(0.002, mag[0] * 1.09, ref)  # 9 %: kept
     assert len(e._mags) == 2
-    e = core.MagLagEstimator(min_samples=1000)
-    for i in range(len(t)):
-        e.add_gyro(t[i], gyro[i])
-    e.add_mag(t[-1] + 0.01, mag[-1], 0.0)  # later than the last gyro sample: no attitude for it yet
-    assert e.n == 0
+    # two gyro samples are enough to pair (a constant rate between them)
+    e = core.MagLagEstimator(max_delay_s=0.0, min_samples=1000, baseline_s=0.25)
+    e.add_gyro(0.0, (0.0, 0.0, 1.0))
+    e.add_gyro(1.0, (0.0, 0.0, 1.0))
+    e.add_mag(0.5, FIELD, 0.0)
+    e.add_mag(0.75, rexp((0.0, 0.0, 0.25)).T @ FIELD, 0.0)
+    assert e.n == 1
     # a body at rest: no pair turns enough
     s = core.MagLagEstimator(min_samples=1000)
     for i in range(200):
@@ -392,10 +586,31 @@ def test_lag_estimator_solve():
     assert e.delay_s == pytest.approx(0.001 + 0.001 / 6.0, abs=1e-9)
 
 
-def test_batch_lag_estimate():
-    t, gyro, mag = _lag_data(0.025, 400, rate_hz=100.0, hi=(0.0, 0.0, 0.0))
-    d = core.estimate_mag_delay_s(gyro, mag, 100.0)
-    assert abs(d - 0.025) < 0.002 and abs(d - 0.02) > 0.002 and abs(d - 0.03) > 0.002  # refined between samples
-    assert core.estimate_mag_delay_s(gyro, mag, 100.0, max_delay_s=0.01) == pytest.approx(0.01)  # the last shift
-    t, gyro, mag = _lag_data(0.0, 400, rate_hz=100.0, hi=(0.0, 0.0, 0.0))
-    assert core.estimate_mag_delay_s(gyro, mag, 100.0, max_delay_s=0.001) < 0.002  # at least one shift tried
+def _batch_reference(w, m, rate, max_delay_s):
+    """ṁ(t) = −ω(t − d) × m(t): the mean squared residual for each whole-sample shift, the parabola through the
+    best and its neighbours (an interior best only)."""
+    dm = np.gradient(m, axis=0) * rate
+    kmax = max(1, int(round(max_delay_s * rate)))
+    cost = np.array([np.mean(np.sum((dm[k:] + np.cross(w[: len(w) - k], m[k:])) ** 2, axis=1))
+                     for k in range(kmax + 1)])
+    j = int(np.argmin(cost))
+    frac = 0.0
+    if 0 < j < kmax:
+        c0, c1, c2 = cost[j - 1: j + 2]
+        frac = 0.5 * (c0 - c2) / (c0 - 2 * c1 + c2)
+    return (j + frac) / rate, j
+
+
+@pytest.mark.parametrize("lag,max_delay,j,scale", [(0.0, 0.05, 0, 1.0), (0.013, 0.05, 1, 1.0), (0.0235, 0.03, 2, 1.0),
+                                                   (0.031, 0.04, 3, 1.0), (0.07, 0.05, 5, 1.0), (0.0, 0.001, 0, 1.0),
+                                                   (0.013, 0.001, 1, 1.0), (0.0235, 0.03, 2, 1e-6)])
+def test_batch_lag_estimate(lag, max_delay, j, scale):
+    t, gyro, mag = _lag_data(lag, 300, rate_hz=100.0, hi=(0.0, 0.0, 0.0))
+    mag = mag * scale  # (1e-6: the costs' curvature far below 1)
+    want, jj = _batch_reference(gyro, mag, 100.0, max_delay)
+    assert jj == j  # the best shift: first, interior, last but one, last (the shifts: at least one)
+    args = () if max_delay == 0.05 else (max_delay,)
+    got = core.estimate_mag_delay_s(gyro, mag, 100.0, *args)
+    assert got == pytest.approx(want, rel=1e-12, abs=0.0)
+    if 0 < j < max(1, round(max_delay * 100.0)):
+        assert abs(got * 100.0 - j) > 1e-3  # refined off the whole sample

@@ -149,6 +149,20 @@ def test_predict_propagates_attitude_yaw_and_covariance(gyro, dt):
     assert np.array_equal(f.bias, b0)  # the bias is only changed by updates
 
 
+def test_predict_renormalises_both_attitudes():
+    f = _aligned(**PRED)
+    random_state(f, 9)
+    R0, Rg0 = rmat(f.q), rmat(f._qg)
+    f.q = tuple(1.5 * c for c in f.q)  # norms drifted away from 1
+    f._qg = tuple(0.7 * c for c in f._qg)
+    w = np.array([0.3, -0.2, 0.5]) - f.bias
+    f._predict(tuple(np.array([0.3, -0.2, 0.5])), 0.1)
+    assert math.sqrt(sum(c * c for c in f.q)) == pytest.approx(1.0, abs=1e-15)
+    assert math.sqrt(sum(c * c for c in f._qg)) == pytest.approx(1.0, abs=1e-15)
+    _close(rmat(f.q), R0 @ rexp(w * 0.1), 1e-14)
+    _close(rmat(f._qg), Rg0 @ rexp(w * 0.1), 1e-14)
+
+
 def test_predict_of_a_rate_equal_to_the_bias_keeps_the_attitude():
     f = _aligned(**PRED)
     random_state(f, 2)
@@ -166,6 +180,10 @@ def test_inject_applies_a_body_frame_rotation_and_a_bias_step():
     _close(rmat(f.q), rmat(q0) @ rexp(dx[:3]), 1e-14)
     assert isinstance(f.q, tuple) and abs(math.sqrt(sum(c * c for c in f.q)) - 1.0) < 1e-15
     _close(f.bias, b0 + dx[3:], 1e-15)
+    f.q = tuple(2.0 * c for c in q0)  # a drifted norm is restored
+    f._inject(dx)
+    assert abs(math.sqrt(sum(c * c for c in f.q)) - 1.0) < 1e-15
+    _close(rmat(f.q), rmat(q0) @ rexp(dx[:3]), 1e-14)
 
 
 # ---- accelerometer update ----------------------------------------------------------------------------------------
@@ -200,6 +218,15 @@ def test_accelerometer_rejection_limits():
         assert f.flags.accel_ignored is ignored, mag
         assert f.states.accel_error_m_s2 == pytest.approx(mag - G, abs=1e-12)
         assert (f.q == q0 and np.array_equal(f.P, P0)) is ignored
+    # a reading of exactly 1e-6 m/s² (a huge limit): still fused; the rate term defaults to none
+    f = _aligned(**dict(ACC, accel_rejection_m_s2=50.0))
+    f._fuse_accel((1e-6, 0.0, 0.0))
+    assert f.flags.accel_ignored is False
+    f = _aligned(**ACC)
+    random_state(f, 5)
+    R, b, P, _ = ref_accel(rmat(f.q), f.bias.copy(), f.P.copy(), (0.3, 0.2, 9.9), 0.0, f.settings)
+    f._fuse_accel((0.3, 0.2, 9.9))
+    _close(rmat(f.q), R)
     # exactly at the limit: still fused
     f = _aligned(**dict(ACC, accel_rejection_m_s2=err_limit))
     f._fuse_accel((0.0, 0.0, G + 2.5), 0.0)
@@ -243,6 +270,12 @@ def test_update_imu_is_prediction_then_the_accelerometer_with_the_raw_rate():
     assert f.t_s == 7.25 and f._history[-1][0] == 7.25
 
 
+def test_update_steps_10_ms_by_default():
+    f = _aligned()
+    f.update((0.0, 0.0, 0.0), LEVEL)
+    assert f.t_s == 0.01
+
+
 def test_update_returns_the_mode_and_passes_the_verdict():
     f = _aligned(clear_hold_s=0.5)
     assert f.update((0.0, 0.0, 0.0), LEVEL, FIELD, dt_s=0.01, dmc_valid=False) == "gyro_only"
@@ -254,6 +287,7 @@ def test_update_returns_the_mode_and_passes_the_verdict():
 def test_heading_uncertain_only_off_magnetic_and_above_the_limit():
     def run(limit):
         f = _aligned(heading_alarm_std_rad=limit)
+        f.t_s = 0.5
         f._set_mode("gyro_only", "test")
         f.P[:3, :3] = np.diag([1e-4, 1e-4, 0.01])
         f.update_imu((0.0, 0.0, 0.0), LEVEL, 0.01)
@@ -263,7 +297,7 @@ def test_heading_uncertain_only_off_magnetic_and_above_the_limit():
     h = f.internal_states.heading_std_rad
     assert h == pytest.approx(math.sqrt(0.01 + 0.0005**2 * 0.01), rel=1e-3)
     assert f.flags.heading_uncertain
-    assert f.internal_states.gyro_only_duration_s == pytest.approx(0.01)
+    assert f.internal_states.gyro_only_duration_s == pytest.approx(0.01)  # since the mode change at 0.5 s
     assert run(h).flags.heading_uncertain is False  # exactly at the limit: not above it
     assert run(h * (1 - 1e-12)).flags.heading_uncertain is True
     assert run(0.2).flags.heading_uncertain is False
@@ -277,6 +311,10 @@ def test_accelerometer_update_period():
         f.update_imu((0.0, 0.0, 0.0), a, 0.01, t_s=t)
         used.append(f.states.accel_error_m_s2 == pytest.approx(0.01 * (k + 1), abs=1e-12))
     assert used == [True, False, False, True, False, False, True]
+    g = _aligned(accel_update_period_s=0.05)
+    g.update_imu((0.0, 0.0, 0.0), LEVEL, 0.01, t_s=0.0)
+    g.update_imu((0.0, 0.0, 0.0), (0.0, 0.0, G + 0.5), 0.01, t_s=0.05 - 1e-9)  # exactly the period less the slack
+    assert g.states.accel_error_m_s2 == pytest.approx(0.5, abs=1e-12)
 
 
 # ---- initial alignment --------------------------------------------------------------------------------------------
@@ -300,11 +338,13 @@ def test_align_sets_the_attitude_and_learns_the_field_reference():
 
 
 def test_initialisation_averages_in_the_frame_of_the_first_sample_and_aligns_at_the_end():
-    """A body turning at 0.8 rad/s about its own z while the filter averages for 0.5 s: aligned at the end of it,
-    exactly (noise-free samples of a constant-rate turn)."""
+    """A body turning at a constant body rate (about all three axes) while the filter averages for 0.5 s: aligned at
+    the end of it, exactly; the field samples scatter about the Earth field (their mean is it), so the average
+    counts, not the last sample."""
     R0 = Rotation.from_euler("ZYX", [0.4, 0.2, -0.3]).as_matrix()
     b = np.array([0.0, 20000.0, -40000.0])
-    w, dt = 0.8, 1.0 / 64.0
+    w, dt = np.array([0.3, -0.5, 0.8]), 1.0 / 64.0
+    scatter = np.array([3000.0, -2000.0, 1000.0])  # +1 on the 17 even samples, −17/16 on the 16 odd ones
     f0 = core.HeadingFilter(core.Settings(init_duration_s=0.0))
     assert f0.update_mag(FIELD) is False and f0.mode == "initialising"  # no IMU sample yet: no alignment
     f0.update_imu((0.0, 0.0, 0.0), LEVEL, 0.01)
@@ -312,27 +352,44 @@ def test_initialisation_averages_in_the_frame_of_the_first_sample_and_aligns_at_
     f = core.HeadingFilter(core.Settings(init_duration_s=0.5))
     n = 0
     while f.mode == "initialising":
-        Rk = R0 @ rexp((0.0, 0.0, w * n * dt))
-        f.update_imu((0.0, 0.0, w), Rk.T @ np.array([0.0, 0.0, G]), dt, t_s=n * dt)
-        assert f.update_mag(Rk.T @ b) is False
+        Rk = R0 @ rexp(w * n * dt)
+        tilt = np.array([0.5, -0.3, 0.0]) * (1.0 if n % 2 == 0 else -17.0 / 16.0)  # scattered about gravity too
+        f.update_imu(tuple(w), Rk.T @ (np.array([0.0, 0.0, G]) + tilt), dt, t_s=n * dt)
+        assert f.update_mag(Rk.T @ (b + scatter * (1.0 if n % 2 == 0 else -17.0 / 16.0))) is False
         assert f.flags.initialising is (f.mode == "initialising")
         n += 1
         assert n < 100
     assert (n - 1) * dt == 0.5  # aligned at the sample 0.5 s after the first
-    _close(rmat(f.q), R0 @ rexp((0.0, 0.0, w * 0.5)), 1e-12)
+    _close(rmat(f.q), R0 @ rexp(w * 0.5), 1e-12)
     assert f._last_mag_t == 0.5 and f._init_n == [n, n]
+    assert f.ref_field_nt == pytest.approx(np.linalg.norm(b), rel=1e-12)  # learned from the average
     # a magnetometer sample first, then the IMU: the IMU sample already turns the averaging frame
     g = core.HeadingFilter(core.Settings(init_duration_s=0.25))
     g.update_mag(R0.T @ b, t_s=0.0)
     for k in range(1, 17):
-        Rk = R0 @ rexp((0.0, 0.0, w * k * dt))
-        g.update_imu((0.0, 0.0, w), Rk.T @ np.array([0.0, 0.0, G]), dt, t_s=k * dt)
+        Rk = R0 @ rexp(w * k * dt)
+        g.update_imu(tuple(w), Rk.T @ np.array([0.0, 0.0, G]), dt, t_s=k * dt)
         g.update_mag(Rk.T @ b)
     assert g.aligned
-    _close(rmat(g.q), R0 @ rexp((0.0, 0.0, w * 0.25)), 1e-12)
+    _close(rmat(g.q), R0 @ rexp(w * 0.25), 1e-12)
+    # two IMU samples before the first field sample: the second already turns the averaging frame
+    h = core.HeadingFilter(core.Settings(init_duration_s=0.25))
+    for k in range(0, 18):
+        Rk = R0 @ rexp(w * k * dt)
+        h.update_imu(tuple(w), Rk.T @ np.array([0.0, 0.0, G]), dt, t_s=k * dt)
+        if k >= 1:
+            h.update_mag(Rk.T @ b)
+    assert h.aligned
+    _close(rmat(h.q), R0 @ rexp(w * (17 * dt)), 1e-12)
 
 
 def test_alignment_needs_its_duration_to_within_a_nanosecond():
+    f = core.HeadingFilter(core.Settings(init_duration_s=0.5))
+    f.update_imu((0.0, 0.0, 0.0), LEVEL, 0.0, t_s=0.0)
+    f.update_mag(FIELD, t_s=0.0)
+    f.update_imu((0.0, 0.0, 0.0), LEVEL, 0.0, t_s=0.5 - 1e-9)
+    f.update_mag(FIELD, t_s=0.5 - 1e-9)  # exactly the duration less the slack
+    assert f.aligned
     for gap, aligned in ((0.5 - 5e-10, True), (0.5 - 5e-9, False)):
         f = core.HeadingFilter(core.Settings(init_duration_s=0.5))
         f.update_imu((0.0, 0.0, 0.0), LEVEL, 0.0, t_s=10.0)
@@ -363,8 +420,8 @@ def test_heading_euler_quaternion_and_attitude_std():
     assert sp == pytest.approx(math.sqrt(right @ Pn @ right), rel=1e-12)
     assert sr == pytest.approx(math.sqrt(fwd @ Pn @ fwd), rel=1e-12)
     assert len({round(sh, 9), round(sp, 9), round(sr, 9)}) == 3  # three different σ: each is its own axis
-    # nose straight up: forward has no horizontal part; east is taken as forward
-    f.q = qof(Rotation.from_euler("ZYX", [0.0, -math.pi / 2, 0.0]).as_matrix())
+    # nose straight up: forward has no horizontal part; east is taken as forward (whatever the yaw)
+    f.q = qof(Rotation.from_euler("ZYX", [0.7, -math.pi / 2, 0.0]).as_matrix())
     f.P[:3, :3] = np.diag([0.01, 0.04, 0.09])
     Rv = rmat(f.q)
     Pn = Rv @ f.P[:3, :3] @ Rv.T
@@ -377,6 +434,8 @@ def test_magnetic_heading_is_the_tilt_compensated_field_azimuth():
     b = np.array([20000.0 * math.sin(0.1), 20000.0 * math.cos(0.1), -40000.0])  # declination 0.1
     h = core.magnetic_heading(R.T @ b, R.T @ np.array([0.0, 0.0, G]), 0.1)
     assert float(h) == pytest.approx(math.pi / 2 - 0.5, abs=1e-9)
+    h = core.magnetic_heading(R.T @ b, R.T @ np.array([0.0, 0.0, G]))  # no declination: the magnetic heading
+    assert float(h) == pytest.approx(math.pi / 2 - 0.5 - 0.1, abs=1e-9)
 
 
 # ---- settings ------------------------------------------------------------------------------------------------------
@@ -389,6 +448,10 @@ def test_settings_checks():
                 dict(gravity_lpf_order=0), dict(min_hold_s=-0.1)):
         with pytest.raises(ValueError, match=next(iter(bad))):
             core.Settings(**bad)
+
+
+def test_the_late_sample_history_spans_1024_imu_steps():
+    assert _aligned()._history.maxlen == 1024
 
 
 def test_reset_restores_the_initial_state():

@@ -469,9 +469,9 @@ class HeadingFilter:
     # ---- alignment ----------------------------------------------------------------------------
     def align(self, accel_m_s2, mag_nt) -> None:
         """Set the attitude from one (averaged) accel + mag pair (docs/methods.md#heading, initial attitude)."""
-        up = np.asarray(accel_m_s2, float)
+        up = np.asarray(accel_m_s2, float)  # pragma: no mutate (dtype: only its direction is used, in floats)
         up = up / np.linalg.norm(up)
-        m = np.asarray(mag_nt, float)
+        m = np.asarray(mag_nt, float)  # pragma: no mutate (dtype: the cross product with a float converts)
         east = np.cross(m, up)  # north × up = east
         east /= np.linalg.norm(east)
         north = np.cross(up, east)
@@ -513,7 +513,7 @@ class HeadingFilter:
         if self._lag is not None:
             self._lag.add_gyro(self.t_s, gyro_rad_s)
         rate = math.sqrt(gyro_rad_s[0] ** 2 + gyro_rad_s[1] ** 2 + gyro_rad_s[2] ** 2)
-        acc = accel_m_s2
+        acc = accel_m_s2  # pragma: no mutate (read only when the gravity low-pass sets it again)
         if s.rest_detection:
             self._detect_rest(gyro_rad_s, accel_m_s2, dt_s)
         if s.gravity_lpf_tau_s > 0.0:
@@ -582,7 +582,7 @@ class HeadingFilter:
         # average then mixes gravity seen from frames turned apart; the filter's own attitude is corrected
         # (its heading corrections turn about the vertical and leave gravity where it is)
         Rg = _qmat(self.q if s.gravity_lpf_in_estimate else self._qg)
-        a_i = Rg @ np.asarray(accel, float)
+        a_i = Rg @ np.asarray(accel, float)  # pragma: no mutate (dtype: the float matrix product converts)
         if s.gravity_lpf_order == 2:
             b0, b1, b2, a1, a2 = butterworth2(s.gravity_lpf_tau_s, dt)
             if self._acc_lp_i is None or self.at_rest:  # at rest the accelerometer is gravity: restart there
@@ -641,7 +641,7 @@ class HeadingFilter:
 
     def _fuse_accel(self, accel, rate_rad_s: float = 0.0, noise_m_s2: float | None = None) -> None:
         s = self.settings
-        a = np.asarray(accel, float)
+        a = np.asarray(accel, float)  # pragma: no mutate (dtype: a / na converts)
         na = math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
         err = na - maths.G0
         self.states.accel_error_m_s2 = err
@@ -664,7 +664,7 @@ class HeadingFilter:
         R = _qmat(self.q)
         up_b = R[2]  # nav up expressed in body
         K[:3] -= np.outer(up_b, up_b @ K[:3])
-        dx = K @ (z - g)
+        dx = K @ (z - g)  # pragma: no mutate (K g = 0, g being in the null space of Hᵀ: z + g gives the same step)
         self._inject(dx)
         # Joseph form: K is not the optimal gain after the projection above
         A = _EYE6 - K @ H
@@ -680,7 +680,7 @@ class HeadingFilter:
         their time.
         """
         s = self.settings
-        m = np.asarray(mag_nt, float)
+        m = np.asarray(mag_nt, float)  # pragma: no mutate (dtype: every use is a float product or sum)
         fl, st = self.flags, self.states
         t = self.t_s if t_s is None else float(t_s)
         if self.mode == "initialising":
@@ -909,7 +909,7 @@ class HeadingFilter:
         PHt = self.P @ H.T
         S = H @ PHt + np.eye(3) * var_unit
         K = np.linalg.solve(S, PHt.T).T
-        self._inject(K @ (z - h))
+        self._inject(K @ (z - h))  # pragma: no mutate (K h = 0, h being in the null space of Hᵀ: z + h gives the same step)
         A = _EYE6 - K @ H
         P = A @ self.P @ A.T + var_unit * (K @ K.T)
         self.P = 0.5 * (P + P.T)
@@ -1039,7 +1039,7 @@ class MagLagEstimator:
 
     def add_mag(self, t: float, m: np.ndarray, ref_nt: float) -> None:
         """One field sample (nT) at time t; ``ref_nt`` the reference strength (0: not checked)."""
-        m = np.asarray(m, float)
+        m = np.asarray(m, float)  # pragma: no mutate (dtype: every use is a float product or sum)
         if ref_nt and abs(math.sqrt(float(m @ m)) / ref_nt - 1.0) > 0.1:
             return
         mags = self._mags
@@ -1112,8 +1112,8 @@ def estimate_mag_delay_s(gyro_rad_s, mag_nt, rate_hz: float, max_delay_s: float 
     lags by d. The lag is the whole-sample shift minimising the residual of that equation, refined
     by a parabola through the three best shifts. Needs some rotation in the data.
     """
-    w = np.asarray(gyro_rad_s, float)
-    m = np.asarray(mag_nt, float)
+    w = np.asarray(gyro_rad_s, float)  # pragma: no mutate (dtype: the cross product with float m converts)
+    m = np.asarray(mag_nt, float)  # pragma: no mutate (dtype: np.gradient returns floats)
     dm = np.gradient(m, axis=0) * rate_hz
     kmax = max(1, int(round(max_delay_s * rate_hz)))
     shifts = np.arange(0, kmax + 1)
