@@ -12,13 +12,14 @@ pytestmark = pytest.mark.mesh
 @pytest.mark.parametrize("wire", ["v2", pytest.param("v1", marks=pytest.mark.slow)])
 def test_bench_mesh_smoke(wire):
     res = bench([2], duration_s=2.0, repeat=1, stages=("ingest", "dmc_detector"), limit_vehicles=2, wire=wire,
-                v1_ingest=wire == "v2")
+                v1_ingest=wire == "v2", warmup_s=3.0)
     row = res["scaling"][0]
     assert row["lost"] == 0, row
     assert row["outputs"] >= 0.99 * row["expected_outputs"] > 0
     assert res["saturation"]["limit"]["sustained_samples_s"] > 0 and res["ratio_to_limit"] > 0
     assert set(row["cpu_pct"]) >= {"ingest", "dmc_detector", "fleet"}
     assert row["wire"] == wire
+    assert row["startup_p99_ms"] is not None and row["startup_p99_ms"] > 0  # the warm-up's latency, apart
     if wire == "v2":  # v1 single-sample vehicles through one ingest, clean batches counted sample by sample
         lim = res["saturation"]["limit"]
         # the limit relays the same batches as fast as the relays go: on a loaded machine some are shed (Zenoh's
