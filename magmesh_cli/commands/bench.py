@@ -74,11 +74,17 @@ def run_mesh(args: argparse.Namespace) -> int:
         print(f"magmesh bench mesh: --warmup takes 0 to 600 s and --duration more than 0 up to 3600 s (given "
               f"{args.warmup:g} and {args.duration:g})", file=sys.stderr)
         return 2
-    res = bench(vehicles, args.duration, args.repeat, stages, args.saturation_vehicles,
-                progress=lambda s: print(s, file=sys.stderr, flush=True), wire=args.wire, window_s=args.window,
-                frame_s=args.frame_window, p99_ms=args.p99_ms, v1_ingest=not args.no_v1_ingest,
-                overload=not args.no_overload, overload_vehicles=args.overload_vehicles, instances=instances,
-                warmup_s=args.warmup)
+    try:
+        res = bench(vehicles, args.duration, args.repeat, stages, args.saturation_vehicles,
+                    progress=lambda s: print(s, file=sys.stderr, flush=True), wire=args.wire, window_s=args.window,
+                    frame_s=args.frame_window, p99_ms=args.p99_ms, v1_ingest=not args.no_v1_ingest,
+                    overload=not args.no_overload, overload_vehicles=args.overload_vehicles, instances=instances,
+                    warmup_s=args.warmup)
+    except RuntimeError as e:  # a run whose stages did not come up or whose groups did not form
+        print(f"magmesh bench mesh: the run stopped: {e}. The stages' logs are in that directory; a stage that "
+              "did not come up within 30 s usually failed at start (its log says why) or the machine was too busy "
+              "to start it; run the bench again on a quieter machine or with fewer vehicles.", file=sys.stderr)
+        return 1
     if args.json:
         json.dump(res, sys.stdout)
         print()
