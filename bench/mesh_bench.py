@@ -370,7 +370,9 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
                                          until=(fl.get("start_at") or start_at) + warmup_s)
             if lat_w is not None and len(lat_w):
                 startup = round(float(np.percentile(lat_w, 99)), 2)
-        samples_done = fl["total"] * min(1.0, sink.n / max(expected, 1))
+        # over the measured window only (the warm-up's samples are out of it, as wall is)
+        samples_done = (fl["total"] * min(1.0, sink.n / max(expected, 1))
+                        * duration_s / max(duration_s + warmup_s, 1e-9))
         alive = {k: p.poll() is None for k, p in procs.items()}
         phases = None
         if extra and not max_mode:
