@@ -210,6 +210,12 @@ def run_core(name: str, work_root: Path, max_children: int, survivors: bool, log
         tail = (run.stdout + run.stderr)[-3000:] if run is not None else ""
         code = run.returncode if run is not None else None
         raise RuntimeError(f"mutmut found no mutants for {core.source} (exit {code}):\n{tail}")
+    if counts["not checked"] == total:  # mutmut stopped before the first mutant (its clean or forced-fail run)
+        tail = (run.stdout + run.stderr)[-3000:] if run is not None else ""
+        code = run.returncode if run is not None else None
+        raise RuntimeError(f"mutmut tested none of the {total} mutants of {core.source} (exit {code}; its clean "
+                           f"run of the tests or the forced-fail check stopped it; --resume with the same "
+                           f"--workdir tries again):\n{tail}")
     detected = counts["killed"] + counts["timeout"] + counts["caught by type check"] + counts["segfault"]
     scored = detected + counts["survived"] + counts["no tests"]
     out = {"core": name, "source": core.source, "tests": list(core.tests),
