@@ -84,6 +84,18 @@ _CLEAN_BATCH = f"/clean/{keys.BATCH}"
 _RAW_BATCH = f"/raw/{keys.BATCH}"
 _FLEET = f"{keys.ROOT}/{keys.FLEET}/"
 _ROW_ENC = None  # msgspec encoder of per-vehicle rows (publish_rows), made on first use
+_ROW_TYPES: dict = {}  # a message's field names -> a msgspec struct encoding its map in that order
+
+
+def _row_type(hdr: tuple):
+    """The struct type whose msgpack is the map ``dict(zip(hdr, values))`` (the same bytes, built without a dict:
+    a third of the time per row at 25,000 rows a second)."""
+    t = _ROW_TYPES.get(hdr)
+    if t is None:
+        import msgspec
+
+        t = _ROW_TYPES[hdr] = msgspec.defstruct("Row", [(h, object) for h in hdr], gc=False)
+    return t
 
 
 def _encoding(key: str) -> Any:
@@ -888,13 +900,13 @@ class Runner:
                         if v is not None:
                             seq[k] = v
                     cache[k] = [self._publisher(k), jslot, self.count_out[k]]
-            hdr = ("type", "version", "vehicle", "t_s", "seq", *names)
+            row = _row_type(("type", "version", "vehicle", "t_s", "seq", *names))
             vals = list(zip(*colv, strict=True))  # each row's field values, in names' order
             for i in rows:
                 k = keys_[i]
                 c = cache[k]
                 s = seq.get(k, -1) + 1
-                m = dict(zip(hdr, (msg_type, ver, vehicles[i], t_s[i], s, *vals[i]), strict=True))
+                m = row(msg_type, ver, vehicles[i], t_s[i], s, *vals[i])
                 if arr is not None and c[1] >= 0:
                     arr[c[1]] = s  # before the put, as _send journals (a kill between never repeats a seq)
                 c[0].put(enc(m))
