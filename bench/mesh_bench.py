@@ -479,9 +479,10 @@ def bench(vehicles: list[int], duration_s: float = 15.0, repeat: int = 1, stages
           p99_ms: float = 100.0, v1_ingest: bool = True, frame_s: float = 0.02, overload: bool = True,
           overload_vehicles: int | None = None, instances: tuple[int, ...] = (1,), warmup_s: float = WARMUP_S
           ) -> dict:
-    """The whole bench. ``warmup_s``: of every paced run (see :func:`run_case`). ``instances``: the scaling table is run once per count, each stage a group of that many
-    members (1: one process per stage); ``scaling`` and ``max_vehicles`` are the first count's, ``by_instances``
-    has every count's. Saturation, the v1 ingest case and the overload run use the first count."""
+    """The whole bench. ``warmup_s``: of every paced run (see :func:`run_case`). ``instances``: the scaling table
+    is run once per count, each stage a group of that many members (1: one process per stage); ``scaling`` and
+    ``max_vehicles`` are the first count's, ``by_instances`` has every count's. Saturation, the v1 ingest case
+    and the overload run use the first count."""
     stages = stages or available_stages()
     tmp = Path(tempfile.mkdtemp(prefix="magmesh-bench-"))
     say = progress or (lambda s: None)
