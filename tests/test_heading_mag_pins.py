@@ -20,6 +20,7 @@ import math
 
 import numpy as np
 import pytest
+from heading_refmaths import qof, rexp, rmat
 from scipy.spatial.transform import Rotation
 
 from magmesh import maths
@@ -31,19 +32,6 @@ ZERO = (0.0, 0.0, 0.0)
 FIELD = np.array([0.0, 20000.0, -40000.0])  # level sensor facing north: |b| = 44,721 nT, dip 63.4°
 DT = 1.0 / 64.0
 ISOLATED = dict(init_duration_s=0.0, adaptive_noise=False, mag_vector_fusion=False, use_field_check=False)
-
-
-def rmat(q) -> np.ndarray:
-    return Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix()
-
-
-def qof(R) -> tuple:
-    x, y, z, w = Rotation.from_matrix(R).as_quat()
-    return (w, x, y, z)
-
-
-def rexp(v) -> np.ndarray:
-    return Rotation.from_rotvec(np.asarray(v, float)).as_matrix()
 
 
 def rz(a: float) -> np.ndarray:
@@ -1117,18 +1105,25 @@ def test_weak_fusion_gate_is_strict():
         assert (g.q != q0) is weak
 
 
-def test_recovering_exit_band_is_inclusive():
-    f = _aligned(**dict(HOLDS, holds_scale_with_outage=False, mag_vector_fusion=False))
-    _run(f, DT, 2.5, dmc=lambda t: t < 2.0)
-    _run(f, 2.5, 3.5 + DT)
-    assert f.mode == "recovering" and f._inside_gate_since_t is None
-    t = 3.5 + 2 * DT
+def _at_the_exit_band_and_just_inside_it(f, t):
+    """Copies of ``f`` stepped at ``t`` with a field 0.02 rad off, ``recovery_exit_rad`` set to exactly the
+    innovation that field gives (inside the band: True) and to the next float below it (outside: False)."""
     m = rz(-0.02) @ FIELD
     nu = abs(_dry_nu(f, m, True, t))
     for band, inside in ((nu, True), (np.nextafter(nu, 0.0), False)):
         g = _copy(f)
         g.settings = core.Settings(**{**g.settings.__dict__, "recovery_exit_rad": band})
         _step(g, t, m, True)
+        yield g, inside
+
+
+def test_recovering_exit_band_is_inclusive():
+    f = _aligned(**dict(HOLDS, holds_scale_with_outage=False, mag_vector_fusion=False))
+    _run(f, DT, 2.5, dmc=lambda t: t < 2.0)
+    _run(f, 2.5, 3.5 + DT)
+    assert f.mode == "recovering" and f._inside_gate_since_t is None
+    t = 3.5 + 2 * DT
+    for g, inside in _at_the_exit_band_and_just_inside_it(f, t):
         assert (g._inside_gate_since_t == t) is inside
 
 
@@ -1137,12 +1132,7 @@ def test_agreement_band_during_the_clear_hold_is_inclusive():
     _run(f, DT, 2.5, dmc=lambda t: t < 2.0)
     assert f.mode == "gyro_only"
     t = 2.5
-    m = rz(-0.02) @ FIELD
-    nu = abs(_dry_nu(f, m, True, t))
-    for band, inside in ((nu, True), (np.nextafter(nu, 0.0), False)):
-        g = _copy(f)
-        g.settings = core.Settings(**{**g.settings.__dict__, "recovery_exit_rad": band})
-        _step(g, t, m, True)
+    for g, inside in _at_the_exit_band_and_just_inside_it(f, t):
         assert g.mode == "gyro_only" and (g._inside_gate_since_t == t) is inside
 
 

@@ -21,6 +21,7 @@ import math
 
 import numpy as np
 import pytest
+from heading_refmaths import cross_mat, qof, rexp, rmat
 from scipy.spatial.transform import Rotation
 
 from magmesh import maths
@@ -29,25 +30,6 @@ from services.heading_fuser import core
 G = maths.G0
 LEVEL = (0.0, 0.0, G)
 FIELD = np.array([0.0, 20000.0, -40000.0])  # level sensor facing north, dip ≈ 63°
-
-
-# ---- independent reference maths (scipy's rotations; quaternions (w, x, y, z), body → ENU) -------------------
-def rmat(q) -> np.ndarray:
-    return Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix()
-
-
-def qof(R) -> tuple:
-    x, y, z, w = Rotation.from_matrix(R).as_quat()
-    return (w, x, y, z)
-
-
-def rexp(v) -> np.ndarray:
-    return Rotation.from_rotvec(np.asarray(v, float)).as_matrix()
-
-
-def cross_mat(v) -> np.ndarray:
-    """[v]× built from the cross product itself."""
-    return np.column_stack([np.cross(v, e) for e in np.eye(3)])
 
 
 def random_state(f: core.HeadingFilter, seed: int) -> None:
