@@ -248,7 +248,7 @@ WARMUP_S = 10.0
 
 def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple[str, ...], tmp: Path,
              wire: str = "v3", window_s: float = 0.05, frame_s: float = 0.02, warmup_s: float | None = None,
-             extra: int = 0, extra_s: float = 0.0, instances: int = 1) -> dict:
+             extra: int = 0, extra_s: float = 0.0, instances: int = 1, sink: str = "frames") -> dict:
     """One run: ``kind`` is "pipeline", "limit" or "ingest" (ingest alone, fleet frames out). ``window_s``: each
     v2 vehicle's batch window; ``frame_s``: ingest's frame window (the pipeline with v2 runs on fleet frames).
     ``warmup_s`` (paced runs; default :data:`WARMUP_S`, 0 at saturation): the fleet publishes that long first —
@@ -258,7 +258,11 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
     vehicles publishes beside the first for the first ``extra_s`` seconds (warm-up included), then stops; the
     result then also holds ``phases``: p99 latency of the samples taken while both fleets ran and of those taken
     in the last half of the time after. ``instances`` (pipeline and ingest runs): each stage runs as a group of
-    that many members sharing the vehicles (CPU and memory summed per stage, losses over every member)."""
+    that many members sharing the vehicles (CPU and memory summed per stage, losses over every member).
+    ``sink`` (pipeline runs on frames): ``"frames"`` counts the DMC's outputs in its fleet frames (``magmesh/fleet/
+    */dmc``), as a fleet-wide consumer takes them; the per-vehicle ``dmc`` keys are then watched by nobody and not
+    put (magmesh/runtime.py ``_Watch``). ``"keys"`` subscribes to every vehicle's ``dmc`` key (``magmesh/*/dmc``):
+    25,000 more messages a second at 500 vehicles, put, routed and decoded."""
     if warmup_s is None:
         warmup_s = 0.0 if max_mode else WARMUP_S
     import zenoh
@@ -284,6 +288,8 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
                 _start_stage(procs, tokens, members, role, [f"services.{role}", "--manifest", str(man)], name,
                              instances, port, tmp / f"{log}.log")
         sink_key = keys.dmc("*")
+        if sink == "frames" and wire in ("v2", "v3"):  # the DMC's fleet frames, as the services beside it take them
+            sink_key, batch_stream = keys.fleet_frames("dmc"), "dmc"
     else:
         procs["relay1"] = _spawn(["-m", "bench.relay", "--from", "raw", "--to", "clean", "--instance", "r1"], port,
                                  tmp / "relay1.log")
@@ -420,9 +426,9 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
 
 
 def _median_case(kind, n, duration_s, max_mode, stages, repeat, tmp, wire="v3", window_s=0.05, frame_s=0.02,
-                 instances=1, warmup_s=None) -> dict:
+                 instances=1, warmup_s=None, sink="frames") -> dict:
     runs = [run_case(kind, n, duration_s, max_mode, stages, tmp, wire, window_s, frame_s, instances=instances,
-                     warmup_s=warmup_s) for _ in range(repeat)]
+                     warmup_s=warmup_s, sink=sink) for _ in range(repeat)]
     out = dict(runs[0])
     for k in ("sustained_samples_s", "published_samples_s", "latency_ms_p50", "latency_ms_p99", "age_ms_p99",
               "startup_p99_ms"):
@@ -434,7 +440,7 @@ def _median_case(kind, n, duration_s, max_mode, stages, repeat, tmp, wire="v3", 
 
 
 def overload_case(n: int, duration_s: float, stages: tuple[str, ...], tmp: Path, wire: str = "v3",
-                  window_s: float = 0.05, frame_s: float = 0.02, p99_ms: float = 100.0) -> dict:
+                  window_s: float = 0.05, frame_s: float = 0.02, p99_ms: float = 100.0, sink: str = "frames") -> dict:
     """Twice ``n`` vehicles (the highest sustained load) for a 5 s warm-up and ``duration_s``, then ``n`` alone
     for ``max(10, 1.5 × duration_s)`` s: every stage must live through it, every sample that never came out must
     be counted by a stage under a reason, and the latency of the samples taken in the last half of the calm must
@@ -442,7 +448,7 @@ def overload_case(n: int, duration_s: float, stages: tuple[str, ...], tmp: Path,
     warm = 5.0
     calm = max(10.0, 1.5 * duration_s)
     r = run_case("pipeline", n, duration_s + calm, False, stages, tmp, wire, window_s, frame_s, warmup_s=warm,
-                 extra=n, extra_s=warm + duration_s)
+                 extra=n, extra_s=warm + duration_s, sink=sink)
     missing = max(0, r["expected_outputs"] - r["outputs"])
     counted = sum(r["drops"].values())
     ph = r.get("phases") or {}
@@ -477,19 +483,20 @@ def _sustained(r: dict, p99_ms: float) -> bool:
 def bench(vehicles: list[int], duration_s: float = 15.0, repeat: int = 1, stages: tuple[str, ...] | None = None,
           limit_vehicles: int | None = None, progress=None, wire: str = "v3", window_s: float = 0.05,
           p99_ms: float = 100.0, v1_ingest: bool = True, frame_s: float = 0.02, overload: bool = True,
-          overload_vehicles: int | None = None, instances: tuple[int, ...] = (1,), warmup_s: float = WARMUP_S
-          ) -> dict:
+          overload_vehicles: int | None = None, instances: tuple[int, ...] = (1,), warmup_s: float = WARMUP_S,
+          sink: str = "frames") -> dict:
     """The whole bench. ``warmup_s``: of every paced run (see :func:`run_case`). ``instances``: the scaling table
     is run once per count, each stage a group of that many members (1: one process per stage); ``scaling`` and
     ``max_vehicles`` are the first count's, ``by_instances`` has every count's. Saturation, the v1 ingest case
-    and the overload run use the first count."""
+    and the overload run use the first count. ``sink``: see :func:`run_case`."""
     stages = stages or available_stages()
     tmp = Path(tempfile.mkdtemp(prefix="magmesh-bench-"))
     say = progress or (lambda s: None)
     # throughput at saturation: the same load, pipeline vs no-processing limit, same run
     n_sat = limit_vehicles or max(10, min(vehicles))
     say(f"saturation: pipeline, {n_sat} vehicles, as fast as possible ({wire})")
-    pipe_max = _median_case("pipeline", n_sat, duration_s, True, stages, repeat, tmp, wire, window_s, frame_s)
+    pipe_max = _median_case("pipeline", n_sat, duration_s, True, stages, repeat, tmp, wire, window_s, frame_s,
+                            sink=sink)
     say(f"saturation: limit (same hops, no processing), {n_sat} vehicles ({wire})")
     lim_max = _median_case("limit", n_sat, duration_s, True, stages, repeat, tmp, wire, window_s, frame_s)
     by_k = {}
@@ -499,7 +506,7 @@ def bench(vehicles: list[int], duration_s: float = 15.0, repeat: int = 1, stages
             say(f"paced at sensor rates: pipeline, {n} vehicles ({wire})"
                 + (f", {k} instance{'s' if k > 1 else ''} per stage" if k > 1 or len(instances) > 1 else ""))
             r = _median_case("pipeline", n, duration_s, False, stages, repeat, tmp, wire, window_s, frame_s,
-                             instances=k, warmup_s=warmup_s)
+                             instances=k, warmup_s=warmup_s, sink=sink)
             r["sustained"] = _sustained(r, p99_ms)
             rows.append(r)
         ok_k = [r["vehicles"] for r in rows if r["sustained"]]
@@ -522,10 +529,11 @@ def bench(vehicles: list[int], duration_s: float = 15.0, repeat: int = 1, stages
     if overload:  # twice the highest sustained load, then back
         n_over = overload_vehicles or (max(ok) if ok else min(vehicles))
         say(f"overload: {2 * n_over} vehicles, then {n_over} ({wire})")
-        over = overload_case(n_over, duration_s, stages, tmp, wire, window_s, frame_s, p99_ms)["overload"]
+        over = overload_case(n_over, duration_s, stages, tmp, wire, window_s, frame_s, p99_ms, sink)["overload"]
     return {
         "stages": list(stages),
         "wire": wire,
+        "sink": sink if wire in ("v2", "v3") else "keys",
         "window_s": window_s,
         "frame_window_s": frame_s,
         "p99_goal_ms": p99_ms,
@@ -557,7 +565,8 @@ def format_text(res: dict) -> str:
     head = ["| vehicles | offered samples/s | published | sustained end to end | p50 ms | p99 ms | warm-up p99 ms "
             "| lost | CPU % per stage | RSS MB | sustained |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     wire = res.get("wire", "v1")
-    lines = [f"stages: {' → '.join(res['stages'])}; wire {wire}"
+    lines = [f"stages: {' → '.join(res['stages'])}; DMC outputs counted on "
+             + ("its fleet frames" if res.get("sink") == "frames" else "every vehicle's dmc key") + f"; wire {wire}"
              + (f" (a batch per vehicle per {res['window_s'] * 1000:g} ms"
                 + (", binary columns)" if wire == "v3" else ")") if wire in ("v2", "v3") else ""),
              f"saturation ({p['vehicles']} vehicles, as fast as possible): pipeline {p['sustained_samples_s']:.0f} "

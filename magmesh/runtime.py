@@ -30,7 +30,7 @@ import threading
 import time
 import tomllib
 import traceback
-from collections import defaultdict
+from collections import defaultdict, deque
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -126,8 +126,11 @@ def _invalid_rows(msg_type: str, cols: dict, t_s: list, n: int) -> bool:
                 if f.required:
                     return True
                 continue
+            if isinstance(c, str):  # one value for every row
+                c = [c]
             if f.kind in ("float", "vec3", "floats", "mat3"):
-                a = np.asarray([math_nan if x is None else x for x in c] if f.nullable else c, float)
+                a = np.asarray([math_nan if x is None else x for x in c] if f.nullable and not isinstance(
+                    c, np.ndarray) else c, float)
                 if f.kind != "float":
                     w = 3 if f.kind == "vec3" else (9 if f.kind == "mat3" else f.length)
                     if a.ndim != 2 or (w is not None and a.shape[1] != w):
@@ -203,6 +206,64 @@ def drop_category(reason: str) -> str:
     if reason.startswith("rejected:"):
         return "rejected"
     return "skipped"
+
+
+WATCH_SETTLE_S = 1.0  # a new per-vehicle publisher puts every row this long, then only while a subscriber matches
+
+
+class _Watch:
+    """Whether any subscriber matches a per-vehicle output key, kept current by Zenoh's matching listener.
+
+    A fleet's per-vehicle outputs (``dmc``, ``heading``: one message per vehicle per sample) are for whoever
+    watches that vehicle; the services that take them all read the fleet frames. A row of a key no subscriber
+    matches is numbered and journaled as always, but neither built nor put (a put Zenoh would route nowhere still
+    costs the encoding and the call): at 500 vehicles those are 25,000 puts a second. A subscriber that comes
+    flips ``on`` within milliseconds (the listener's callback) and receives from then on; its first message
+    carries the key's seq where it stands, so it sees no gap. A new publisher's matching status is not known at
+    once (a client learns it from its router a moment later), so a key is put for its first
+    :data:`WATCH_SETTLE_S` whatever the status says, then follows it (:meth:`settle`). A publisher without
+    matching support (a test double) counts as watched."""
+
+    __slots__ = ("on", "_pub", "_listener", "_calls")
+
+    def __init__(self, pub: Any):
+        self.on = True
+        self._pub = None
+        self._listener = None
+        self._calls = 0
+        declare = getattr(pub, "declare_matching_listener", None)
+        if declare is None:
+            return
+        try:
+            self._listener = declare(self._set)
+            self._pub = pub
+        except Exception:  # noqa: BLE001 - an advanced publisher or a closing session: always put
+            self._listener = None
+
+    def settle(self) -> None:
+        """From now on follow the matching status (called :data:`WATCH_SETTLE_S` after the publisher came)."""
+        if self._pub is None:
+            return
+        calls = self._calls
+        try:
+            now = bool(self._pub.matching_status.matching)
+        except Exception:  # noqa: BLE001 - a closing session
+            return
+        if self._calls == calls:  # (a callback since the read has the newer state)
+            self.on = now
+
+    def _set(self, status: Any) -> None:  # (a Zenoh thread)
+        self._calls += 1
+        self.on = bool(status.matching)
+
+    def close(self) -> None:
+        self._pub = None
+        if self._listener is not None:
+            try:
+                self._listener.undeclare()
+            except Exception:  # noqa: BLE001 - a closing session
+                pass
+            self._listener = None
 
 
 class Service:
@@ -591,7 +652,10 @@ class Runner:
         self.frames_missed = 0  # frames whose seq never arrived (their samples show as per-stream seq gaps)
         self.frame_seq_in: dict[str, int] = {}
         self._ofkeys: dict[tuple[str, str, str], tuple] = {}  # output frame rows: per (kind, name) keys and slots
-        self._row_cache: dict[str, list] = {}  # publish_rows: key -> [publisher, journal slot, out counter]
+        # publish_rows: key -> [publisher, journal slot, out counter, _Watch (whether any subscriber matches the key)]
+        self._row_cache: dict[str, list] = {}
+        self.unwatched: dict[str, int] = defaultdict(int)  # rows numbered but not put: no subscriber (per type)
+        self._unsettled: deque = deque()  # (when, _Watch) of new publishers whose matching status is not known yet
         self._raw_batch_keys: dict[str, KeyInfo] = {}  # raw/batch keys already checked (a service taking them)
         self.mirrors: dict[str, str] = {}  # message type -> frame kind its rows are mirrored in (publish_rows)
         service._rt = self
@@ -856,15 +920,25 @@ class Runner:
         out = [-1] * n
         if not n:
             return out
+        uns = self._unsettled
+        if uns and uns[0][0] <= time.monotonic():
+            now = time.monotonic()
+            while uns and uns[0][0] <= now:
+                uns.popleft()[1].settle()
         if mirror:
             self.mirrors[msg_type] = mirror
         names = list(cols)
         given, t_given = cols, t_s  # (numpy columns stay as they are for the mirrored frame)
-        colv = [c.tolist() if isinstance(c, np.ndarray) else ([c] * n if isinstance(c, str) else c)
-                for c in (cols[f] for f in names)]
-        t_s = t_s.tolist() if isinstance(t_s, np.ndarray) else t_s
-        cols = dict(zip(names, colv, strict=True))
         bad = _invalid_rows(msg_type, cols, t_s, n)
+        t_s = t_s.tolist() if isinstance(t_s, np.ndarray) else t_s
+        colv: list = []
+
+        def lists() -> list:  # the columns as lists, made when a row is built (not for unwatched keys)
+            if not colv:
+                colv.extend(c.tolist() if isinstance(c, np.ndarray) else ([c] * n if isinstance(c, str) else c)
+                            for c in (given[f] for f in names))
+            return colv
+
         rows = range(n)
         if self.reconcile_pending or bad:
             slow, rows = list(range(n)), ()
@@ -877,7 +951,7 @@ class Runner:
             slow = []
         for i in slow:
             m = self.publish(keys_[i], msg_type, vehicles[i], float(t_s[i]),
-                             {f: c[i] for f, c in zip(names, colv, strict=True)})
+                             {f: c[i] for f, c in zip(names, lists(), strict=True)})
             if m is not None:
                 out[i] = m["seq"]
         if rows:
@@ -899,21 +973,29 @@ class Runner:
                         self.seq.free_slot(k)
                         if v is not None:
                             seq[k] = v
-                    cache[k] = [self._publisher(k), jslot, self.count_out[k]]
+                    pub = self._publisher(k)
+                    w = _Watch(pub)
+                    cache[k] = [pub, jslot, self.count_out[k], w]
+                    self._unsettled.append((time.monotonic() + WATCH_SETTLE_S, w))
             row = _row_type(("type", "version", "vehicle", "t_s", "seq", *names))
-            vals = list(zip(*colv, strict=True))  # each row's field values, in names' order
+            vals = list(zip(*lists(), strict=True)) if any(cache[keys_[i]][3].on for i in rows) else ()
+            skipped = 0
             for i in rows:
                 k = keys_[i]
                 c = cache[k]
                 s = seq.get(k, -1) + 1
-                m = row(msg_type, ver, vehicles[i], t_s[i], s, *vals[i])
                 if arr is not None and c[1] >= 0:
                     arr[c[1]] = s  # before the put, as _send journals (a kill between never repeats a seq)
-                c[0].put(enc(m))
+                if c[3].on:
+                    c[0].put(enc(row(msg_type, ver, vehicles[i], t_s[i], s, *vals[i])))
+                else:  # nobody subscribes to this vehicle's key now: numbered, not built or put (see _Watch)
+                    skipped += 1
                 seq[k] = s
                 c[2].n += 1
                 out[i] = s
             self.n_sent += len(rows)
+            if skipped:
+                self.unwatched[msg_type] += skipped
             if j is not None:
                 j.sent(self.n_sent)
         if mirror:
@@ -1894,7 +1976,9 @@ class Runner:
             if since >= cutoff or self._protected(k):
                 continue
             pub = self.publishers.pop(k, None)
-            self._row_cache.pop(k, None)
+            rc = self._row_cache.pop(k, None)
+            if rc is not None:
+                rc[3].close()
             if pub is not None and hasattr(pub, "undeclare"):
                 try:
                     pub.undeclare()
@@ -1969,6 +2053,9 @@ class Runner:
                 "frames_out": self.frames_out,
                 "frames_missed": self.frames_missed,
                 "out_total": sum(c.n for c in list(self.count_out.values())) + self.evicted_out,
+                # per-vehicle rows numbered (in out) but not put while no subscriber matched their key: skipped by
+                # design, nothing lost (a subscriber that comes sees the key's seq from where it stands)
+                "out_unwatched": dict(self.unwatched),
                 "rejects": self.rejects_total,
                 "drops": {k: dict(v) for k, v in _top(self.drops, _sum)},
                 "drops_total": sum(sum(v.values()) for v in list(self.drops.values())) + sum(self.evicted_drops.values()),

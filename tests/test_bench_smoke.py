@@ -9,10 +9,13 @@ pytestmark = pytest.mark.mesh
 
 # the v1 wire's whole bench is in the slow suite (48 s here); the v2 case runs v1 single-sample vehicles through
 # ingest too, and the default suite's mesh tests carry v1 clients end to end
-@pytest.mark.parametrize("wire", ["v2", pytest.param("v1", marks=pytest.mark.slow)])
-def test_bench_mesh_smoke(wire):
+# (the DMC's outputs counted on its fleet frames, the default, and on every vehicle's dmc key)
+@pytest.mark.parametrize("wire,sink", [("v2", "frames"), pytest.param("v2", "keys", marks=pytest.mark.slow),
+                                       pytest.param("v1", "keys", marks=pytest.mark.slow)])
+def test_bench_mesh_smoke(wire, sink):
     res = bench([2], duration_s=2.0, repeat=1, stages=("ingest", "dmc_detector"), limit_vehicles=2, wire=wire,
-                v1_ingest=wire == "v2", warmup_s=3.0)
+                v1_ingest=wire == "v2" and sink == "frames", warmup_s=3.0, sink=sink, overload=sink == "frames")
+    assert res["sink"] == sink
     row = res["scaling"][0]
     assert row["lost"] == 0, row
     assert row["outputs"] >= 0.99 * row["expected_outputs"] > 0
@@ -20,7 +23,7 @@ def test_bench_mesh_smoke(wire):
     assert set(row["cpu_pct"]) >= {"ingest", "dmc_detector", "fleet"}
     assert row["wire"] == wire
     assert row["startup_p99_ms"] is not None and row["startup_p99_ms"] > 0  # the warm-up's latency, apart
-    if wire == "v2":  # v1 single-sample vehicles through one ingest, clean batches counted sample by sample
+    if wire == "v2" and sink == "frames":  # v1 single-sample vehicles through one ingest, clean batches counted sample by sample
         lim = res["saturation"]["limit"]
         # the limit relays the same batches as fast as the relays go: on a loaded machine some are shed (Zenoh's
         # dropping congestion control; seen: 27,377 of 31,044 at load 15), and what did not come out is lost

@@ -41,6 +41,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--instances", default="1",
                    help="comma-separated counts of instances per stage: the scaling table once per count, each stage "
                         "a group of that many members sharing the vehicles (e.g. 1,2; default 1)")
+    m.add_argument("--sink", choices=("frames", "keys"), default="frames",
+                   help="where the bench counts the DMC's outputs (v2/v3): frames (default) — its fleet frames, as "
+                        "a fleet-wide consumer takes them, the per-vehicle dmc keys then watched by nobody and not "
+                        "put; keys — every vehicle's dmc key (magmesh/*/dmc), one message per vehicle per epoch")
     m.add_argument("--json", action="store_true")
     m.set_defaults(func=run_mesh)
     c = bsub.add_parser("cores", help="each pure core against its Python peer on the same input")
@@ -79,7 +83,7 @@ def run_mesh(args: argparse.Namespace) -> int:
                     progress=lambda s: print(s, file=sys.stderr, flush=True), wire=args.wire, window_s=args.window,
                     frame_s=args.frame_window, p99_ms=args.p99_ms, v1_ingest=not args.no_v1_ingest,
                     overload=not args.no_overload, overload_vehicles=args.overload_vehicles, instances=instances,
-                    warmup_s=args.warmup)
+                    warmup_s=args.warmup, sink=args.sink)
     except RuntimeError as e:  # a run whose stages did not come up or whose groups did not form
         print(f"magmesh bench mesh: the run stopped: {e}. The stages' logs are in that directory; a stage that "
               "did not come up within 30 s usually failed at start (its log says why) or the machine was too busy "
