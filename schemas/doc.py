@@ -123,8 +123,9 @@ def render() -> str:
 `magmesh/svc/{role}/{instance}/status` answers a msgpack map: `role`, `impl`, `instance`, `pid`, `host`,
 `magmesh_version`, `uptime_s`, `rss_kb` (resident memory), `py_heap_blocks` (`sys.getallocatedblocks()`: grows
 with a leak of Python objects), `vehicle_pattern`, `vehicles`, `consumes`, `produces`, `in` and `out`
-(`{key: {n, rate_hz}}`), `rejects`, `drops` (`{key: {reason: n}}`), `drops_total`, `queue_depth`,
-`last_error`, `settings`, `alarms_raised`, `mode` (active, standby, retiring, retired), `holds_role`,
+(`{key: {n, rate_hz}}`; `out` counts every output numbered), `out_unwatched` (`{type: n}`: per-vehicle rows
+numbered but not put while no subscriber matched their key — skipped by design), `rejects`, `drops`
+(`{key: {reason: n}}`), `drops_total`, `queue_depth`, `last_error`, `settings`, `alarms_raised`, `mode` (active, standby, retiring, retired), `holds_role`,
 `suppressed`, plus service-specific entries.
 """)
     return "".join(out)
