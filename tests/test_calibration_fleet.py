@@ -404,7 +404,7 @@ def test_service_frames_and_single_samples_give_the_same_outputs(tmp_path, monke
     r1, s1 = _service(tmp_path / "1", "cal-1")
     seqs: dict[str, int] = {}
     for fr in frames:  # singles, each vehicle's in its own order
-        for vi, t, j, sname, f in sorted((vi, t, STREAMS.index(sn), sn, f) for sn in STREAMS for vi, t, f in fr[sn]):
+        for vi, t, _j, sname, f in sorted((vi, t, STREAMS.index(sn), sn, f) for sn in STREAMS for vi, t, f in fr[sn]):
             key = _stream_key(vehicles[vi], sname)
             seqs[key] = seqs.get(key, -1) + 1
             mt = "mag" if sname.startswith("mag") else sname

@@ -240,7 +240,7 @@ def test_journal_open_beside_receive_threads_loses_no_key_and_keeps_its_layout(t
         go, opened = threading.Event(), threading.Event()
         after_open: list[list[str]] = [[] for _ in range(3)]
 
-        def hammer(n: int, seen: list[str]) -> None:
+        def hammer(n: int, seen: list[str], j=j, go=go, opened=opened) -> None:
             go.wait()
             for i in range(300):
                 was_open = opened.is_set()

@@ -937,8 +937,10 @@ def _grow_ring(arr: np.ndarray, head: np.ndarray, n: np.ndarray) -> np.ndarray:
 class FleetCalibration:
     """The calibration service's per-sample logic over many vehicles and sensors (see the module's description)."""
 
-    def __init__(self, settings: CalibrationSettings = CalibrationSettings(), online: OnlineSettings = OnlineSettings(),
+    def __init__(self, settings: CalibrationSettings | None = None, online: OnlineSettings | None = None,
                  fit_budget_frac: float = 0.0, capacity: int = 16, wall=time.monotonic, cpu=time.thread_time):
+        settings = CalibrationSettings() if settings is None else settings
+        online = OnlineSettings() if online is None else online
         if online.ekf.estimate_mount_yaw:
             raise ValueError("the fleet form runs the 3-state EKF only (estimate_mount_yaw = False)")
         if not fit_budget_frac >= 0:
