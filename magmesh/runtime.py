@@ -978,7 +978,7 @@ class Runner:
                     cache[k] = [pub, jslot, self.count_out[k], w]
                     self._unsettled.append((time.monotonic() + WATCH_SETTLE_S, w))
             row = _row_type(("type", "version", "vehicle", "t_s", "seq", *names))
-            vals = list(zip(*lists(), strict=True)) if any(cache[keys_[i]][3].on for i in rows) else ()
+            vals = None  # each row's field values, in names' order: made at the first row built
             skipped = 0
             for i in rows:
                 k = keys_[i]
@@ -987,6 +987,8 @@ class Runner:
                 if arr is not None and c[1] >= 0:
                     arr[c[1]] = s  # before the put, as _send journals (a kill between never repeats a seq)
                 if c[3].on:
+                    if vals is None:
+                        vals = list(zip(*lists(), strict=True))
                     c[0].put(enc(row(msg_type, ver, vehicles[i], t_s[i], s, *vals[i])))
                 else:  # nobody subscribes to this vehicle's key now: numbered, not built or put (see _Watch)
                     skipped += 1

@@ -246,10 +246,14 @@ def _col(v: Any, f, n: int, sname: str, where: str) -> Any:
 
 
 @lru_cache(maxsize=64)
-def _checked_vehicles(names: tuple) -> tuple:
+def _checked_vehicles(names: tuple) -> list:
+    """The vehicle list of a frame, checked once, and one list object for every frame that carries the same
+    vehicles: a service keys what it gathers per vehicle list by the list itself (magmesh/runtime.py
+    ``_frame_times``, ``_stream_keys``), so frames of one shard share its state instead of starting anew each
+    time. (Never mutated by a reader.)"""
     for v in names:
         keys.check_vehicle(v)
-    return names
+    return list(names)
 
 
 def decode(payload: bytes, where: str = "") -> Frame:
@@ -280,7 +284,7 @@ def decode(payload: bytes, where: str = "") -> Frame:
     if type(vehicles) is not list or len(vehicles) > MAX_VEHICLES or any(type(v) is not str for v in vehicles):
         raise _bad("vehicles", f"must be a list of at most {MAX_VEHICLES} vehicle ids", where)
     try:
-        _checked_vehicles(tuple(vehicles))
+        vehicles = _checked_vehicles(tuple(vehicles))
     except keys.KeyError_ as e:
         raise _bad("vehicles", str(e), where) from None
     body = m.get("streams")
