@@ -288,7 +288,7 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
                 _start_stage(procs, tokens, members, role, [f"services.{role}", "--manifest", str(man)], name,
                              instances, port, tmp / f"{log}.log")
         sink_key = keys.dmc("*")
-        if sink == "frames" and wire in ("v2", "v3"):  # the DMC's fleet frames, as the services beside it take them
+        if _sink(sink, wire) == "frames":  # the DMC's fleet frames, as the services beside it take them
             sink_key, batch_stream = keys.fleet_frames("dmc"), "dmc"
     else:
         procs["relay1"] = _spawn(["-m", "bench.relay", "--from", "raw", "--to", "clean", "--instance", "r1"], port,
@@ -425,6 +425,11 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         router.close()
 
 
+def _sink(sink: str, wire: str) -> str:
+    """Where a run counts the DMC's outputs: v1 runs have no fleet frames, so always on the per-vehicle keys."""
+    return sink if wire in ("v2", "v3") else "keys"
+
+
 def _median_case(kind, n, duration_s, max_mode, stages, repeat, tmp, wire="v3", window_s=0.05, frame_s=0.02,
                  instances=1, warmup_s=None, sink="frames") -> dict:
     runs = [run_case(kind, n, duration_s, max_mode, stages, tmp, wire, window_s, frame_s, instances=instances,
@@ -533,7 +538,7 @@ def bench(vehicles: list[int], duration_s: float = 15.0, repeat: int = 1, stages
     return {
         "stages": list(stages),
         "wire": wire,
-        "sink": sink if wire in ("v2", "v3") else "keys",
+        "sink": _sink(sink, wire),
         "window_s": window_s,
         "frame_window_s": frame_s,
         "p99_goal_ms": p99_ms,

@@ -125,8 +125,8 @@ def render() -> str:
 with a leak of Python objects), `vehicle_pattern`, `vehicles`, `consumes`, `produces`, `in` and `out`
 (`{key: {n, rate_hz}}`; `out` counts every output numbered), `out_unwatched` (`{type: n}`: per-vehicle rows
 numbered but not put while no subscriber matched their key — skipped by design), `rejects`, `drops`
-(`{key: {reason: n}}`), `drops_total`, `queue_depth`, `last_error`, `settings`, `alarms_raised`, `mode` (active, standby, retiring, retired), `holds_role`,
-`suppressed`, plus service-specific entries.
+(`{key: {reason: n}}`), `drops_total`, `queue_depth`, `last_error`, `settings`, `alarms_raised`, `mode`
+(active, standby, retiring, retired), `holds_role`, `suppressed`, plus service-specific entries.
 """)
     return "".join(out)
 

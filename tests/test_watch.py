@@ -6,11 +6,12 @@ matching status through a router, and a publisher's first second (its status not
 import time
 
 import msgpack
+from meshutil import free_port, open_client, open_router
+from test_frames_runtime import _dmc_cols as _cols
 
 from magmesh import runtime
 from magmesh.runtime import Runner, Service, _Watch
 from schemas import keys
-from tests.meshutil import free_port, open_client, open_router
 
 
 class _Status:
@@ -55,12 +56,6 @@ class _Session:
 class _Svc(Service):
     role = "watch_test"
     impl = "t"
-
-
-def _cols(n):
-    return {"dm_nt": [[1.0, 2.0]] * n, "ddm_nt_s": [[0.0, 0.0]] * n, "dh_rad": [0.01] * n, "ddh_rad_s": [0.0] * n,
-            "heading_rad": [1.0] * n, "stage1_pass": [True] * n, "credibility": [1.0] * n, "valid": [True] * n,
-            "impl": "threshold", "param_source": ["manifest"] * n}
 
 
 def _rows(r, t0, n=2):
