@@ -368,6 +368,62 @@ def _decode_binary(payload: bytes, where: str, arrays: bool, deferred: bool = Fa
     return out
 
 
+#: the streams the fast binary decoder (:func:`fast_binary`) knows by name: a vehicle's usual ones. A batch
+#: naming another (a third magnetometer) goes through :func:`decode`, with the same decisions
+FAST_STREAMS = ("mag/1", "mag/2", "imu", "gnss", "ins", "route", "attitude")
+
+
+def looks_binary(payload: bytes) -> bool:
+    """Whether ``payload`` says it is a binary batch (version 3) near its start, as :func:`decode` tells them."""
+    return len(payload) > 24 and payload.find(b"\xa7version\x03", 0, 64) >= 0
+
+
+@cache
+def fast_binary() -> tuple[msgspec.msgpack.Decoder, tuple]:
+    """A typed decoder of the binary batches of the usual layout, checked in compiled code: streams among
+    :data:`FAST_STREAMS`, every number column as little-endian bytes, every string column one string or a list
+    of strings (of its choices), required fields present, no field unknown. Anything else fails it (and goes
+    through :func:`decode`). What a type cannot say is left to the caller, as :func:`decode` checks it: each
+    column's byte length against ``n``, a magnetometer's sensor against its stream's name, and the values (by
+    :func:`binary_problems`, as for any binary batch).
+
+    Returns the decoder and, per stream field of its ``streams`` struct in order, ``(stream name, message type,
+    ((field, bytes per row, or −1 for a string), ...))``."""
+    from .streams import Finite
+
+    specs, fields_ = [], []
+    for sname in FAST_STREAMS:
+        st = stream_type(sname)
+        cols, lay = [], []
+        for f in MESSAGES[st].fields:
+            _, dt, w = _binary_spec(st)[f.name]
+            if dt is not None:
+                t, rb = bytes, w * (1 if dt == "u1" else 8)
+            else:  # (the table's other kinds have no binary layout; none is in these streams)
+                assert f.kind == "str", f"{st}.{f.name}: a kind the fast decoder does not lay out"
+                one = Literal[f.choices] if f.choices else Annotated[str, msgspec.Meta(max_length=MAX_STR)]
+                t, rb = Union[one, Annotated[list[one], msgspec.Meta(max_length=MAX_SAMPLES)]], -1  # noqa: UP007
+            cols.append((f.name, t) if f.required else (f.name, Union[t, msgspec.UnsetType], msgspec.UNSET))  # noqa: UP007
+            lay.append((f.name, rb))
+        cols.sort(key=len)  # (required fields first, as a struct needs)
+        order = [c[0] for c in cols]
+        lay.sort(key=lambda x: order.index(x[0]))
+        cols_t = msgspec.defstruct(f"fast3_{st}_cols", cols, forbid_unknown_fields=True)
+        stream_t = msgspec.defstruct(f"fast3_{st}_stream", [
+            ("n", Annotated[int, msgspec.Meta(ge=0, le=MAX_SAMPLES)]), ("t_s", bytes), ("seq", bytes),
+            ("cols", cols_t)], forbid_unknown_fields=True)
+        attr = sname.replace("/", "_")
+        fields_.append((attr, Union[stream_t, msgspec.UnsetType], msgspec.UNSET))  # noqa: UP007
+        specs.append((sname, st, tuple(lay)))
+    streams_t = msgspec.defstruct("fast3_streams", fields_, forbid_unknown_fields=True,
+                                  rename={a: n for (a, _, _), n in zip(fields_, FAST_STREAMS, strict=True)})
+    env = msgspec.defstruct("fast3_envelope", [
+        ("type", Literal["batch"]), ("version", Literal[BINARY_VERSION]),
+        ("vehicle", Annotated[str, msgspec.Meta(max_length=MAX_STR)]), ("t_s", Finite),
+        ("seq", Annotated[int, msgspec.Meta(ge=0)]), ("streams", streams_t)])
+    return msgspec.msgpack.Decoder(env), tuple(specs)
+
+
 def binary_problems(msg_type: str, t_s: np.ndarray, seq: np.ndarray, cols: dict[str, np.ndarray]
                     ) -> list[tuple[str, np.ndarray, str]]:
     """The value checks of a binary batch's columns, on any number of rows at once: ``[(field, bad rows,

@@ -132,3 +132,104 @@ def test_frame_rows_sorted_by_vehicle_and_numbered_per_key(tmp_path, monkeypatch
     assert [m.get("temp_c") for m in msgs] == [20.0, 21.0, 22.0, None] and "temp_c" not in msgs[3]
     assert math.isnan(st.cols["temp_c"][6])
     assert r.tick_period() == pytest.approx(0.01)
+
+
+def _plain(a: np.ndarray) -> list:
+    """A column as a list that compares equal when the arrays are equal, NaN included."""
+    return [repr(x) for x in a.tolist()]
+
+
+def _tamper(payload: bytes, fn) -> bytes:
+    m = msgpack.unpackb(payload)
+    fn(m)
+    return msgpack.packb(m)
+
+
+def _binary_inputs(seed: int):
+    """Binary batches of four vehicles, most of the usual layout, some not (another magnetometer, an unknown field,
+    a string column per row, an optional column on some batches only) and some wrong (a short column, the key's
+    vehicle not the payload's, a NaN, another sensor's name, garbage), with v1 singles and v2 batches of the same streams between them."""
+    rng = np.random.default_rng(seed)
+    out = []
+    seqs: dict[str, int] = {}
+    for w in range(12):
+        for v in ("car-1", "car-2", "bus-7", "van-3"):
+            t0 = 10.0 + w * 0.06
+            tm, ti = t0 + np.array([0.0, 0.02, 0.04]), t0 + np.arange(6) * 0.01
+            sm, si = np.arange(3 * w, 3 * w + 3), np.arange(6 * w, 6 * w + 6)
+            b = np.array([2e4, 1e3, -4e4]) + rng.normal(0, 50, (3, 3))
+            st = {"mag/1": {"t_s": tm, "seq": sm, "cols": {"sensor": "1", "b_nt": b}},
+                  "mag/2": {"t_s": tm, "seq": sm, "cols": {"sensor": "2", "b_nt": b + 10}},
+                  "imu": {"t_s": ti, "seq": si, "cols": {"gyro_rad_s": rng.normal(0, 0.1, (6, 3)),
+                                                         "accel_m_s2": np.tile([0.0, 0.0, 9.8], (6, 1))}}}
+            u = rng.random()
+            if u < 0.3:
+                st["gnss"] = {"t_s": tm[:1], "seq": [w], "cols": {
+                    "lat_deg": [48.1], "lon_deg": [11.5], "alt_m": [500.0], "vel_enu_m_s": [[1.0, 2.0, 0.0]],
+                    "course_rad": [0.4], "speed_m_s": [2.2], "fix_type": "3d" if u < 0.15 else ["rtk_fixed"],
+                    "num_sats": [9], "pdop": [1.4]}}
+            elif u < 0.4:
+                st["mag/1"]["cols"]["temp_c"] = [21.0, 21.5, 22.0]  # an optional column on some batches
+            elif u < 0.45:
+                st["mag/3"] = {"t_s": tm, "seq": sm, "cols": {"sensor": "3", "b_nt": b}}  # not a usual stream
+            elif u < 0.5:
+                st["imu"]["cols"]["gyro_rad_s"][2, 1] = np.nan
+            p = batch.encode(v, seqs.get(v, 0), st, binary=True)
+            seqs[v] = seqs.get(v, 0) + 1
+            u = rng.random()
+            if u < 0.04:
+                p = _tamper(p, lambda m: m["streams"]["mag/2"]["cols"].update(b_nt=m["streams"]["mag/2"]["cols"]["b_nt"][:-8]))
+            elif u < 0.08:
+                p = _tamper(p, lambda m: m.update(vehicle="someone-else"))
+            elif u < 0.12:
+                p = _tamper(p, lambda m: m["streams"]["imu"]["cols"].update(new_field=b"\x00" * 48))
+            elif u < 0.14:
+                p = p[:40]
+            elif u < 0.18:
+                p = _tamper(p, lambda m: m["streams"]["mag/1"]["cols"].update(sensor=["1", "1", "1"]))
+            elif u < 0.21:
+                p = _tamper(p, lambda m: m["streams"]["mag/2"]["cols"].update(sensor="1"))  # not its stream's
+            out.append((keys.raw_batch(v), p))
+            if rng.random() < 0.15:  # a v1 single of the same stream, later than the batch
+                out.append((keys.raw_mag(v, "1"), messages.encode(messages.make(
+                    "mag", v, float(tm[-1]) + 0.01, 10_000 + w, sensor="1", b_nt=b[0].tolist()), check=False)))
+            if rng.random() < 0.1:  # and a v2 batch of list columns
+                out.append((keys.raw_batch(v), batch.encode(v, seqs[v], {"imu": {
+                    "t_s": ti + 0.005, "seq": si + 50_000, "cols": {"gyro_rad_s": np.zeros((6, 3)),
+                                                                   "accel_m_s2": np.tile([0.0, 0.0, 9.8], (6, 1))}}})))
+                seqs[v] += 1
+    return out
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_binary_batches_kept_whole_then_joined_decide_as_one_by_one(tmp_path, monkeypatch, seed):
+    """Binary batches are kept as they come and decoded with their window (framing.py _settle): the frames, the
+    refusals with their sentences and the counts are those of decoding each batch on arrival (the general path)."""
+    from services.ingest import framing
+
+    inputs = _binary_inputs(seed)
+    runs = {}
+    for name, fast in (("arrival", False), ("window", True)):
+        r, s = _ingest(tmp_path, monkeypatch, name, output="frames", batch_window_s=0.05)
+        with monkeypatch.context() as m:
+            if not fast:
+                m.setattr(framing.batches, "looks_binary", lambda p: False)
+            for i, (k, p) in enumerate(inputs):
+                r.handle_sample(k, p)
+                if i % 5 == 4:
+                    r.svc.frame_flush(force=True)
+            r.svc.frame_flush(force=True)
+        frames = []
+        for k, p in s.out:
+            if k == keys.fleet_frame("ing-t", "clean"):
+                f = frame.decode(p)
+                frames.append({n: (st.n, [f.vehicles[int(i)] for i in st.vi], st.t_s.tolist(), st.seq.tolist(),
+                                   {c: (_plain(v) if isinstance(v, np.ndarray) else v) for c, v in st.cols.items()})
+                               for n, st in f.streams.items()})
+        rej = [(k, msgpack.unpackb(p)["code"], msgpack.unpackb(p)["reason"]) for k, p in s.out if k.endswith("/rejects")]
+        runs[name] = (frames, rej, {k: dict(d) for k, d in r.drops.items()}, {k: c.n for k, c in r.count_in.items()})
+    (f1, rej1, d1, c1), (f2, rej2, d2, c2) = runs["arrival"], runs["window"]
+    assert len(f1) >= 10 and sum(len(x) for x in f1) > 30, len(f1)
+    assert f2 == f1
+    assert rej2 == rej1 and {c for _, c, _ in rej1} >= {"schema", "key"}
+    assert d2 == d1 and c2 == c1

@@ -78,6 +78,9 @@ class BatchingIngest:
         key = info.key
         self._rt.batches_in += 1
         frames = self.frame_output
+        if frames and batches.looks_binary(payload):  # decoded with its window's others (framing.py)
+            self.frame_raw(key, info, payload)
+            return
         b = self._rt.decode_batch(key, info, payload, check=True, deferred=frames)
         if b is None:
             return

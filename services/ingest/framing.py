@@ -18,6 +18,7 @@ import math
 import time
 from typing import Any
 
+import msgspec
 import numpy as np
 
 from schemas import batch as batches
@@ -28,6 +29,8 @@ from . import fleet
 
 #: a window holding this many rows is decided and published at once
 FLUSH_ROWS = 200_000
+#: or this many bytes of binary batches not yet decoded (:meth:`FramingIngest.frame_raw`)
+FLUSH_RAW_BYTES = 16 * 1024 * 1024
 
 
 class _Acc:
@@ -52,6 +55,64 @@ class _Acc:
         self.n = 0
         self.fields = {f.name: f for f in MESSAGES[msg_type].fields}
         self.shared: dict[str, str | None] = {}  # a str field's one value over every row so far (None: they differ)
+
+    def add_run(self, run: list[tuple], lay: tuple, rows: list[tuple]) -> int:
+        """Binary inputs of the fast layout (:func:`schemas.batch.fast_binary`), in their order of arrival:
+        ``(vehicle index, slot, rows, receive time, batch, stream struct)`` each, ``rows`` their columns as
+        :func:`_run_rows` checked them. Adds the rows :meth:`add` would add one by one, each column's bytes
+        joined at once. Returns the rows added."""
+        vis, slots, ns, nows, bids, ss = zip(*run, strict=True)
+        self.p_vi.extend(vis)
+        self.p_slot.extend(slots)
+        self.p_n.extend(ns)
+        self.p_now.extend(nows)
+        self.p_bid.extend(bids)
+        n0 = self.n
+        total = sum(ns)
+        self.n = n0 + total
+        self.binary = True
+        self.t.append(b"".join([s.t_s for s in ss]))
+        self.seq.append(b"".join([s.seq for s in ss]))
+        unset = msgspec.UNSET
+        mine = self.cols
+        shared = self.shared
+        for k, (name, rb) in enumerate(lay):
+            vals = [r[k] for r in rows]
+            parts = mine.get(name)
+            if parts is None:
+                if vals.count(unset) == len(vals):
+                    continue  # no row has it, nor had any before: no column
+                f = self.fields[name]
+                parts = mine[name] = [(_blank(f), n0)] if n0 else []
+                if f.kind == "str":
+                    v0 = vals[0]
+                    shared[name] = None if n0 else v0 if type(v0) is str else None
+            if rb > 0 and unset not in vals:  # every input's bytes
+                parts.append(b"".join(vals))
+                continue
+            v0 = vals[0]
+            if type(v0) is str and vals.count(v0) == len(vals):  # one string for the whole run
+                if name in shared and shared[name] != v0:
+                    shared[name] = None
+                parts.append((v0, total))
+                continue
+            for v, n in zip(vals, ns, strict=True):  # input by input, as add() does
+                tv = type(v)
+                if v is unset:
+                    parts.append((_blank(self.fields[name]), n))
+                    if name in shared:
+                        shared[name] = None
+                elif tv is bytes:
+                    parts.append(v)
+                elif tv is str:
+                    if name in shared and shared[name] != v:
+                        shared[name] = None
+                    parts.append((v, n))
+                else:
+                    if name in shared:
+                        shared[name] = None
+                    _extend(parts, v)
+        return total
 
     def add(self, vi: int, slot: int, t: Any, seq: Any, cols: dict, now: float, n: int, bid: int) -> None:
         """One input's rows: ``t``/``seq`` and the columns as lists (v1, v2) or bytes (a binary batch); a
@@ -135,6 +196,39 @@ class _Acc:
         return _flat(parts)
 
 
+def _run_rows(run: list[tuple], spec: tuple) -> list[tuple] | None:
+    """The columns of each input of a stream's run (``(…, rows, …, stream struct)`` each; ``spec``: the stream's
+    ``(name, message type, layout)`` in :func:`schemas.batch.fast_binary`), or None when some input's byte
+    lengths do not hold its ``n`` rows or a magnetometer's sensor is not its stream's — the checks
+    :func:`schemas.batch.decode` makes, on the whole run at once."""
+    ns = [x[2] for x in run]
+    ss = [x[5] for x in run]
+    want = {8: [8 * n for n in ns]}
+    if [len(s.t_s) for s in ss] != want[8] or [len(s.seq) for s in ss] != want[8]:
+        return None
+    astuple = msgspec.structs.astuple
+    rows = [astuple(s.cols) for s in ss]
+    unset = msgspec.UNSET
+    sname, _, lay = spec
+    for k, (name, rb) in enumerate(lay):
+        vals = [r[k] for r in rows]
+        if rb > 0:
+            w = want.get(rb)
+            if w is None:
+                w = want[rb] = [rb * n for n in ns]
+            if unset in vals:
+                lens = [len(v) if v is not unset else m for v, m in zip(vals, w, strict=True)]
+            else:
+                lens = [len(v) for v in vals]
+            if lens != w:
+                return None
+        elif any(type(v) is list and len(v) != n for v, n in zip(vals, ns, strict=True)):
+            return None
+        if name == "sensor" and sname.startswith("mag/") and vals.count(sname[4:]) != len(vals):
+            return None
+    return rows
+
+
 def _extend(parts: list, v: list) -> None:
     """Rows of a list input: extend the last part when it is a flat list, else start one."""
     if parts and type(parts[-1]) is list:
@@ -198,7 +292,7 @@ class FramingIngest:
         if d is None:
             d = self.__dict__["_fr_d"] = {
                 "fs": fleet.FleetStreams(self.settings), "slot": {}, "vehicles": [], "vidx": {}, "window": {},
-                "rows": 0, "since": None, "batches": []}
+                "rows": 0, "since": None, "batches": [], "raw": [], "raw_bytes": 0, "names": {}}
         return d
 
     def _frame_slot(self, fr: dict, vehicle: str, raw_key: str) -> tuple[int, int]:
@@ -215,15 +309,141 @@ class FramingIngest:
     def frame_single(self, info: Any, msg: dict) -> None:
         """A decoded v1 sample into the window."""
         fr = self._fr()
+        if fr["raw"]:
+            self._settle(fr)  # binary batches that came before this input go in before it
         vi, s = self._frame_slot(fr, info.vehicle, info.key)
         cols = {f.name: [msg[f.name]] for f in MESSAGES[msg["type"]].fields if f.name in msg}
         self._frame_add(fr, batches.stream_name(info), msg["type"], vi, s, [msg["t_s"]], [msg["seq"]], cols,
                         time.monotonic(), 1, -1)
 
-    def frame_batch(self, key: str, vehicle: str, b: Any, payload_len: int) -> None:
-        """A decoded v2 batch, or a binary one with its structure checked, into the window, stream by stream."""
+    def frame_raw(self, key: str, info: Any, payload: bytes) -> None:
+        """A binary batch (version 3) as it came: decoded with the others of its window when the window is read
+        or another kind of input comes (:meth:`_settle`), in one typed pass each."""
         fr = self._fr()
         now = time.monotonic()
+        fr["raw"].append((key, info, payload, now))
+        fr["raw_bytes"] += len(payload)
+        if fr["since"] is None:
+            fr["since"] = now
+        if fr["raw_bytes"] >= FLUSH_RAW_BYTES:
+            self.frame_flush(force=True)
+
+    def _settle(self, fr: dict) -> None:
+        """The binary batches :meth:`frame_raw` kept, into the window in their order of arrival. When every one is
+        of the usual layout (:func:`schemas.batch.fast_binary`: structure checked by msgspec, byte lengths here on
+        each stream's run of batches at once), each stream's run goes in joined; otherwise batch by batch
+        (:meth:`_settle_each`), which gives the same rows and sends anything else through the general path."""
+        raw = fr["raw"]
+        if not raw:
+            return
+        fr["raw"], fr["raw_bytes"] = [], 0
+        dec, layout = batches.fast_binary()
+        decode = dec.decode
+        astuple = msgspec.structs.astuple
+        unset = msgspec.UNSET
+        got: list[tuple] = []  # per batch: (key, vehicle, payload bytes, t_s, now, its streams [(index, struct)])
+        by_stream: dict[int, list] = {}  # stream (index into layout) -> (rows, struct) of each batch holding it
+        for key, info, payload, now in raw:
+            try:
+                e = decode(payload)
+            except (msgspec.ValidationError, msgspec.DecodeError):
+                self._settle_each(fr, raw)
+                return
+            if e.vehicle != info.vehicle:
+                self._settle_each(fr, raw)
+                return
+            present = [(j, s) for j, s in enumerate(astuple(e.streams)) if s is not unset and s.n]
+            for j, s in present:
+                r = by_stream.get(j)
+                if r is None:
+                    r = by_stream[j] = []
+                r.append((0, 0, s.n, 0, 0, s))
+            got.append((key, info.vehicle, len(payload), e.t_s, now, present))
+        checked = {}
+        for j, run in by_stream.items():
+            rows = _run_rows(run, layout[j])
+            if rows is None:  # some batch's lengths are wrong: found and reported one by one
+                self._settle_each(fr, raw)
+                return
+            checked[j] = rows
+        # every batch holds: in the window, in order (vehicle indices and slots as on arrival)
+        blist = fr["batches"]
+        count_in = self._rt.count_in
+        names = fr["names"]
+        runs: dict[int, list] = {j: [] for j in by_stream}
+        for key, vehicle, plen, t_b, now, present in got:
+            bid = len(blist)
+            blist.append((key, vehicle, plen, t_b))
+            per = names.get(vehicle)
+            for j, s in present:
+                slot = per[j] if per is not None else None
+                if slot is None:
+                    slot = self._stream_slot(fr, vehicle, j, layout)
+                    per = names[vehicle]
+                count_in[slot[0]].n += s.n
+                runs[j].append((slot[1], slot[2], s.n, now, bid, s))
+        window = fr["window"]
+        for j, run in runs.items():
+            name, mt, lay = layout[j]
+            acc = window.get(name)
+            if acc is None:
+                acc = window[name] = _Acc(mt)
+            fr["rows"] += acc.add_run(run, lay, checked[j])
+
+    def _settle_each(self, fr: dict, raw: list) -> None:
+        """Batch by batch, in order: one of the usual layout by its streams, any other through the general
+        path (:meth:`frame_batch`), which decides and reports it as before."""
+        dec, layout = batches.fast_binary()
+        for key, info, payload, now in raw:
+            try:
+                e = dec.decode(payload)
+            except (msgspec.ValidationError, msgspec.DecodeError):
+                e = None
+            vehicle = info.vehicle
+            runs, rows = {}, {}
+            if e is not None and e.vehicle == vehicle:
+                for j, s in enumerate(msgspec.structs.astuple(e.streams)):
+                    if s is msgspec.UNSET or not s.n:
+                        continue
+                    runs[j] = [(-1, -1, s.n, now, len(fr["batches"]), s)]
+                    rows[j] = _run_rows(runs[j], layout[j])
+                    if rows[j] is None:
+                        e = None
+                        break
+            if e is None or e.vehicle != vehicle:
+                b = self._rt.decode_batch(key, info, payload, check=True, deferred=True)
+                if b is not None:
+                    self.frame_batch(key, vehicle, b, len(payload), now)
+                continue
+            fr["batches"].append((key, vehicle, len(payload), e.t_s))
+            for j, run in runs.items():
+                name, mt, lay = layout[j]
+                raw_key, vi, slot = self._stream_slot(fr, vehicle, j, layout)
+                self._rt.count_in[raw_key].n += run[0][2]
+                acc = fr["window"].get(name)
+                if acc is None:
+                    acc = fr["window"][name] = _Acc(mt)
+                fr["rows"] += acc.add_run([(vi, slot, *run[0][2:])], lay, rows[j])
+
+    def _stream_slot(self, fr: dict, vehicle: str, j: int, layout: tuple) -> tuple[str, int, int]:
+        """(raw key, vehicle index, slot) of a vehicle's stream ``layout[j]``, remembered per vehicle until an
+        eviction moves an index or frees a slot."""
+        per = fr["names"].get(vehicle)
+        if per is None:
+            per = fr["names"][vehicle] = [None] * len(layout)
+        got = per[j]
+        if got is None:
+            raw_key = batches.stream_key("raw", vehicle, layout[j][0])
+            got = per[j] = (raw_key, *self._frame_slot(fr, vehicle, raw_key))
+        return got
+
+    def frame_batch(self, key: str, vehicle: str, b: Any, payload_len: int, now: float | None = None) -> None:
+        """A decoded v2 batch, or a binary one with its structure checked, into the window, stream by stream."""
+        fr = self._fr()
+        if fr["raw"]:
+            self._settle(fr)  # binary batches that came before this input go in before it
+        if now is None:
+            now = time.monotonic()
         count_in = self._rt.count_in
         bid = len(fr["batches"])
         fr["batches"].append((key, vehicle, payload_len, b.t_s))
@@ -253,6 +473,7 @@ class FramingIngest:
         fr = self._fr()
         if fr["since"] is None or (not force and time.monotonic() - fr["since"] < self.settings.batch_window_s):
             return
+        self._settle(fr)
         window, fr["window"], fr["rows"], fr["since"] = fr["window"], {}, 0, None
         blist, fr["batches"] = fr["batches"], []
         out: dict[str, fleetframe.Stream] = {}
@@ -371,6 +592,7 @@ class FramingIngest:
         s = fr["slot"].pop(key, None)
         if s is not None:
             fr["fs"].free(s)
+            fr["names"].pop(key.split("/")[1], None)  # (its remembered slots)
 
     def frame_evict_vehicle(self, vehicle: str) -> None:
         fr = self.__dict__.get("_fr_d")
@@ -378,6 +600,7 @@ class FramingIngest:
             return  # (with rows in the open window the indices stay until the next eviction round)
         vs = [v for v in fr["vehicles"] if v != vehicle]
         fr["vehicles"], fr["vidx"] = vs, {v: i for i, v in enumerate(vs)}
+        fr["names"].clear()  # the remembered vehicle indices moved
 
     def frame_streams(self) -> list[tuple[str, int, int, int]]:
         """``(key, upstream_gaps, seq_rebases, clock_rebases)`` of each stream decided on frames (for status)."""
