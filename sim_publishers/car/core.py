@@ -152,7 +152,7 @@ class SourceSpec:
     (0 = the first straight after the calibration circle) at fraction ``frac`` of its length."""
 
     name: str
-    kind: str  # bridge | viaduct | tunnel | truck | cable
+    kind: str  # bridge | viaduct | tunnel | truck | cable | deck | vehicle | plates | tram
     straight: int
     frac: float = 0.5
     strength: float = 1.0  # scales the moments / current
@@ -164,6 +164,7 @@ class SourceSpec:
     height_m: float = 5.5  # deck: height of its girders above the road (< 0: under the road, a bridge deck)
     pace: float = 0.15  # vehicle: its speed relative to the car's, as a fraction of the car's speed
     vehicle: str = "car"  # vehicle: "car" or "bus"
+    leak: float = 0.2  # tram: share of the traction current that returns through the ground, not the rails
 
 
 LAYOUTS: dict[str, tuple[SourceSpec, ...]] = {
@@ -198,6 +199,7 @@ LAYOUTS: dict[str, tuple[SourceSpec, ...]] = {
         SourceSpec("sidewall_1", "deck", straight=4, frac=0.5, length_m=100.0, height_m=4.0, lateral_m=-9.0),
         SourceSpec("roadworks_1", "plates", straight=5, frac=0.5, length_m=9.0),
         SourceSpec("bus_2", "vehicle", straight=6, frac=0.5, lateral_m=-2.2, vehicle="bus", pace=0.1, stop_s=8.0),
+        SourceSpec("tram_1", "tram", straight=4, frac=0.5, length_m=240.0, lateral_m=3.4, height_m=5.8),
     ),
     "paper_b": (
         SourceSpec("bridge_1", "deck", straight=0, frac=0.5, length_m=80.0, height_m=-1.2, stop_s=6.0,
@@ -208,6 +210,7 @@ LAYOUTS: dict[str, tuple[SourceSpec, ...]] = {
         SourceSpec("car_1", "vehicle", straight=4, frac=0.5, lateral_m=-2.6, vehicle="car", pace=0.25),
         SourceSpec("roadworks_1", "plates", straight=5, frac=0.4, length_m=6.0, stop_s=5.0),
         SourceSpec("elevated_2", "deck", straight=6, frac=0.5, length_m=120.0, height_m=5.5, lateral_m=1.5),
+        SourceSpec("tram_1", "tram", straight=3, frac=0.5, length_m=240.0, lateral_m=0.0, height_m=5.8),
     ),
     "paper_c": (
         SourceSpec("sidewall_1", "deck", straight=0, frac=0.5, length_m=120.0, height_m=5.0, lateral_m=8.0,
@@ -218,6 +221,7 @@ LAYOUTS: dict[str, tuple[SourceSpec, ...]] = {
         SourceSpec("car_1", "vehicle", straight=4, frac=0.45, lateral_m=2.3, vehicle="car", pace=0.1, stop_s=5.0),
         SourceSpec("bus_2", "vehicle", straight=5, frac=0.5, lateral_m=2.1, vehicle="bus", pace=0.06, stop_s=10.0),
         SourceSpec("roadworks_1", "plates", straight=6, frac=0.5, length_m=12.0),
+        SourceSpec("tram_1", "tram", straight=0, frac=0.5, length_m=240.0, lateral_m=-3.6, height_m=5.8),
     ),
 }
 
@@ -279,6 +283,8 @@ class Source:
     dipole_radius_m: float = math.inf  # static dipoles: field neglected beyond this distance
     body_track: Any = None  # vehicle beside the car: t_s (n,) → dipole positions (n, K, 3) in the car's body frame
     body_moment_am2: np.ndarray | None = None  # (K, 3) its moments in the car's body frame
+    segment_weights: np.ndarray | None = None  # (k,) current of each segment as a multiple of the source's current
+    current_of_t: Any = None  # t_s (n,) → current (n,), A: a time-varying current (tram); else current_a
 
     def field_body_nt(self, t_s: np.ndarray, point_body_m: np.ndarray) -> np.ndarray:
         """Field (N×3, nT, car body frame) of a vehicle beside the car at one body-frame point."""
@@ -302,8 +308,14 @@ class Source:
                 out[near] += maths.dipole_field_nt(m, p, points_m[near])
         elif self.dipole_pos_m.size:
             out += _dipoles_field_nt(self.dipole_moment_am2, self.dipole_pos_m, points_m)
-        for seg in self.segments_m:
-            out += maths.line_current_field_nt(self.current_a, seg[0], seg[1], points_m)
+        weights = np.ones(len(self.segments_m)) if self.segment_weights is None else self.segment_weights
+        if self.current_of_t is not None and len(self.segments_m):
+            unit = np.zeros_like(points_m)
+            for seg, w in zip(self.segments_m, weights, strict=True):
+                unit += maths.line_current_field_nt(float(w), seg[0], seg[1], points_m)
+            return out + unit * np.asarray(self.current_of_t(np.asarray(t_s, float)), float)[:, None]
+        for seg, w in zip(self.segments_m, weights, strict=True):
+            out += maths.line_current_field_nt(self.current_a * float(w), seg[0], seg[1], points_m)
         return out
 
 
@@ -669,7 +681,10 @@ def _place_sources(s: CarSimSettings, specs, plan: _Plan, traj: _Trajectory, b_e
         current = 0.0
         vel = np.zeros(3)
         t_pass = 0.0
+        weights = current_of_t = None
         half = sp.length_m / 2
+        if sp.kind == "tram":  # the line runs along the street: at most the straight, 10 m short of either end
+            half = max(min(half, sp.frac * (d1 - d0) - 10.0, (1 - sp.frac) * (d1 - d0) - 10.0), 10.0)
         frame = (centre, fwd, left, up,
                  lambda x, s_c=s_c: np.interp(s_c + x, traj.dist, traj.pos[:, 2]) - h)
         if sp.kind == "bridge":
@@ -725,6 +740,10 @@ def _place_sources(s: CarSimSettings, specs, plan: _Plan, traj: _Trajectory, b_e
             vel = truck_v
             centre = body
             extent = 8.0
+        elif sp.kind == "tram":
+            segs, weights, current_of_t = _tram(s, sp, frame, half)
+            pos, mom = np.zeros((0, 3)), np.zeros((0, 3))
+            extent = half
         elif sp.kind == "cable":
             # buried DC feeder crossing the road 1.5 m deep, 60 m long
             across = 30.0 * left
@@ -739,7 +758,8 @@ def _place_sources(s: CarSimSettings, specs, plan: _Plan, traj: _Trajectory, b_e
             name=sp.name, kind=sp.kind, centre_enu_m=centre, dipole_pos_m=pos, dipole_moment_am2=mom,
             segments_m=segs, current_a=current, velocity_enu_m_s=vel, t_pass_s=t_pass,
             radius_m=extent + 60.0, s_range_m=(s_c - extent, s_c + extent), sky=sky,
-            body_track=body_track, body_moment_am2=body_moment,
+            body_track=body_track, body_moment_am2=body_moment, segment_weights=weights,
+            current_of_t=current_of_t,
         ))
     return out
 
@@ -797,6 +817,60 @@ def _deck(frame, sp: SourceSpec, half: float, rng, b_earth_enu) -> tuple[np.ndar
     pos = np.array([p for pts, _, _ in members for p in pts])
     mom = np.concatenate([_member_moments(rng, len(pts), b_earth_enu, per_m, step) for pts, per_m, step in members])
     return pos, mom, sky
+
+
+#: a DC tram line: contact wire and running rails (standard gauge 1435 mm, rail heads 0.72 m either side of the
+#: track centre). Traction supply 750 V DC (IEC 60850); a 30 m low-floor tram draws 400–700 A while it accelerates
+#: (≈ 4 × 120 kW of motors) and feeds back about half of that while braking regeneratively; heating, ventilation and
+#: auxiliaries of the trams in a feeding section draw some tens of A all the time.
+TRAM_RAIL_HALF_GAUGE_M = 0.72
+TRAM_BASE_A = (20.0, 80.0)  # auxiliaries, drawn per drive
+TRAM_PEAK_A = (350.0, 650.0)  # a tram accelerating in the section
+TRAM_STARTS_PER_MIN = 1.2  # trams starting from a stop in the feeding section (both directions)
+
+
+def _tram_current(s: CarSimSettings, name: str):
+    """Current of the feeding section, A, as a function of time: auxiliaries plus tram starts (ramp up in 2 s,
+    hold 10–20 s while accelerating, fall in 5 s) and regenerative braking (−0.3…−0.5 of the peak for 8–12 s,
+    20–60 s after the start). Seeded by the drive and the source (the trams run on their own timetable)."""
+    rng = np.random.default_rng([s.seed, zlib.crc32(name.encode()), 0x7A])
+    base = float(rng.uniform(*TRAM_BASE_A))
+    n = int(rng.poisson(TRAM_STARTS_PER_MIN * (s.duration_s + 120.0) / 60.0))
+    t0 = np.sort(rng.uniform(-60.0, s.duration_s + 60.0, n))
+    peak = rng.uniform(*TRAM_PEAK_A, n)
+    hold = rng.uniform(10.0, 20.0, n)
+    brake_at = t0 + rng.uniform(20.0, 60.0, n)
+    brake = -peak * rng.uniform(0.3, 0.5, n)
+    brake_len = rng.uniform(8.0, 12.0, n)
+
+    def trapezoid(t, a, rise, flat, fall):
+        x = t[:, None] - a[None, :]
+        up = np.clip(x / rise, 0.0, 1.0)
+        down = np.clip(1.0 - (x - rise - flat[None, :]) / fall, 0.0, 1.0)
+        return np.minimum(up, down) * (x >= 0)
+
+    def current(t_s: np.ndarray) -> np.ndarray:
+        t = np.asarray(t_s, float)
+        i = base + (trapezoid(t, t0, 2.0, hold, 5.0) * peak[None, :]).sum(axis=1)
+        return i + (trapezoid(t, brake_at, 1.0, brake_len, 2.0) * brake[None, :]).sum(axis=1)
+
+    return current
+
+
+def _tram(s: CarSimSettings, sp: SourceSpec, frame, half: float):
+    """A DC tram line along the street: the contact wire ``height_m`` above the track centre (``lateral_m`` from
+    the car's lane; 0 = the car drives on the track), the current returning through the two rails at road level
+    except ``leak`` of it, which returns through the ground far away. Line currents (Biot–Savart), so the field
+    is perpendicular to the street and the same at two sensors lined up along it: a street running north–south
+    turns the heading without changing the field strength much, one running east–west changes the strength."""
+    wire = _line(frame, -half, half, sp.lateral_m, sp.height_m, sp.height_m, step_m=10.0)
+    segs = [[a, b] for a, b in zip(wire[:-1], wire[1:], strict=True)]
+    weights = [1.0] * len(segs)
+    for dy in (-TRAM_RAIL_HALF_GAUGE_M, TRAM_RAIL_HALF_GAUGE_M):
+        rail = _line(frame, -half, half, sp.lateral_m + dy, 0.0, 0.0, step_m=10.0)
+        segs += [[a, b] for a, b in zip(rail[:-1], rail[1:], strict=True)]
+        weights += [-(1.0 - sp.leak) / 2.0] * (len(rail) - 1)
+    return np.array(segs), np.array(weights) * sp.strength, _tram_current(s, f"{s.layout}/{sp.name}")
 
 
 def _vehicle(sp: SourceSpec, s_c: float, traj: _Trajectory, rng, b_earth_enu, psi: float, h: float):
