@@ -267,6 +267,65 @@ def fcm_valid(drives: list[DriveData], model: fcm.FcmModel) -> np.ndarray:
     return np.concatenate([model.classify(d.features)[0] for d in drives])
 
 
+def gyro_track_valid(drives: list[DriveData], stage1: Thresholds, settings=None) -> np.ndarray:
+    """The gyro-checked second stage (``quasistatic.gyro_track_batch``) after the stage-1 ``stage1`` thresholds."""
+    from services.dmc_detector.quasistatic import gyro_track_batch
+
+    out = []
+    for d in drives:
+        if d.gyro_t_s is None or d.gyro_rad_s is None:
+            raise ValueError(f"drive {d.name} has no gyro stream for the gyro-checked second stage")
+        out.append(gyro_track_batch(d.features, core.threshold_test(d.features, stage1), d.gyro_t_s, d.gyro_rad_s,
+                                    settings).valid)
+    return np.concatenate(out)
+
+
+#: the settings the gyro-checked second stage chooses from, on its training drives only (``choose_gyro_track``):
+#: the stage-1 set (the paper's loosest, scaled) and the stage's own gate and time constants
+GYRO_TRACK_GRID = {"stage1_scale": (1.0, 1.5, 2.0), "gate_deg": (3.0, 4.0, 5.0), "blend_tau_s": (2.0, 5.0),
+                   "bias_tau_s": (100.0, 300.0), "trust_dm_nt": (300.0, 600.0)}
+#: its training drives: the FCM's training layout (paper_a), three seeds, none of them judged
+GYRO_TRACK_TRAIN_DRIVES = (("paper_a", 1), ("paper_a", 2), ("paper_a", 3))
+#: its operating rule: the highest RP on the training drives with MP at most this (ties: lower MP, then WP)
+GYRO_TRACK_MAX_TRAIN_MP_PCT = 2.0
+
+
+def choose_gyro_track(drives: list[DriveData], loose: Thresholds | None = None,
+                      max_mp_pct: float = GYRO_TRACK_MAX_TRAIN_MP_PCT) -> dict:
+    """Choose the second stage's settings on ``drives`` (training drives only): every point of GYRO_TRACK_GRID,
+    the highest RP with MP ≤ ``max_mp_pct``. Returns the chosen stage-1 thresholds, settings, their training
+    metrics and the grid's size."""
+    import itertools
+
+    from services.dmc_detector.quasistatic import GyroTrackSettings, gyro_track_batch
+
+    loose = loose or fcm.LOOSE
+    err = np.concatenate([d.heading_err_deg for d in drives])
+    keys = list(GYRO_TRACK_GRID)
+    stage1 = {k: [core.threshold_test(d.features, loose.scaled(k)) for d in drives]
+              for k in GYRO_TRACK_GRID["stage1_scale"]}
+    best = None
+    n = 0
+    for values in itertools.product(*(GYRO_TRACK_GRID[k] for k in keys)):
+        p = dict(zip(keys, values, strict=True))
+        k = p.pop("stage1_scale")
+        st = GyroTrackSettings(**p)
+        v = np.concatenate([gyro_track_batch(d.features, stage1[k][i], d.gyro_t_s, d.gyro_rad_s, st).valid
+                            for i, d in enumerate(drives)])
+        m = metrics(v, err)
+        n += 1
+        if m.mp_pct > max_mp_pct:
+            continue
+        key = (-m.rp_pct, m.mp_pct, m.wp_deg)
+        if best is None or key < best[0]:
+            best = (key, k, st, m)
+    if best is None:
+        raise ValueError(f"no setting of the grid keeps MP ≤ {max_mp_pct} % on the training drives")
+    _, k, st, m = best
+    return {"stage1": loose.scaled(k), "stage1_scale": k, "settings": st, "train_metrics": m, "grid_size": n,
+            "rule": f"highest RP on the training drives with MP ≤ {max_mp_pct:g} % (ties: lower MP, then WP)"}
+
+
 def train_fcm(drives: list[DriveData], feature_set: str = "extended", seed: int = 0, use_reference: bool = True,
               **kw) -> fcm.FcmModel:
     """Train FCM centres on drives; ``use_reference`` orders clusters by the drives' true heading error."""

@@ -18,6 +18,10 @@ Keys of ``--json``:
                               0.2–1.0), per unseen drive, and the seed-to-seed spread of that gain
   quasistatic                 the one-magnetometer detector of §2 (paper's form and the project's)
   quasistatic_broad           the same on real recordings (BROAD): handheld IMU board, magnets (full run only)
+  second_stage                magmesh's own second stage (gyro_track): the compass heading checked against a heading
+                              carried by the gyro from the last trusted epochs; settings chosen on training drives of
+                              the training layout only (rule and grid recorded); same drives and keys as fcm_unseen
+  second_stage_gain           as fcm_gain, for second_stage (threshold curve up to twice the loose set)
   fcm_speed                   10,000 × 2 samples: this FCM vs scikit-fuzzy and a plain loop implementation
 
 Threshold sets: the paper's field units are HMR3300 output units, 10 nT each; headings in degrees. RP, MP,
@@ -78,6 +82,8 @@ PAPER_CONDITIONS = {
 FIELD_UNIT_NT = 10.0
 #: scales of the loose set (2000 nT, 1000 nT/s, 8°, 8°/s) that trace the threshold stage's RP–MP curve
 CURVE_SCALES = tuple(round(0.2 + 0.05 * i, 2) for i in range(17))
+#: the same curve up to twice the loose set: the gyro-checked stage may start from a looser stage 1 than the FCM
+SECOND_STAGE_CURVE_SCALES = tuple(round(0.2 + 0.05 * i, 2) for i in range(37))
 
 
 def _positive(text: str) -> float:
@@ -304,14 +310,14 @@ def _dense(curve: list[dict], steps: int = 20) -> tuple[np.ndarray, np.ndarray]:
     return np.append(rr, rp[-1]), np.append(mm, mp[-1])
 
 
-def threshold_curve(drives, loose=None) -> list[dict]:
-    """RP, MP, WP of the stage-1 threshold test with the loose set scaled by each of CURVE_SCALES."""
+def threshold_curve(drives, loose=None, scales=CURVE_SCALES) -> list[dict]:
+    """RP, MP, WP of the stage-1 threshold test with the loose set scaled by each of ``scales``."""
     from bench import dmc_training as T
     from services.dmc_detector import fcm
 
     err = np.concatenate([d.heading_err_deg for d in drives])
     out = []
-    for k in CURVE_SCALES:
+    for k in scales:
         m = T.metrics(T.threshold_valid(drives, (loose or fcm.LOOSE).scaled(k)), err)
         out.append({"scale": k, "rp_pct": m.rp_pct, "mp_pct": m.mp_pct, "wp_deg": m.wp_deg})
     return out
@@ -340,19 +346,31 @@ def fcm_gain_against_thresholds(drives, model, loose=None) -> dict:
     is done per drive; the seed-to-seed spread is the standard deviation of the per-drive gains."""
     from bench import dmc_training as T
 
+    return stage_gain_against_thresholds(drives, lambda ds: T.fcm_valid(ds, model), loose)
+
+
+def stage_gain_against_thresholds(drives, valid_of, loose=None, scales=CURVE_SCALES) -> dict:
+    """What a second stage (``valid_of(drives)`` → valid per epoch) adds to the threshold stage, on the same
+    drives: its (RP, MP) against the threshold curve (``scales`` of the loose set) at equal MP and at equal RP,
+    pooled and per drive; the seed-to-seed spread is the standard deviation of the per-drive gains."""
+    from bench import dmc_training as T
+
     err = np.concatenate([d.heading_err_deg for d in drives])
-    m = T.metrics(T.fcm_valid(drives, model), err)
-    pooled = _gain(threshold_curve(drives, loose), m.rp_pct, m.mp_pct)
+    m = T.metrics(valid_of(drives), err)
+    pooled = _gain(threshold_curve(drives, loose, scales), m.rp_pct, m.mp_pct)
     per_drive = []
     for d in drives:
-        md = T.metrics(T.fcm_valid([d], model), d.heading_err_deg)
-        per_drive.append({"drive": d.name, **_gain(threshold_curve([d], loose), md.rp_pct, md.mp_pct)})
-    out: dict = {"pooled": pooled, "per_drive": per_drive, "curve_scales": list(CURVE_SCALES)}
+        md = T.metrics(valid_of([d]), d.heading_err_deg)
+        per_drive.append({"drive": d.name, **_gain(threshold_curve([d], loose, scales), md.rp_pct, md.mp_pct)})
+    out: dict = {"pooled": pooled, "per_drive": per_drive, "curve_scales": list(scales)}
     for key in ("rp_gained_at_equal_mp_pct", "mp_saved_at_equal_rp_pct"):
         vals = [r[key] for r in per_drive if r[key] is not None]
         out[f"spread_{key}"] = round(float(np.std(vals)), 3) if len(vals) > 1 else None
     g, sp = pooled["rp_gained_at_equal_mp_pct"], out["spread_rp_gained_at_equal_mp_pct"]
     g2, sp2 = pooled["mp_saved_at_equal_rp_pct"], out["spread_mp_saved_at_equal_rp_pct"]
+    for key in ("rp_gained_at_equal_mp_pct", "mp_saved_at_equal_rp_pct"):
+        vals = [r[key] for r in per_drive if r[key] is not None]
+        out[f"drives_positive_{key}"] = f"{sum(v > 0 for v in vals)}/{len(vals)}"
     out["beats_thresholds_beyond_spread"] = bool(
         (g is not None and sp is not None and g > sp) or (g2 is not None and sp2 is not None and g2 > sp2))
     return out
@@ -418,6 +436,50 @@ def run(args: argparse.Namespace) -> dict:
                                     and fcm_unseen["wp_deg"] < GOAL["wp_deg"])
     fcm_gain = fcm_gain_against_thresholds(judged, chosen)
 
+    # magmesh's own second stage: the compass heading checked against the gyro-carried heading, its settings
+    # chosen on its training drives (the training layout) only
+    track_train = [T.simulate_drive(lay, seed, dur) for lay, seed in T.GYRO_TRACK_TRAIN_DRIVES]
+    pick = T.choose_gyro_track(track_train)
+    st = pick["settings"]
+
+    def track_valid(ds):
+        return T.gyro_track_valid(ds, pick["stage1"], st)
+
+    m_track = T.evaluate(track_valid(judged), judged)
+    tm = pick["train_metrics"]
+    second_stage = {"name": "gyro_track", "rp_pct": round(m_track.rp_pct, 3), "mp_pct": round(m_track.mp_pct, 3),
+                    "wp_deg": round(m_track.wp_deg, 3), "wp_mean_deg": round(m_track.wp_mean_deg, 3),
+                    "wp_max_deg": round(m_track.wp_max_deg, 2), "onset_delay_s": m_track.onset_delay_s,
+                    "missed_zones": m_track.missed_zones, "false_alarms": m_track.false_alarms,
+                    "stage1": {"scale_of_loose_set": pick["stage1_scale"], "dm_nt": pick["stage1"].dm_nt,
+                               "ddm_nt_s": pick["stage1"].ddm_nt_s, "dh_deg": pick["stage1"].dh_deg,
+                               "ddh_deg_s": pick["stage1"].ddh_deg_s},
+                    "settings": {k: getattr(st, k) for k in st.__dataclass_fields__},
+                    "chosen_on": [d.name for d in track_train], "selection_rule": pick["rule"],
+                    "grid_size": pick["grid_size"],
+                    "on_training_drives": {"rp_pct": round(tm.rp_pct, 3), "mp_pct": round(tm.mp_pct, 3),
+                                           "wp_deg": round(tm.wp_deg, 3)},
+                    "drives": [d.name for d in judged], "paper": PAPER_FCM_UNSEEN}
+    # against the stage 1 it starts from, alone (the same thresholds, no second stage), pooled and per drive
+    m_s1 = T.evaluate(T.threshold_valid(judged, pick["stage1"]), judged)
+    per = []
+    for d in judged:
+        a = T.metrics(T.threshold_valid([d], pick["stage1"]), d.heading_err_deg)
+        b = T.metrics(track_valid([d]), d.heading_err_deg)
+        per.append({"drive": d.name, "rp_gained_pct": round(b.rp_pct - a.rp_pct, 3),
+                    "mp_saved_pct": round(a.mp_pct - b.mp_pct, 3)})
+    second_stage["against_its_stage1_alone"] = {
+        "stage1_alone": {"rp_pct": round(m_s1.rp_pct, 3), "mp_pct": round(m_s1.mp_pct, 3), "wp_deg": round(m_s1.wp_deg, 3)},
+        "rp_gained_pct": round(m_track.rp_pct - m_s1.rp_pct, 3), "mp_saved_pct": round(m_s1.mp_pct - m_track.mp_pct, 3),
+        "per_drive": per,
+        "spread_rp_gained_pct": round(float(np.std([x["rp_gained_pct"] for x in per])), 3),
+        "spread_mp_saved_pct": round(float(np.std([x["mp_saved_pct"] for x in per])), 3)}
+    a = second_stage["against_its_stage1_alone"]
+    a["beats_it_beyond_spread"] = bool(a["rp_gained_pct"] >= 0 and a["mp_saved_pct"] > a["spread_mp_saved_pct"])
+    second_stage["meets_goal"] = bool(second_stage["rp_pct"] > GOAL["rp_pct"] and second_stage["mp_pct"] < GOAL["mp_pct"]
+                                      and second_stage["wp_deg"] < GOAL["wp_deg"])
+    second_stage_gain = stage_gain_against_thresholds(judged, track_valid, scales=SECOND_STAGE_CURVE_SCALES)
+
     # the committed model, if any: is it what this recipe trains?
     committed = None
     try:
@@ -444,6 +506,8 @@ def run(args: argparse.Namespace) -> dict:
         "table4_fcm_apply": table4,
         "fcm_unseen": fcm_unseen,
         "fcm_gain": fcm_gain,
+        "second_stage": second_stage,
+        "second_stage_gain": second_stage_gain,
         "fcm_committed_model_unseen": committed,
         "paper": {"table1_threshold": {"rp_pct": [43, 83], "mp_pct": [5, 20], "wp_deg": [5.7, 15.5]},
                   "table2_single": {"mp_pct": [13, 35], "wp_deg": [15, 50]},
@@ -566,6 +630,24 @@ def format_text(r: dict) -> str:
                      f"(spread {g['spread_rp_gained_at_equal_mp_pct']}), MP saved at equal RP "
                      f"{f(p0['mp_saved_at_equal_rp_pct'])} (spread {g['spread_mp_saved_at_equal_rp_pct']}): "
                      f"{'beats' if g['beats_thresholds_beyond_spread'] else 'does NOT beat'} the thresholds beyond the "
+                     "seed-to-seed spread")
+    ss = r.get("second_stage")
+    if ss:
+        t1 = ss["stage1"]
+        lines.append(f"second_stage ({ss['name']}: the compass heading checked against the gyro-carried heading after stage 1 "
+                     f"({t1['dm_nt']:.0f}, {t1['ddm_nt_s']:.0f}, {t1['dh_deg']:g}, {t1['ddh_deg_s']:g}); settings chosen on "
+                     f"{', '.join(ss['chosen_on'])}): RP {ss['rp_pct']:.2f} %  MP {ss['mp_pct']:.3f} %  WP {ss['wp_deg']:.2f}°  "
+                     f"— goal {'met' if ss['meets_goal'] else 'NOT met'}")
+        g2 = r["second_stage_gain"]
+        p2 = g2["pooled"]
+
+        def f2(v):
+            return "-" if v is None else f"{v:+.2f}"
+
+        lines.append(f"second_stage_gain over the threshold stage (same drives): RP gained at equal MP "
+                     f"{f2(p2['rp_gained_at_equal_mp_pct'])} (spread {g2['spread_rp_gained_at_equal_mp_pct']}), MP saved at "
+                     f"equal RP {f2(p2['mp_saved_at_equal_rp_pct'])} (spread {g2['spread_mp_saved_at_equal_rp_pct']}): "
+                     f"{'beats' if g2['beats_thresholds_beyond_spread'] else 'does NOT beat'} the thresholds beyond the "
                      "seed-to-seed spread")
     c = r.get("fcm_committed_model_unseen") or {}
     if "rp_pct" in c:

@@ -50,6 +50,21 @@ def _check(r: dict) -> None:
     assert [row["drive"] for row in g["per_drive"]] == u["drives"]
     thr = g["pooled"]["threshold_rp_at_equal_mp_pct"]
     assert thr is not None and g["pooled"]["rp_gained_at_equal_mp_pct"] == pytest.approx(u["rp_pct"] - thr, abs=2e-3)
+    assert g["drives_positive_rp_gained_at_equal_mp_pct"].endswith(f"/{len(u['drives'])}")
+    # magmesh's own second stage: same drives as fcm_unseen, settings chosen on training-layout drives only
+    ss, g2 = r["second_stage"], r["second_stage_gain"]
+    assert ss["drives"] == u["drives"] and ss["paper"] == eval_dmc.PAPER_FCM_UNSEEN
+    assert ss["chosen_on"] and all(d.startswith("paper_a/") for d in ss["chosen_on"])
+    assert not set(ss["chosen_on"]) & set(r["drives"]["unseen"]), "settings chosen on drives that are scored"
+    assert ss["on_training_drives"]["mp_pct"] <= 2.0 and ss["grid_size"] > 1
+    assert ss["meets_goal"] == (ss["rp_pct"] > eval_dmc.GOAL["rp_pct"] and ss["mp_pct"] < eval_dmc.GOAL["mp_pct"]
+                                and ss["wp_deg"] < eval_dmc.GOAL["wp_deg"])
+    assert g2["pooled"]["rp_pct"] == pytest.approx(ss["rp_pct"], abs=1e-3)
+    assert [row["drive"] for row in g2["per_drive"]] == ss["drives"]
+    a = ss["against_its_stage1_alone"]
+    assert a["rp_gained_pct"] == pytest.approx(ss["rp_pct"] - a["stage1_alone"]["rp_pct"], abs=2e-3)
+    assert a["mp_saved_pct"] == pytest.approx(a["stage1_alone"]["mp_pct"] - ss["mp_pct"], abs=2e-3)
+    assert 0.0 <= ss["rp_pct"] <= 100.0 and ss["wp_deg"] >= 0.0
     # the conditions of the judged drives, from the simulator's truth, beside what the paper's tables imply
     cond = r["conditions"]
     assert set(eval_dmc.PAPER_CONDITIONS) <= set(cond) and cond["paper"] == eval_dmc.PAPER_CONDITIONS
@@ -74,7 +89,7 @@ def _check(r: dict) -> None:
     c = r["fcm_committed_model_unseen"]
     assert c["rp_pct"] == pytest.approx(u["rp_pct"], abs=1e-6), "the committed model is what the recipe trains"
     text = eval_dmc.format_text(r)
-    assert "[" not in text.split("\n")[0] and "paper_set4" in text and "fcm_gain" in text
+    assert "[" not in text.split("\n")[0] and "paper_set4" in text and "fcm_gain" in text and "second_stage" in text
 
 
 def test_threshold_curve_falls_with_tighter_thresholds():

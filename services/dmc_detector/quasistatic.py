@@ -204,3 +204,118 @@ class QuasiStaticDetector:
     def flags(self) -> dict:
         d = self.last
         return {"alarm_raised": self.latch.raised, "valid": bool(d and d.valid), "warming": bool(d is None or not d.ready)}
+
+
+# ---- second stage of the DMC: the heading checked against the gyro's --------------------------
+
+
+@dataclass(frozen=True)
+class GyroTrackSettings:
+    """A DMC second stage of magmesh's own: the compass heading is checked against a reference heading carried
+    by the gyro from the last trusted compass headings (docs/methods.md#dmc-gyro-track). Units in the names."""
+
+    gate_deg: float = 4.0  # valid when |ψ_compass − ψ_ref| < this
+    blend_tau_s: float = 5.0  # ψ_ref is pulled towards trusted compass headings with this time constant
+    bias_tau_s: float = 300.0  # and the gyro's bias corrected with this one
+    reseed_after_s: float = 20.0  # stage 1 passing yet disagreeing this long: ψ_ref taken from the compass again
+    reacquire_after_s: float = 2.0  # … or this long while the tight tests below pass too
+    reacquire_dm_nt: float = 400.0  # tight field-strength test |Δm| (the paper's tightest set, 40 units)
+    reacquire_dh_deg: float = 3.0  # tight heading-difference test |Δh| (its tightest set)
+    bias_init_s: float = 2.0  # gyro bias: median rate over the first seconds of the record (the vehicle at rest)
+    trust_dm_nt: float = 600.0  # a trusted epoch's pull on ψ_ref and b is 1 / (1 + (|Δm|/this)² + (|Δh|/trust_dh_deg)²)
+    trust_dh_deg: float = 2.0
+
+    def __post_init__(self):
+        for name in ("gate_deg", "blend_tau_s", "bias_tau_s", "reseed_after_s", "reacquire_after_s",
+                     "reacquire_dm_nt", "reacquire_dh_deg", "trust_dm_nt", "trust_dh_deg"):
+            v = getattr(self, name)
+            if not (v > 0 and math.isfinite(v)):
+                raise ValueError(f"{name} must be a positive finite number, got {v!r}")
+        if not 0 < self.gate_deg < 90:
+            raise ValueError(f"gate_deg must be in (0, 90), got {self.gate_deg}")
+        if not self.bias_init_s >= 0:
+            raise ValueError(f"bias_init_s must be ≥ 0, got {self.bias_init_s}")
+
+
+@dataclass
+class GyroTrackResult:
+    valid: np.ndarray  # N bool
+    ref_heading_rad: np.ndarray  # N: ψ_ref after the epoch (nan before the first trusted epoch)
+    innovation_rad: np.ndarray  # N: ψ_compass − ψ_ref (predicted), wrapped to (−π, π]
+    trusted: np.ndarray  # N bool: stage 1 passed and the heading agreed (ψ_ref learned from it)
+    reseeds: int
+
+
+def gyro_heading(t_gyro_s, gyro_rad_s, t_s) -> np.ndarray:
+    """Gyro heading ψ_g (rad, unwrapped, 0 at the first gyro sample) at times t_s: the trapezoid integral of
+    dψ/dt = −ω_z (a near-level vehicle, FLU body axes, heading clockwise), interpolated."""
+    tg = np.asarray(t_gyro_s, float)
+    rate = -np.asarray(gyro_rad_s, float)[:, 2]
+    psi = np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(tg))])
+    return np.interp(np.asarray(t_s, float), tg, psi)
+
+
+def gyro_track_batch(f, stage1, t_gyro_s, gyro_rad_s, settings: GyroTrackSettings | None = None) -> GyroTrackResult:
+    """Second stage over a recording, causal (epoch i depends on epochs ≤ i and the gyro up to t_i).
+
+    ``f``: DMC features (core.Features) of the paired epochs; ``stage1``: the stage-1 verdict per epoch (bool N).
+    ψ_ref is propagated by the gyro between epochs, ψ_ref += Δψ_g − b·Δt. An epoch is *valid* when its compass
+    heading lies within ``gate_deg`` of ψ_ref, whether stage 1 passed or not: a strong field that leaves the
+    heading right is no reason to drop it, and one that bends the heading without changing the strength is
+    caught. Only epochs that pass stage 1 *and* agree are *trusted*: ψ_ref and the bias b learn from them
+    (first-order blends, ``blend_tau_s`` and ``bias_tau_s``), each with the weight
+    w = 1 / (1 + (|Δm|/``trust_dm_nt``)² + (|Δh|/``trust_dh_deg``)²), so that a field already a little off (a bend
+    creeping in as a bus draws alongside) barely moves ψ_ref: the adaptive magnetometer noise of Liu et al.
+    (R inflated when the field looks disturbed), as a weight. When stage 1 passes while the heading disagrees
+    for ``reseed_after_s`` (the gyro has drifted away), or for ``reacquire_after_s`` with the tight |Δm| and
+    |Δh| tests passing too, ψ_ref is re-seeded from the compass. Before the first stage-1 pass nothing is valid."""
+    s = settings or GyroTrackSettings()
+    t = np.asarray(f.t_s, float)
+    n = t.size
+    psi_m = np.asarray(f.heading_rad, float)
+    stage1 = np.asarray(stage1, bool)
+    dm = np.max(np.abs(f.dm_nt), axis=-1)
+    dh = np.degrees(np.abs(f.dh_rad))
+    tight = (dm < s.reacquire_dm_nt) & (dh < s.reacquire_dh_deg)
+    weight = 1.0 / (1.0 + (dm / s.trust_dm_nt) ** 2 + (dh / s.trust_dh_deg) ** 2)
+    tg = np.asarray(t_gyro_s, float)
+    pg = gyro_heading(tg, gyro_rad_s, t)
+    still = tg < tg[0] + s.bias_init_s if tg.size else np.zeros(0, bool)
+    b = float(np.median(-np.asarray(gyro_rad_s, float)[still, 2])) if still.any() else 0.0
+    valid = np.zeros(n, bool)
+    trusted = np.zeros(n, bool)
+    ref = np.full(n, np.nan)
+    innov = np.zeros(n)
+    gate = math.radians(s.gate_deg)
+    est: float | None = None
+    disagree_s = tight_s = 0.0
+    reseeds = 0
+    for i in range(n):
+        if est is None:
+            if stage1[i]:
+                est = float(psi_m[i])
+                valid[i] = trusted[i] = True
+                ref[i] = est
+            continue
+        dt = t[i] - t[i - 1]
+        est += (pg[i] - pg[i - 1]) - b * dt
+        nu = math.remainder(psi_m[i] - est, 2.0 * math.pi)
+        innov[i] = nu
+        agree = abs(nu) < gate
+        valid[i] = agree
+        if stage1[i] and agree:
+            trusted[i] = True
+            est += min(dt / s.blend_tau_s, 1.0) * weight[i] * nu
+            b -= dt / s.bias_tau_s * weight[i] * nu
+            disagree_s = tight_s = 0.0
+        elif stage1[i]:
+            disagree_s += dt
+            tight_s = tight_s + dt if tight[i] else 0.0
+            if disagree_s >= s.reseed_after_s or tight_s >= s.reacquire_after_s:
+                est = float(psi_m[i])
+                disagree_s = tight_s = 0.0
+                reseeds += 1
+        else:
+            tight_s = 0.0
+        ref[i] = est
+    return GyroTrackResult(valid, np.mod(ref, 2.0 * math.pi), innov, trusted, reseeds)

@@ -1,0 +1,114 @@
+"""The DMC's gyro-checked second stage (services.dmc_detector.quasistatic.gyro_track_batch) and its selection."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from services.dmc_detector import core
+from services.dmc_detector.quasistatic import GyroTrackSettings, gyro_heading, gyro_track_batch
+
+RATE_HZ, GYRO_HZ = 8.0, 100.0
+
+
+def _case(duration_s: float, heading_of_t, bend_of_t=lambda t: 0.0 * t, dm_of_t=lambda t: 0.0 * t,
+          gyro_bias_rad_s: float = 0.0, seed: int = 0):
+    """Features of a level drive whose true heading is heading_of_t(t) (rad) and whose compass heading is bent by
+    bend_of_t(t) (rad), with |Δm| = dm_of_t(t) nT; a gyro with the given bias and white noise."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, duration_s, 1.0 / RATE_HZ)
+    tg = np.arange(0.0, duration_s, 1.0 / GYRO_HZ)
+    psi = heading_of_t(t)
+    hd = np.mod(psi + bend_of_t(t) + rng.normal(0.0, math.radians(0.3), t.size), 2 * math.pi)
+    dm = np.stack([dm_of_t(t), dm_of_t(t)], axis=-1)
+    zeros = np.zeros(t.size)
+    f = core.Features(t, dm, np.zeros_like(dm), zeros.copy(), zeros.copy(), hd, hd.copy(), np.ones(t.size, bool))
+    psi_g = heading_of_t(tg)
+    rate = np.gradient(psi_g, tg)  # dψ/dt = −ω_z
+    gyro = np.zeros((tg.size, 3))
+    gyro[:, 2] = -rate + gyro_bias_rad_s + rng.normal(0.0, 0.0017, tg.size)
+    return f, tg, gyro, psi
+
+
+def test_gyro_heading_integrates_minus_omega_z():
+    tg = np.arange(0.0, 10.0, 0.01)
+    gyro = np.zeros((tg.size, 3))
+    gyro[:, 2] = -0.1  # turning clockwise at 0.1 rad/s
+    assert gyro_heading(tg, gyro, np.array([0.0, 5.0]))[1] == pytest.approx(0.5, abs=1e-9)
+
+
+def test_clean_drive_with_turns_is_valid_throughout():
+    f, tg, gyro, _ = _case(120.0, lambda t: 0.3 + np.where(t > 40, np.minimum((t - 40) * 0.2, math.pi / 2), 0.0))
+    r = gyro_track_batch(f, np.ones(f.t_s.size, bool), tg, gyro)
+    assert r.valid.mean() > 0.99 and r.reseeds == 0
+
+
+def test_a_bend_hidden_from_stage1_is_rejected_while_it_lasts():
+    zone = lambda t: (t >= 40) & (t < 52)  # noqa: E731
+    bend = lambda t: np.where(zone(t), math.radians(10.0), 0.0)  # noqa: E731
+    dm = lambda t: np.where(zone(t), 1000.0, 100.0)  # noqa: E731  inside the loose |Δm| test, outside the tight one
+    f, tg, gyro, _ = _case(100.0, lambda t: 1.0 + 0.0 * t, bend, dm)
+    r = gyro_track_batch(f, np.ones(f.t_s.size, bool), tg, gyro)  # stage 1 passes everywhere: it sees nothing
+    inside = (f.t_s >= 40.5) & (f.t_s < 52)
+    assert not r.valid[inside].any()  # nothing of the bent heading is accepted
+    assert r.valid[f.t_s >= 53].mean() > 0.99 and r.valid[f.t_s < 40].mean() > 0.99
+    # a bend that leaves even the tight tests passing (|Δm| < 400 nT, |Δh| < 3°) is taken back after
+    # reacquire_after_s: the stage cannot tell it from a gyro that drifted
+    f2, tg2, gyro2, _ = _case(100.0, lambda t: 1.0 + 0.0 * t, bend)
+    r2 = gyro_track_batch(f2, np.ones(f2.t_s.size, bool), tg2, gyro2)
+    assert not r2.valid[(f2.t_s >= 40.2) & (f2.t_s < 41.9)].any() and r2.valid[(f2.t_s > 43) & (f2.t_s < 52)].all()
+
+
+def test_stage1_failing_epochs_with_a_right_heading_stay_valid_with_the_bias_learned_at_rest():
+    bias = 0.005  # rad/s: 0.29°/s, 11° in 40 s of gyro-only
+    f, tg, gyro, _ = _case(80.0, lambda t: 2.0 + 0.0 * t, gyro_bias_rad_s=bias)
+    stage1 = ~((f.t_s > 20) & (f.t_s < 60))  # strength changed but the heading right (a vertical field)
+    r = gyro_track_batch(f, stage1, tg, gyro)
+    assert r.valid[(f.t_s > 20) & (f.t_s < 60)].mean() > 0.95
+    # without the rest-period bias estimate the gyro drifts off within seconds of the outage
+    r0 = gyro_track_batch(f, stage1, tg, gyro, GyroTrackSettings(bias_init_s=0.0))
+    assert r0.valid[(f.t_s > 40) & (f.t_s < 60)].mean() < 0.2
+
+
+def test_a_creeping_bend_with_the_field_a_little_off_is_not_followed():
+    ramp = lambda t: np.radians(np.clip((t - 30.0) * 0.25, 0.0, 12.0))  # noqa: E731  0.25°/s up to 12°
+    dm = lambda t: np.where(t > 30.0, 1500.0, 100.0)  # noqa: E731  |Δm| 1500 nT: inside the loose set
+    f, tg, gyro, _ = _case(90.0, lambda t: 0.5 + 0.0 * t, ramp, dm)
+    bad = np.degrees(ramp(f.t_s)) >= 5.0
+    weighted = gyro_track_batch(f, np.ones(f.t_s.size, bool), tg, gyro, GyroTrackSettings(reseed_after_s=60.0))
+    plain = gyro_track_batch(f, np.ones(f.t_s.size, bool), tg, gyro,
+                             GyroTrackSettings(reseed_after_s=60.0, trust_dm_nt=1e9, trust_dh_deg=1e9))
+    assert weighted.valid[bad].mean() < 0.05  # the reference stayed on the gyro
+    assert plain.valid[bad].mean() > 0.5  # without the weight, the reference creeps along with the bend
+
+
+def test_reseed_after_a_long_disagreement():
+    step = lambda t: np.where(t >= 20.0, math.radians(15.0), 0.0)  # noqa: E731  a heading step that stays
+    f, tg, gyro, _ = _case(80.0, lambda t: 1.0 + 0.0 * t, step)
+    r = gyro_track_batch(f, np.ones(f.t_s.size, bool), tg, gyro, GyroTrackSettings(reseed_after_s=20.0,
+                                                                                     reacquire_after_s=1e6))
+    assert r.reseeds == 1
+    assert not r.valid[(f.t_s > 20.5) & (f.t_s < 39.5)].any() and r.valid[f.t_s > 41].all()
+
+
+def test_settings_are_checked():
+    for bad in ({"gate_deg": 0.0}, {"gate_deg": 95.0}, {"blend_tau_s": -1.0}, {"trust_dm_nt": float("nan")},
+                {"bias_init_s": -1.0}):
+        with pytest.raises(ValueError):
+            GyroTrackSettings(**bad)
+
+
+def test_choose_gyro_track_keeps_to_its_rule_on_training_drives_only():
+    from bench import dmc_training as T
+
+    train = [T.simulate_drive("paper_a", 2, 120.0)]
+    pick = T.choose_gyro_track(train, max_mp_pct=2.0)
+    m = pick["train_metrics"]
+    assert m.mp_pct <= 2.0 and pick["grid_size"] == int(np.prod([len(v) for v in T.GYRO_TRACK_GRID.values()]))
+    # nothing else on the grid within the MP cap recognises more
+    v = T.gyro_track_valid(train, pick["stage1"], pick["settings"])
+    assert T.metrics(v, train[0].heading_err_deg).rp_pct == pytest.approx(m.rp_pct)
+    with pytest.raises(ValueError, match="no setting"):
+        T.choose_gyro_track(train, max_mp_pct=-1.0)
