@@ -293,7 +293,7 @@ GYRO_TRACK_MAX_TRAIN_MP_PCT = 2.0
 def choose_gyro_track(drives: list[DriveData], loose: Thresholds | None = None,
                       max_mp_pct: float = GYRO_TRACK_MAX_TRAIN_MP_PCT) -> dict:
     """Choose the second stage's settings on ``drives`` (training drives only): every point of GYRO_TRACK_GRID,
-    the highest RP with MP ≤ ``max_mp_pct``. Returns the chosen stage-1 thresholds, settings, their training
+    the highest RP with MP ≤ ``max_mp_pct`` (none within it: the lowest MP). Returns the chosen stage-1 thresholds, settings, their training
     metrics and the grid's size."""
     import itertools
 
@@ -305,6 +305,7 @@ def choose_gyro_track(drives: list[DriveData], loose: Thresholds | None = None,
     stage1 = {k: [core.threshold_test(d.features, loose.scaled(k)) for d in drives]
               for k in GYRO_TRACK_GRID["stage1_scale"]}
     best = None
+    lowest = None  # the lowest MP of the grid, taken when no setting keeps within the cap
     n = 0
     for values in itertools.product(*(GYRO_TRACK_GRID[k] for k in keys)):
         p = dict(zip(keys, values, strict=True))
@@ -314,16 +315,20 @@ def choose_gyro_track(drives: list[DriveData], loose: Thresholds | None = None,
                             for i, d in enumerate(drives)])
         m = metrics(v, err)
         n += 1
+        low_key = (m.mp_pct, -m.rp_pct, m.wp_deg)
+        if lowest is None or low_key < lowest[0]:
+            lowest = (low_key, k, st, m)
         if m.mp_pct > max_mp_pct:
             continue
         key = (-m.rp_pct, m.mp_pct, m.wp_deg)
         if best is None or key < best[0]:
             best = (key, k, st, m)
-    if best is None:
-        raise ValueError(f"no setting of the grid keeps MP ≤ {max_mp_pct} % on the training drives")
-    _, k, st, m = best
+    within = best is not None
+    _, k, st, m = best if within else lowest
     return {"stage1": loose.scaled(k), "stage1_scale": k, "settings": st, "train_metrics": m, "grid_size": n,
-            "rule": f"highest RP on the training drives with MP ≤ {max_mp_pct:g} % (ties: lower MP, then WP)"}
+            "within_cap": within,
+            "rule": f"highest RP on the training drives with MP ≤ {max_mp_pct:g} % (ties: lower MP, then WP); "
+                    "if no setting keeps within it, the lowest MP"}
 
 
 def train_fcm(drives: list[DriveData], feature_set: str = "extended", seed: int = 0, use_reference: bool = True,

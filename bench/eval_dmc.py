@@ -84,6 +84,8 @@ FIELD_UNIT_NT = 10.0
 CURVE_SCALES = tuple(round(0.2 + 0.05 * i, 2) for i in range(17))
 #: the same curve up to twice the loose set: the gyro-checked stage may start from a looser stage 1 than the FCM
 SECOND_STAGE_CURVE_SCALES = tuple(round(0.2 + 0.05 * i, 2) for i in range(37))
+#: other caps on the training MP, to show how the second stage's result depends on its operating rule (reported only)
+SECOND_STAGE_RULE_CAPS = (1.0, 3.0)
 
 
 def _positive(text: str) -> float:
@@ -456,6 +458,7 @@ def run(args: argparse.Namespace) -> dict:
                                "ddh_deg_s": pick["stage1"].ddh_deg_s},
                     "settings": {k: getattr(st, k) for k in st.__dataclass_fields__},
                     "chosen_on": [d.name for d in track_train], "selection_rule": pick["rule"],
+                    "within_cap": pick["within_cap"],
                     "grid_size": pick["grid_size"],
                     "on_training_drives": {"rp_pct": round(tm.rp_pct, 3), "mp_pct": round(tm.mp_pct, 3),
                                            "wp_deg": round(tm.wp_deg, 3)},
@@ -474,6 +477,17 @@ def run(args: argparse.Namespace) -> dict:
         "per_drive": per,
         "spread_rp_gained_pct": round(float(np.std([x["rp_gained_pct"] for x in per])), 3),
         "spread_mp_saved_pct": round(float(np.std([x["mp_saved_pct"] for x in per])), 3)}
+    # how much the outcome depends on the operating rule: the same grid, other caps on the training MP
+    sens = []
+    for cap in SECOND_STAGE_RULE_CAPS:
+        alt = T.choose_gyro_track(track_train, max_mp_pct=cap)
+        ma = T.metrics(T.gyro_track_valid(judged, alt["stage1"], alt["settings"]),
+                       np.concatenate([d.heading_err_deg for d in judged]))
+        sens.append({"max_train_mp_pct": cap, "within_cap": alt["within_cap"], "stage1_scale": alt["stage1_scale"],
+                     "settings": {k: getattr(alt["settings"], k) for k in ("gate_deg", "blend_tau_s", "bias_tau_s",
+                                                                           "trust_dm_nt")},
+                     "rp_pct": round(ma.rp_pct, 3), "mp_pct": round(ma.mp_pct, 3), "wp_deg": round(ma.wp_deg, 3)})
+    second_stage["rule_sensitivity"] = sens
     a = second_stage["against_its_stage1_alone"]
     a["beats_it_beyond_spread"] = bool(a["rp_gained_pct"] >= 0 and a["mp_saved_pct"] > a["spread_mp_saved_pct"])
     second_stage["meets_goal"] = bool(second_stage["rp_pct"] > GOAL["rp_pct"] and second_stage["mp_pct"] < GOAL["mp_pct"]

@@ -56,7 +56,7 @@ def _check(r: dict) -> None:
     assert ss["drives"] == u["drives"] and ss["paper"] == eval_dmc.PAPER_FCM_UNSEEN
     assert ss["chosen_on"] and all(d.startswith("paper_a/") for d in ss["chosen_on"])
     assert not set(ss["chosen_on"]) & set(r["drives"]["unseen"]), "settings chosen on drives that are scored"
-    assert ss["on_training_drives"]["mp_pct"] <= 2.0 and ss["grid_size"] > 1
+    assert (ss["on_training_drives"]["mp_pct"] <= 2.0) == ss["within_cap"] and ss["grid_size"] > 1
     assert ss["meets_goal"] == (ss["rp_pct"] > eval_dmc.GOAL["rp_pct"] and ss["mp_pct"] < eval_dmc.GOAL["mp_pct"]
                                 and ss["wp_deg"] < eval_dmc.GOAL["wp_deg"])
     assert g2["pooled"]["rp_pct"] == pytest.approx(ss["rp_pct"], abs=1e-3)

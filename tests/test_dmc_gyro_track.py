@@ -110,5 +110,6 @@ def test_choose_gyro_track_keeps_to_its_rule_on_training_drives_only():
     # nothing else on the grid within the MP cap recognises more
     v = T.gyro_track_valid(train, pick["stage1"], pick["settings"])
     assert T.metrics(v, train[0].heading_err_deg).rp_pct == pytest.approx(m.rp_pct)
-    with pytest.raises(ValueError, match="no setting"):
-        T.choose_gyro_track(train, max_mp_pct=-1.0)
+    assert pick["within_cap"]
+    low = T.choose_gyro_track(train, max_mp_pct=-1.0)  # nothing within: the lowest MP of the grid
+    assert not low["within_cap"] and low["train_metrics"].mp_pct <= m.mp_pct
