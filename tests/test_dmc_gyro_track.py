@@ -93,6 +93,12 @@ def test_reseed_after_a_long_disagreement():
     assert not r.valid[(f.t_s > 20.5) & (f.t_s < 39.5)].any() and r.valid[f.t_s > 41].all()
 
 
+def test_no_gyro_is_an_error():
+    f, _, _, _ = _case(10.0, lambda t: 0.0 * t)
+    with pytest.raises(ValueError, match="gyro samples"):
+        gyro_track_batch(f, np.ones(f.t_s.size, bool), np.zeros(0), np.zeros((0, 3)))
+
+
 def test_settings_are_checked():
     for bad in ({"gate_deg": 0.0}, {"gate_deg": 95.0}, {"blend_tau_s": -1.0}, {"trust_dm_nt": float("nan")},
                 {"bias_init_s": -1.0}):

@@ -279,8 +279,11 @@ def gyro_track_batch(f, stage1, t_gyro_s, gyro_rad_s, settings: GyroTrackSetting
     tight = (dm < s.reacquire_dm_nt) & (dh < s.reacquire_dh_deg)
     weight = 1.0 / (1.0 + (dm / s.trust_dm_nt) ** 2 + (dh / s.trust_dh_deg) ** 2)
     tg = np.asarray(t_gyro_s, float)
+    if tg.size < 2 or np.asarray(gyro_rad_s).shape != (tg.size, 3):
+        raise ValueError(f"gyro_track_batch needs ≥ 2 gyro samples as t (n,) and rates (n, 3), got {tg.shape} and "
+                         f"{np.asarray(gyro_rad_s).shape}")
     pg = gyro_heading(tg, gyro_rad_s, t)
-    still = tg < tg[0] + s.bias_init_s if tg.size else np.zeros(0, bool)
+    still = tg < tg[0] + s.bias_init_s
     b = float(np.median(-np.asarray(gyro_rad_s, float)[still, 2])) if still.any() else 0.0
     valid = np.zeros(n, bool)
     trusted = np.zeros(n, bool)
