@@ -2271,7 +2271,12 @@ class Runner:
     def loop(self) -> None:
         tick = self.tick_period()
         next_tick = time.monotonic() + (tick or 0)
+        due_at = getattr(self.svc, "tick_due_at", None)  # a service's next deadline: the tick runs then, not later
         while not self.stop_event.is_set():
+            if tick and due_at is not None:
+                due = due_at()
+                if due is not None and due < next_tick:
+                    next_tick = due
             timeout = max(0.0, next_tick - time.monotonic()) if tick else 0.5
             try:
                 ev = self.q.get(timeout=timeout)

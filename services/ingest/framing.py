@@ -469,6 +469,13 @@ class FramingIngest:
             self.frame_flush(force=True)
 
     # ---- the window -------------------------------------------------------------------------------
+    def tick_due_at(self) -> float | None:
+        """When the open frame window is due (monotonic s; None: no window open, or not on frames): the runtime's
+        loop ticks then, so a window goes out ``batch_window_s`` after its first sample, not up to a tick later."""
+        fr = self.__dict__.get("_fr_d")
+        since = fr["since"] if fr is not None else None
+        return None if since is None else since + self.settings.batch_window_s
+
     def frame_flush(self, force: bool = False) -> None:
         fr = self._fr()
         if fr["since"] is None or (not force and time.monotonic() - fr["since"] < self.settings.batch_window_s):
