@@ -131,7 +131,7 @@ def test_frame_rows_sorted_by_vehicle_and_numbered_per_key(tmp_path, monkeypatch
     msgs = st.messages("car-1", 3, 7)
     assert [m.get("temp_c") for m in msgs] == [20.0, 21.0, 22.0, None] and "temp_c" not in msgs[3]
     assert math.isnan(st.cols["temp_c"][6])
-    assert r.tick_period() == pytest.approx(0.01)
+    assert r.tick_period() == pytest.approx(0.005)
 
 
 def _plain(a: np.ndarray) -> list:

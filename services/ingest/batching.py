@@ -39,7 +39,7 @@ class IngestServiceSettings(IngestSettings):
     output: str = setting("singles", "singles: one clean/ message per sample (v1); batches: clean/batch per vehicle "
                           "(v2); frames: one fleet frame of every vehicle per window (v3, magmesh/fleet/{instance}/clean)",
                           choices=("singles", "batches", "frames"))
-    batch_window_s: float = setting(0.02, "longest wall-clock wait of an accepted sample before its batch or frame "
+    batch_window_s: float = setting(0.01, "longest wall-clock wait of an accepted sample before its batch or frame "
                                     "goes out", gt=0, hi=5.0)
 
 
