@@ -6,7 +6,10 @@ hops (raw → relay → relay → sink) with no decoding or processing. Both in 
 
 Figures: sustained samples/s end to end (raw samples whose DMC epoch reached the sink), latency of the DMC output
 (raw publish → dmc received) p50/p99, CPU per stage (% of one core), memory per process, messages lost, and the
-ratio pipeline / limit. Every figure is a median over ``--repeat`` runs.
+ratio pipeline / limit. Every figure is a median over ``--repeat`` runs. *Raw publish* is when the fleet really
+put a sample's batch (its put log); the fleet is one process putting every vehicle's batch of a window at once and
+falls behind when the stages share its cores, so the p99 from when each batch was due
+(``due_latency_ms_p99``) and the fleet's own lag (``fleet_last_put_lag_ms``) are reported beside it.
 
 ``wire="v3"`` (the default): the fleet publishes one batch per vehicle per ``window_s`` with binary columns
 (``v2``: list columns; both as an on-board agent would), ingest emits fleet frames (``output=frames``, window
@@ -36,7 +39,7 @@ import numpy as np
 from magmesh import paths, zconf
 from schemas import keys
 
-from .fleet import vehicle_ids
+from .fleet import publish_time, vehicle_ids, window_index
 
 CLK = os.sysconf("SC_CLK_TCK")
 
@@ -100,6 +103,8 @@ class Sink:
         self.n = 0
         self.t_sample: list[float] = []
         self.t_recv: list[float] = []
+        self.vehicle: list[int] = []  # each sample's vehicle number (bench-NNNN), -1 if not a bench vehicle
+        self._vnum: dict[str, int] = {}
         self.t_last = 0.0
         self.latency = latency
         self.batch_stream = batch_stream
@@ -118,7 +123,8 @@ class Sink:
             now = time.time()
             self.t_last = now
             if bs is not None:
-                st = unpack(s.payload.to_bytes())["streams"].get(bs)
+                m = unpack(s.payload.to_bytes())
+                st = m["streams"].get(bs)
                 if st is None:
                     continue
                 self.n += st["n"]
@@ -126,36 +132,70 @@ class Sink:
                     t = st["t_s"]
                     ts.extend(np.frombuffer(t, "<f8").tolist() if isinstance(t, bytes) else t)
                     tr.extend([now] * st["n"])
+                    vi, names = st.get("vi"), m.get("vehicles")
+                    if isinstance(vi, bytes) and names is not None:  # a frame's rows: their vehicles
+                        nums = [self._num(v) for v in names]
+                        self.vehicle.extend([nums[i] for i in np.frombuffer(vi, "<u4").tolist()])
+                    else:  # a vehicle's batch
+                        self.vehicle.extend([self._num(str(s.key_expr).split("/")[1])] * st["n"])
                 continue
             self.n += 1
             if self.latency:
                 ts.append(stamp(s.payload.to_bytes()).t_s)
                 tr.append(now)
+                self.vehicle.append(self._num(str(s.key_expr).split("/")[1]))
+
+    def _num(self, vehicle: str) -> int:
+        n = self._vnum.get(vehicle)
+        if n is None:
+            head, _, tail = vehicle.rpartition("-")
+            n = self._vnum[vehicle] = int(tail) if head == "bench" and tail.isdigit() else -1
+        return n
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(sample time, receive time, vehicle number) of every output sample so far."""
+        ts = np.asarray(self.t_sample, float)
+        n = len(ts)
+        vn = np.asarray(self.vehicle[:n], np.int64) if len(self.vehicle) >= n else np.full(n, -1, np.int64)
+        return ts, np.asarray(self.t_recv[:n], float), vn
 
     def latencies_ms(self, start_at: float | None, window_s: float | None, measure_from: float | None = None,
-                     until: float | None = None) -> tuple:
-        """(from raw publish, from sample time) in ms of the outputs of samples taken from ``measure_from`` on:
-        the v2 fleet puts a window's batch at its last sample's time (bench/fleet.py publish_time); v1 samples are
-        put when taken, so both are the same there."""
+                     until: float | None = None, put_log: np.ndarray | None = None) -> tuple:
+        """(from raw publish, from sample time, from the batch's due time) in ms of the outputs of samples taken
+        from ``measure_from`` on. The v2 fleet puts a window's batch when its last sample's time has come (bench/
+        fleet.py publish_time) or later when it falls behind: with ``put_log`` (its put times, windows × vehicles)
+        *raw publish* is when the batch really went out, without it when it was due. v1 samples are put when
+        taken, so all are the same there."""
         if not self.t_sample:
-            return None, None
-        ts = np.asarray(self.t_sample, float)
-        tr = np.asarray(self.t_recv[:len(ts)], float)
-        if measure_from is not None:
-            keep = ts >= measure_from
-            if keep.any():
-                ts, tr = ts[keep], tr[keep]
+            return None, None, None
+        ts, tr, vn = self.arrays()
+        keep = np.ones(len(ts), bool)
+        if measure_from is not None and (ts >= measure_from).any():
+            keep &= ts >= measure_from
         if until is not None:  # (only the samples taken before it)
-            keep = ts < until
-            ts, tr = ts[keep], tr[keep]
-            if not len(ts):
-                return None, None
+            keep &= ts < until
+        ts, tr, vn = ts[keep], tr[keep], vn[keep]
+        if not len(ts):
+            return None, None, None
         age = (tr - ts) * 1000
         if start_at is None:
-            return age, age
-        from .fleet import publish_time
+            return age, age, age
+        due = (tr - publish_time(ts, start_at, window_s)) * 1000
+        return due - 1000 * put_lag(ts, vn, start_at, window_s, put_log), age, due
 
-        return (tr - publish_time(ts, start_at, window_s)) * 1000, age
+
+def put_lag(ts: np.ndarray, vn: np.ndarray, start_at: float, window_s: float, put_log: np.ndarray | None
+            ) -> np.ndarray:
+    """Seconds after its due time that each sample's batch was put (``put_log``: windows × vehicles, NaN where
+    not known; 0 for those and without a log)."""
+    lag = np.zeros(len(ts))
+    if put_log is None or not put_log.size:
+        return lag
+    w = window_index(ts, start_at, window_s)
+    ok = (vn >= 0) & (vn < put_log.shape[1]) & (w >= 0) & (w < put_log.shape[0])
+    got = put_log[w[ok], vn[ok]].astype(float)
+    lag[np.flatnonzero(ok)] = np.where(np.isfinite(got), got, 0.0)
+    return lag
 
 
 def _spawn(args: list[str], port: int, log: Path) -> subprocess.Popen:
@@ -311,12 +351,17 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         fleet_args = ["-m", "bench.fleet", "--vehicles", str(n), "--duration", str(duration_s + warmup_s), "--start-at",
                       str(start_at), "--wire", "v1" if kind == "ingest" else wire, "--window", str(window_s)] + (
                           ["--max"] if max_mode else [])
-        fleet = subprocess.Popen([sys.executable, *fleet_args, "--connect", f"tcp/127.0.0.1:{port}"], cwd=paths.REPO,
+        logs = [tmp / f"fleet-puts-{port}.npy", tmp / f"fleet2-puts-{port}.npy"]  # each batch's put time
+        put_args = ["--put-log", str(logs[0])] if (wire in ("v2", "v3") and kind != "ingest" and not max_mode) else []
+        fleet = subprocess.Popen([sys.executable, *fleet_args, *put_args, "--connect", f"tcp/127.0.0.1:{port}"],
+                                 cwd=paths.REPO,
                                  stdout=subprocess.PIPE, stderr=open(tmp / "fleet.log", "ab"), text=True)
         fleet2 = None
         if extra:
             a2 = list(fleet_args)
             a2[a2.index("--vehicles") + 1], a2[a2.index("--duration") + 1] = str(extra), str(extra_s)
+            if put_args:
+                a2 += ["--put-log", str(logs[1])]
             fleet2 = subprocess.Popen([sys.executable, *a2, "--first", str(n), "--connect",
                                        f"tcp/127.0.0.1:{port}"], cwd=paths.REPO, stdout=subprocess.PIPE,
                                       stderr=open(tmp / "fleet2.log", "ab"), text=True)
@@ -368,12 +413,14 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         # latency only means something when paced: from the batch's publication (the goal's measure) and from
         # the sample's own time (which adds the vehicle's batching window)
         v2_fleet = wire in ("v2", "v3") and kind != "ingest"
-        lat, age = sink.latencies_ms(fl.get("start_at") if v2_fleet else None, window_s,
-                                     (fl.get("start_at") or start_at) + warmup_s) if not max_mode else (None, None)
+        put_log = _put_log(logs, n, extra) if put_args else None
+        lat, age, due = sink.latencies_ms(fl.get("start_at") if v2_fleet else None, window_s,
+                                          (fl.get("start_at") or start_at) + warmup_s, put_log=put_log) \
+            if not max_mode else (None, None, None)
         startup = None  # p99 of the samples taken during the warm-up: how long meeting the fleet holds it back
         if not max_mode and warmup_s > 0:
-            lat_w, _ = sink.latencies_ms(fl.get("start_at") if v2_fleet else None, window_s, None,
-                                         until=(fl.get("start_at") or start_at) + warmup_s)
+            lat_w, _, _ = sink.latencies_ms(fl.get("start_at") if v2_fleet else None, window_s, None,
+                                            until=(fl.get("start_at") or start_at) + warmup_s, put_log=put_log)
             if lat_w is not None and len(lat_w):
                 startup = round(float(np.percentile(lat_w, 99)), 2)
         # over the measured window only (the warm-up's samples are out of it, as wall is)
@@ -384,12 +431,10 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         if extra and not max_mode:
             t0 = fl.get("start_at") or start_at
             t_over, t_end_pub = t0 + extra_s, t0 + duration_s + warmup_s
-            ts = np.asarray(sink.t_sample, float)
-            tr = np.asarray(sink.t_recv[:len(ts)], float)
+            ts, tr, vn = sink.arrays()
             if v2_fleet:
-                from .fleet import publish_time
-
-                lat_all = (tr - publish_time(ts, fl["start_at"], window_s)) * 1000
+                lat_all = (tr - publish_time(ts, fl["start_at"], window_s)
+                           - put_lag(ts, vn, fl["start_at"], window_s, put_log)) * 1000
             else:
                 lat_all = (tr - ts) * 1000
             over = (ts >= t0) & (ts < t_over)
@@ -410,7 +455,12 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
             "latency_ms_p50": round(float(np.percentile(lat, 50)), 2) if lat is not None else None,
             "latency_ms_p99": round(float(np.percentile(lat, 99)), 2) if lat is not None else None,
             "age_ms_p99": round(float(np.percentile(age, 99)), 2) if age is not None else None,
+            # from the moment each batch was due rather than put: adds the fleet's own lag (below)
+            "due_latency_ms_p99": round(float(np.percentile(due, 99)), 2) if due is not None else None,
             "startup_p99_ms": startup,
+            # how late the fleet itself put each window's last batch (one process putting every vehicle's batch at
+            # once): part of every latency above, the load generator's and not the pipeline's
+            "fleet_last_put_lag_ms": fl.get("last_put_lag_ms"),
             "vehicle_window_s": window_s if v2_fleet else None,
             "frame_window_s": frame_s if (kind == "pipeline" and wire in ("v2", "v3")) else None,
             "cpu_pct": _by_stage({k: 100 * (cpu1[k] - cpu0[k]) / wall for k in (*procs, "router+sink")})
@@ -425,6 +475,19 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         router.close()
 
 
+def _put_log(paths_: list[Path], n: int, extra: int) -> np.ndarray | None:
+    """The fleets' put logs side by side (windows × vehicles; the second fleet's vehicles numbered from ``n``)."""
+    parts = [np.load(p) if p.exists() else None for p in paths_]
+    if parts[0] is None:
+        return None
+    if not extra or parts[1] is None:
+        return parts[0]
+    out = np.full((max(parts[0].shape[0], parts[1].shape[0]), n + extra), np.nan, np.float32)
+    out[:parts[0].shape[0], :n] = parts[0]
+    out[:parts[1].shape[0], n:n + extra] = parts[1]
+    return out
+
+
 def _sink(sink: str, wire: str) -> str:
     """Where a run counts the DMC's outputs: v1 runs have no fleet frames, so always on the per-vehicle keys."""
     return sink if wire in ("v2", "v3") else "keys"
@@ -436,9 +499,12 @@ def _median_case(kind, n, duration_s, max_mode, stages, repeat, tmp, wire="v3", 
                      warmup_s=warmup_s, sink=sink) for _ in range(repeat)]
     out = dict(runs[0])
     for k in ("sustained_samples_s", "published_samples_s", "latency_ms_p50", "latency_ms_p99", "age_ms_p99",
-              "startup_p99_ms"):
+              "due_latency_ms_p99", "startup_p99_ms"):
         vals = [r[k] for r in runs if r.get(k) is not None]
         out[k] = round(statistics.median(vals), 2) if vals else None
+    lags = [r["fleet_last_put_lag_ms"] for r in runs if r.get("fleet_last_put_lag_ms")]
+    if lags:
+        out["fleet_last_put_lag_ms"] = {q: round(statistics.median(x[q] for x in lags), 2) for q in ("p50", "p99")}
     out["lost"] = max(r["lost"] for r in runs)
     out["runs"] = len(runs)
     return out
@@ -560,15 +626,19 @@ def _row(r: dict) -> str:
     p50 = "-" if r["latency_ms_p50"] is None else f"{r['latency_ms_p50']:.1f}"
     p99 = "-" if r["latency_ms_p99"] is None else f"{r['latency_ms_p99']:.1f}"
     su = "-" if r.get("startup_p99_ms") is None else f"{r['startup_p99_ms']:.0f}"
+    due = "-" if r.get("due_latency_ms_p99") is None else f"{r['due_latency_ms_p99']:.1f}"
+    lag = r.get("fleet_last_put_lag_ms")
+    lag = "-" if not lag else f"{lag['p50']:.0f} / {lag['p99']:.0f}"
     return (f"| {r['vehicles']} | {r['offered_samples_s']} | {r['published_samples_s']:.0f} | "
-            f"{r['sustained_samples_s']:.0f} | {p50} | {p99} | {su} | {r['lost']} | {cpu} | {rss} | "
+            f"{r['sustained_samples_s']:.0f} | {p50} | {p99} | {due} | {lag} | {su} | {r['lost']} | {cpu} | {rss} | "
             f"{'yes' if r['sustained'] else 'no'} |")
 
 
 def format_text(res: dict) -> str:
     p, lim = res["saturation"]["pipeline"], res["saturation"]["limit"]
-    head = ["| vehicles | offered samples/s | published | sustained end to end | p50 ms | p99 ms | warm-up p99 ms "
-            "| lost | CPU % per stage | RSS MB | sustained |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    head = ["| vehicles | offered samples/s | published | sustained end to end | p50 ms | p99 ms | p99 from due ms "
+            "| fleet put lag p50 / p99 ms | warm-up p99 ms | lost | CPU % per stage | RSS MB | sustained |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     wire = res.get("wire", "v1")
     lines = [f"stages: {' → '.join(res['stages'])}; DMC outputs counted on "
              + ("its fleet frames" if res.get("sink") == "frames" else "every vehicle's dmc key") + f"; wire {wire}"

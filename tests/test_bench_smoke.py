@@ -23,6 +23,10 @@ def test_bench_mesh_smoke(wire, sink):
     assert set(row["cpu_pct"]) >= {"ingest", "dmc_detector", "fleet"}
     assert row["wire"] == wire
     assert row["startup_p99_ms"] is not None and row["startup_p99_ms"] > 0  # the warm-up's latency, apart
+    if wire != "v1":  # from each batch's real put, and from when it was due (adds the fleet's own lag)
+        lag = row["fleet_last_put_lag_ms"]
+        assert lag is not None and lag["p99"] >= lag["p50"] >= 0, row
+        assert row["due_latency_ms_p99"] >= row["latency_ms_p99"] > 0, row
     if wire == "v2" and sink == "frames":  # v1 single-sample vehicles through one ingest, clean batches counted sample by sample
         lim = res["saturation"]["limit"]
         # the limit relays the same batches as fast as the relays go: on a loaded machine some are shed (Zenoh's
@@ -43,3 +47,21 @@ def test_bench_cores_smoke():
     assert iw["v1_in_singles_out_us_per_sample"] > 0 and iw["v2_in_batches_out_us_per_sample"] > 0
     cf = cores_bench.calibration_fit(repeats=1)
     assert cf["arls_ms"] > 0 and cf["scipy_least_squares_ms"] > 0
+
+
+def test_latency_counts_from_each_batch_s_real_put():
+    """A sample's latency runs from when its batch was put (the fleet's put log), not from when it was due."""
+    import numpy as np
+
+    from bench.fleet import publish_time, window_index
+    from bench.mesh_bench import put_lag
+
+    start, win = 100.0, 0.05  # windows of 6 ticks: samples at 100.00 … 100.05 are window 0, due at 100.05
+    ts = np.array([100.0, 100.05, 100.06, 100.11, 100.06])
+    assert window_index(ts, start, win).tolist() == [0, 0, 1, 1, 1]
+    assert np.allclose(publish_time(ts, start, win), [100.05, 100.05, 100.11, 100.11, 100.11])
+    log = np.array([[0.001, 0.002], [0.030, np.nan]], np.float32)  # window × vehicle: s after due
+    vn = np.array([0, 1, 0, 0, 1])  # the last: not in the log (NaN) -> counted from its due time
+    assert np.allclose(put_lag(ts, vn, start, win, log), [0.001, 0.002, 0.030, 0.030, 0.0])
+    assert np.allclose(put_lag(ts, np.array([0, 5, -1, 0, 0]), start, win, log), [0.001, 0, 0, 0.030, 0.030])
+    assert not put_lag(ts, vn, start, win, None).any()
