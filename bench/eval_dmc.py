@@ -553,6 +553,20 @@ def _i(v) -> str:
     return "-" if v is None else str(int(v))
 
 
+def _gain_line(name: str, g: dict) -> str:
+    """One line of a second stage's gain over the threshold stage (``fcm_gain``, ``second_stage_gain``)."""
+    p = g["pooled"]
+
+    def f(v):
+        return "-" if v is None else f"{v:+.2f}"
+
+    return (f"{name} over the threshold stage (same drives): RP gained at equal MP {f(p['rp_gained_at_equal_mp_pct'])} "
+            f"(spread {g['spread_rp_gained_at_equal_mp_pct']}), MP saved at equal RP {f(p['mp_saved_at_equal_rp_pct'])} "
+            f"(spread {g['spread_mp_saved_at_equal_rp_pct']}): "
+            f"{'beats' if g['beats_thresholds_beyond_spread'] else 'does NOT beat'} the thresholds beyond the "
+            "seed-to-seed spread")
+
+
 def format_text(r: dict) -> str:
     lines = [f"DMC interference recognition — trained on {', '.join(r['drives']['train'])}; "
              f"unseen: {', '.join(r['drives']['unseen'])}",
@@ -635,16 +649,7 @@ def format_text(r: dict) -> str:
                      f"WP {rng(u['paper']['wp_deg'])}°")
     g = r.get("fcm_gain")
     if g:
-        p0 = g["pooled"]
-
-        def f(v):
-            return "-" if v is None else f"{v:+.2f}"
-
-        lines.append(f"fcm_gain over the threshold stage (same drives): RP gained at equal MP {f(p0['rp_gained_at_equal_mp_pct'])} "
-                     f"(spread {g['spread_rp_gained_at_equal_mp_pct']}), MP saved at equal RP "
-                     f"{f(p0['mp_saved_at_equal_rp_pct'])} (spread {g['spread_mp_saved_at_equal_rp_pct']}): "
-                     f"{'beats' if g['beats_thresholds_beyond_spread'] else 'does NOT beat'} the thresholds beyond the "
-                     "seed-to-seed spread")
+        lines.append(_gain_line("fcm_gain", g))
     ss = r.get("second_stage")
     if ss:
         t1 = ss["stage1"]
@@ -652,17 +657,7 @@ def format_text(r: dict) -> str:
                      f"({t1['dm_nt']:.0f}, {t1['ddm_nt_s']:.0f}, {t1['dh_deg']:g}, {t1['ddh_deg_s']:g}); settings chosen on "
                      f"{', '.join(ss['chosen_on'])}): RP {ss['rp_pct']:.2f} %  MP {ss['mp_pct']:.3f} %  WP {ss['wp_deg']:.2f}°  "
                      f"— goal {'met' if ss['meets_goal'] else 'NOT met'}")
-        g2 = r["second_stage_gain"]
-        p2 = g2["pooled"]
-
-        def f2(v):
-            return "-" if v is None else f"{v:+.2f}"
-
-        lines.append(f"second_stage_gain over the threshold stage (same drives): RP gained at equal MP "
-                     f"{f2(p2['rp_gained_at_equal_mp_pct'])} (spread {g2['spread_rp_gained_at_equal_mp_pct']}), MP saved at "
-                     f"equal RP {f2(p2['mp_saved_at_equal_rp_pct'])} (spread {g2['spread_mp_saved_at_equal_rp_pct']}): "
-                     f"{'beats' if g2['beats_thresholds_beyond_spread'] else 'does NOT beat'} the thresholds beyond the "
-                     "seed-to-seed spread")
+        lines.append(_gain_line("second_stage_gain", r["second_stage_gain"]))
     c = r.get("fcm_committed_model_unseen") or {}
     if "rp_pct" in c:
         lines.append(f"committed model {c['path']}: RP {c['rp_pct']:.2f} %  MP {c['mp_pct']:.3f} %  "
