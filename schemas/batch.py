@@ -375,7 +375,7 @@ FAST_STREAMS = ("mag/1", "mag/2", "imu", "gnss", "ins", "route", "attitude")
 
 def looks_binary(payload: bytes) -> bool:
     """Whether ``payload`` says it is a binary batch (version 3) near its start, as :func:`decode` tells them."""
-    return len(payload) > 24 and payload.find(b"\xa7version\x03", 0, 64) >= 0
+    return len(payload) > 24 and bytes(payload[:64]).find(b"\xa7version\x03") >= 0
 
 
 @cache
@@ -487,8 +487,7 @@ def decode(payload: bytes, where: str = "", check: bool = True, arrays: bool = F
     they become lists as version 2's; with ``deferred`` its streams are :class:`RawColumns` whose values the
     caller checks (ingest's frames: a window at once).
     """
-    if isinstance(payload, (bytes, bytearray, memoryview)) and len(payload) > 24 \
-            and bytes(payload[:64]).find(b"\xa7version\x03") >= 0:
+    if isinstance(payload, (bytes, bytearray, memoryview)) and looks_binary(payload):
         return _decode_binary(bytes(payload), where, arrays, deferred)
     if check and isinstance(payload, (bytes, bytearray, memoryview)) and len(payload):
         try:

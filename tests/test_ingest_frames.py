@@ -205,7 +205,7 @@ def _binary_inputs(seed: int):
 def test_binary_batches_kept_whole_then_joined_decide_as_one_by_one(tmp_path, monkeypatch, seed):
     """Binary batches are kept as they come and decoded with their window (framing.py _settle): the frames, the
     refusals with their sentences and the counts are those of decoding each batch on arrival (the general path)."""
-    from services.ingest import framing
+    from services.ingest import batching
 
     inputs = _binary_inputs(seed)
     runs = {}
@@ -213,7 +213,7 @@ def test_binary_batches_kept_whole_then_joined_decide_as_one_by_one(tmp_path, mo
         r, s = _ingest(tmp_path, monkeypatch, name, output="frames", batch_window_s=0.05)
         with monkeypatch.context() as m:
             if not fast:
-                m.setattr(framing.batches, "looks_binary", lambda p: False)
+                m.setattr(batching, "looks_binary", lambda p: False)  # each batch decoded on arrival
             for i, (k, p) in enumerate(inputs):
                 r.handle_sample(k, p)
                 if i % 5 == 4:

@@ -24,6 +24,7 @@ import numpy as np
 from magmesh.declare import setting
 from schemas import batch as batches
 from schemas import keys, streams
+from schemas.batch import looks_binary
 
 from .core import IngestSettings, Rejection, StreamState, accept, check_order, check_ranges
 
@@ -78,7 +79,7 @@ class BatchingIngest:
         key = info.key
         self._rt.batches_in += 1
         frames = self.frame_output
-        if frames and batches.looks_binary(payload):  # decoded with its window's others (framing.py)
+        if frames and looks_binary(payload):  # decoded with its window's others (framing.py)
             self.frame_raw(key, info, payload)
             return
         b = self._rt.decode_batch(key, info, payload, check=True, deferred=frames)

@@ -329,14 +329,26 @@ class FramingIngest:
             self.frame_flush(force=True)
 
     def _settle(self, fr: dict) -> None:
-        """The binary batches :meth:`frame_raw` kept, into the window in their order of arrival. When every one is
-        of the usual layout (:func:`schemas.batch.fast_binary`: structure checked by msgspec, byte lengths here on
-        each stream's run of batches at once), each stream's run goes in joined; otherwise batch by batch
-        (:meth:`_settle_each`), which gives the same rows and sends anything else through the general path."""
+        """The binary batches :meth:`frame_raw` kept, into the window in their order of arrival: all at once when
+        every one is of the usual layout and holds (:meth:`_settle_fast`), else batch by batch, each the fast way
+        or through the general path (:meth:`frame_batch`), which decides and reports it as before."""
         raw = fr["raw"]
         if not raw:
             return
         fr["raw"], fr["raw_bytes"] = [], 0
+        if self._settle_fast(fr, raw):
+            return
+        for item in raw:
+            if not self._settle_fast(fr, [item]):
+                key, info, payload, now = item
+                b = self._rt.decode_batch(key, info, payload, check=True, deferred=True)
+                if b is not None:
+                    self.frame_batch(key, info.vehicle, b, len(payload), now)
+
+    def _settle_fast(self, fr: dict, raw: list) -> bool:
+        """Binary batches of the usual layout (:func:`schemas.batch.fast_binary`: structure checked by msgspec, byte
+        lengths and sensors here on each stream's run of batches at once) into the window, each stream's run
+        joined; False, with nothing changed, when one of them is not of that layout or does not hold."""
         dec, layout = batches.fast_binary()
         decode = dec.decode
         astuple = msgspec.structs.astuple
@@ -347,11 +359,9 @@ class FramingIngest:
             try:
                 e = decode(payload)
             except (msgspec.ValidationError, msgspec.DecodeError):
-                self._settle_each(fr, raw)
-                return
+                return False
             if e.vehicle != info.vehicle:
-                self._settle_each(fr, raw)
-                return
+                return False
             present = [(j, s) for j, s in enumerate(astuple(e.streams)) if s is not unset and s.n]
             for j, s in present:
                 r = by_stream.get(j)
@@ -362,9 +372,8 @@ class FramingIngest:
         checked = {}
         for j, run in by_stream.items():
             rows = _run_rows(run, layout[j])
-            if rows is None:  # some batch's lengths are wrong: found and reported one by one
-                self._settle_each(fr, raw)
-                return
+            if rows is None:  # some batch's lengths are wrong
+                return False
             checked[j] = rows
         # every batch holds: in the window, in order (vehicle indices and slots as on arrival)
         blist = fr["batches"]
@@ -389,41 +398,7 @@ class FramingIngest:
             if acc is None:
                 acc = window[name] = _Acc(mt)
             fr["rows"] += acc.add_run(run, lay, checked[j])
-
-    def _settle_each(self, fr: dict, raw: list) -> None:
-        """Batch by batch, in order: one of the usual layout by its streams, any other through the general
-        path (:meth:`frame_batch`), which decides and reports it as before."""
-        dec, layout = batches.fast_binary()
-        for key, info, payload, now in raw:
-            try:
-                e = dec.decode(payload)
-            except (msgspec.ValidationError, msgspec.DecodeError):
-                e = None
-            vehicle = info.vehicle
-            runs, rows = {}, {}
-            if e is not None and e.vehicle == vehicle:
-                for j, s in enumerate(msgspec.structs.astuple(e.streams)):
-                    if s is msgspec.UNSET or not s.n:
-                        continue
-                    runs[j] = [(-1, -1, s.n, now, len(fr["batches"]), s)]
-                    rows[j] = _run_rows(runs[j], layout[j])
-                    if rows[j] is None:
-                        e = None
-                        break
-            if e is None or e.vehicle != vehicle:
-                b = self._rt.decode_batch(key, info, payload, check=True, deferred=True)
-                if b is not None:
-                    self.frame_batch(key, vehicle, b, len(payload), now)
-                continue
-            fr["batches"].append((key, vehicle, len(payload), e.t_s))
-            for j, run in runs.items():
-                name, mt, lay = layout[j]
-                raw_key, vi, slot = self._stream_slot(fr, vehicle, j, layout)
-                self._rt.count_in[raw_key].n += run[0][2]
-                acc = fr["window"].get(name)
-                if acc is None:
-                    acc = fr["window"][name] = _Acc(mt)
-                fr["rows"] += acc.add_run([(vi, slot, *run[0][2:])], lay, rows[j])
+        return True
 
     def _stream_slot(self, fr: dict, vehicle: str, j: int, layout: tuple) -> tuple[str, int, int]:
         """(raw key, vehicle index, slot) of a vehicle's stream ``layout[j]``, remembered per vehicle until an
