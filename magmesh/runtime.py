@@ -57,6 +57,7 @@ _KNOWN_FIELDS = {name: _HEADER_NAMES | {f.name for f in mt.fields} for name, mt 
 FIFO_CAPACITY = 4096
 STOP_GRACE_S = 1.5
 CAL_CONFIRM_TIMEOUT_S = 2.0  # wait for a calibration service to confirm a cal/params sample it published
+CAL_RECENT = 16  # parameter sets a calibration instance remembers per key besides the last (cal_params_recent)
 
 # ---- the input path's bounds (see Runner.handle_sample) ---------------------------------------
 #: largest payload accepted per message type, checked before decoding (a contract-legal message is far smaller)
@@ -601,7 +602,12 @@ class Runner:
         self.suppressed = 0
         self.in_seq: SeqTable = SeqTable()  # input key -> last seq handled (frames track many keys at once)
         self.params_sent: dict[str, list] = {}  # cal/params key -> [param_id, seq, t_s] last published
-        self._cal_sent: dict[str, list] = {}  # the same, as the live calibration instances last reported it
+        # the sets published before it on each key, newest first (CAL_RECENT of them): a consumer running behind
+        # (a queue under overload) still confirms a set that was genuine when sent, though a newer one followed
+        self.params_recent: dict[str, deque] = {}
+        # the sets the live calibration instances last reported having published, by key (the last and the
+        # recent ones before it)
+        self._cal_sent: dict[str, list[list]] = {}
         self._cal_sent_t = float("-inf")  # when they reported it (monotonic s): a report is used for 2 s
         self.journal = None  # magmesh.journal.Journal: last input/output seq per key, survives kill -9
         self.resumed_in: set[str] = set()  # input keys whose first gap after a restart is lost_during_restart
@@ -731,6 +737,9 @@ class Runner:
             self.seq[key] = seq
             self._alarm_sent(key, msg)
         elif msg_type == "cal_params":  # what this instance set, for consumers to confirm (cal_params_trusted)
+            before = self.params_sent.get(key)
+            if before is not None:
+                self.params_recent.setdefault(key, deque(maxlen=CAL_RECENT)).appendleft(before)
             self.params_sent[key] = [msg.get("param_id"), seq, t_s]
         if self.journal is not None:
             # before the put: a kill between the two never sends one seq twice, and leaves the input handled with
@@ -1207,11 +1216,13 @@ class Runner:
     def cal_params_trusted(self, key: str, msg: dict) -> bool:
         """Adopt ``cal/params`` only as published by a calibration service instance.
 
-        The rule: a live instance of role ``calibration`` must report, in its status (``cal_params_sent``), this
-        very parameter set as the last it published on this key (same ``param_id``, ``seq`` and ``t_s``). A put it
-        did not publish (a forged or stray parameter set) is refused and reported on ``rejects`` (code ``other``,
-        reason "untrusted: ..."). On the secured mesh only services may publish ``cal/`` or answer status at all
-        (router ACL), so the check cannot be fooled there.
+        The rule: a live instance of role ``calibration`` must report, in its status, this very parameter set
+        (same ``param_id``, ``seq`` and ``t_s``) as the last it published on this key (``cal_params_sent``) or as
+        one of the :data:`CAL_RECENT` it published there before (``cal_params_recent``): a consumer whose queue
+        runs behind (overload) adopts a set that was genuine when sent although a newer one has followed, which
+        it adopts in its turn. A put no instance published (a forged or stray parameter set) is refused and
+        reported on ``rejects`` (code ``other``, reason "untrusted: ..."). On the secured mesh only services may
+        publish ``cal/`` or answer status at all (router ACL), so the check cannot be fooled there.
         """
         import zenoh
 
@@ -1222,25 +1233,30 @@ class Runner:
         # what the live calibration instances reported having sent, by key: one answer confirms every parameter
         # set they had sent when they answered (hundreds arrive together when a fleet's vehicles first appear)
         asked = time.monotonic()
-        if self._cal_sent.get(key) == want and asked - self._cal_sent_t < CAL_CONFIRM_TIMEOUT_S:
+        if want in self._cal_sent.get(key, ()) and asked - self._cal_sent_t < CAL_CONFIRM_TIMEOUT_S:
             return True
         try:
             deadline = asked + CAL_CONFIRM_TIMEOUT_S
             while why and time.monotonic() < deadline:
-                seen: dict[str, list] = {}
-                for r in self.session.get(f"{keys.ROOT}/{keys.SVC}/calibration/*/status?only=cal_params_sent",
-                                             timeout=CAL_CONFIRM_TIMEOUT_S):
+                seen: dict[str, list[list]] = {}
+                for r in self.session.get(f"{keys.ROOT}/{keys.SVC}/calibration/*/status"
+                                          "?only=cal_params_sent,cal_params_recent", timeout=CAL_CONFIRM_TIMEOUT_S):
                     if r.ok is None:
                         continue
                     try:
                         st = msgpack.unpackb(r.ok.payload.to_bytes())
                     except Exception:  # noqa: BLE001 - a garbage answer confirms nothing
                         continue
-                    if isinstance(st, dict) and st.get("role") == "calibration" and \
-                            isinstance(st.get("cal_params_sent"), dict):
-                        seen.update(st["cal_params_sent"])
+                    if not (isinstance(st, dict) and st.get("role") == "calibration"
+                            and isinstance(st.get("cal_params_sent"), dict)):
+                        continue
+                    recent = st.get("cal_params_recent")
+                    recent = recent if isinstance(recent, dict) else {}
+                    for k, last in st["cal_params_sent"].items():
+                        older = recent.get(k)
+                        seen.setdefault(k, []).extend([last, *(older if isinstance(older, list) else ())])
                 self._cal_sent, self._cal_sent_t = seen, time.monotonic()
-                if seen.get(key) == want:
+                if want in seen.get(key, ()):
                     why = None
                 if why:  # a status asked a moment before the put was sent: ask once more
                     time.sleep(0.05)
@@ -2096,6 +2112,8 @@ class Runner:
                     st = {"type": "status", "version": 1, "role": self.svc.role, "instance": self.svc.instance}
                     if "cal_params_sent" in names:
                         st["cal_params_sent"] = dict(list(self.params_sent.items())[:65536])
+                    if "cal_params_recent" in names:
+                        st["cal_params_recent"] = {k: list(v) for k, v in list(self.params_recent.items())[:65536]}
                 payload = msgpack.packb(st, use_bin_type=True)
             else:
                 payload = msgpack.packb(self.status(), use_bin_type=True)
