@@ -1240,7 +1240,10 @@ class Runner:
             while why and time.monotonic() < deadline:
                 seen: dict[str, list[list]] = {}
                 for r in self.session.get(f"{keys.ROOT}/{keys.SVC}/calibration/*/status"
-                                          "?only=cal_params_sent,cal_params_recent", timeout=CAL_CONFIRM_TIMEOUT_S):
+                                          "?only=cal_params_sent,cal_params_recent", timeout=CAL_CONFIRM_TIMEOUT_S,
+                                          # ahead of data (Zenoh keeps a queue per priority; the reply takes the
+                                          # query's): under overload a link holds seconds of queued frames
+                                          priority=_control_priority()):
                     if r.ok is None:
                         continue
                     try:
@@ -2118,7 +2121,7 @@ class Runner:
             else:
                 payload = msgpack.packb(self.status(), use_bin_type=True)
             skey = keys.svc_status(self.svc.role, self.svc.instance)
-            query.reply(skey, payload, encoding=_encoding(skey))
+            query.reply(skey, payload, encoding=_encoding(skey))  # at the query's priority (Zenoh's rule)
         except Exception as e:
             self.last_error = f"status reply failed: {e}"
         finally:
@@ -2389,6 +2392,13 @@ class Runner:
 
 
 _MISSING = object()
+
+
+def _control_priority() -> Any:
+    """Zenoh priority of the control plane (status queries and their replies): above the data's default."""
+    import zenoh
+
+    return zenoh.Priority.INTERACTIVE_HIGH
 
 
 # ---- process entry point ----------------------------------------------------------------------
