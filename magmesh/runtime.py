@@ -70,6 +70,19 @@ MAX_EXTRA_BYTES = 1024
 SEQ_JUMP_MAX = 10_000
 #: per-vehicle and per-key state is freed after this long without input (services may set ``evict_idle_s``)
 EVICT_IDLE_S = 600.0
+#: a fleet frame that waited longer than this in the input queue (overload: the stage runs behind) is shed: its
+#: seq is tracked and journaled as usual, its rows are not handled and are counted lost as ``shed_behind``, so a
+#: stage catches up when the load drops instead of working off seconds of stale input (services may set
+#: ``shed_after_s``; 0 never sheds). Per-vehicle inputs (alarms, calibration parameters, v1/v2 samples) are
+#: never shed.
+SHED_AFTER_S = 2.0
+
+
+def shed_after_setting() -> Any:
+    """The ``shed_after_s`` setting of a service that takes fleet frames (one declaration for all of them)."""
+    return declare.setting(SHED_AFTER_S, "a fleet frame that waited longer than this in the input queue (the "
+                           "stage running behind under overload) is shed: its rows counted lost as shed_behind, "
+                           "not handled; 0 = never shed", lo=0)
 #: status replies list at most this many keys per table (the largest), plus totals over all keys
 STATUS_TOP_KEYS = 50
 #: the same kind of log line at most once per this many seconds (the rest are counted in the next one)
@@ -77,7 +90,7 @@ LOG_EVERY_S = 10.0
 #: drop reasons that are loss: what could not be delivered or recovered. ``rejected:*`` are refusals; every
 #: other reason is a skip by design (e.g. a stream not used, an alarm state unchanged)
 LOST_REASONS = frozenset(("upstream_gap", "handler_error", "queue_overflow", "invalid_output",
-                          "lost_during_restart", "lost_in_takeover"))
+                          "lost_during_restart", "lost_in_takeover", "shed_behind"))
 
 
 _ENCODINGS: dict[str, Any] = {}
@@ -655,6 +668,8 @@ class Runner:
         self._fkeys: dict[tuple[str, str], StreamKeys] = {}
         self.frames_in = 0
         self.frames_out = 0
+        self.frames_shed = 0  # frames shed because they waited longer than shed_after_s (their rows: drops)
+        self.cur_queued_at: float | None = None  # when the input being handled was queued (monotonic s)
         self.frames_missed = 0  # frames whose seq never arrived (their samples show as per-stream seq gaps)
         self.frame_seq_in: dict[str, int] = {}
         self._ofkeys: dict[tuple[str, str, str], tuple] = {}  # output frame rows: per (kind, name) keys and slots
@@ -1370,7 +1385,7 @@ class Runner:
                     item = None
             if not batch:
                 continue
-            ev = ("S", batch)
+            ev = ("S", batch, time.monotonic())  # when it was queued: a frame too long in the queue is shed
             while not self.stop_event.is_set():
                 try:
                     self.q.put(ev, timeout=0.2)
@@ -1423,15 +1438,16 @@ class Runner:
         t.start()
         self.threads.append(t)
 
-    def handle_sample(self, key: str, payload: bytes) -> None:
+    def handle_sample(self, key: str, payload: bytes, shed: bool = False) -> None:
         """One received sample, end to end; nothing an input causes reaches the service's loop.
 
-        A batch path calls this once per sample (or :meth:`check_input` then :meth:`dispatch`).
+        A batch path calls this once per sample (or :meth:`check_input` then :meth:`dispatch`). ``shed``: it
+        waited too long in the queue (:data:`SHED_AFTER_S`); a fleet frame is then shed, anything else handled.
         """
         if key.startswith(_FLEET):
             self._cur_key, self._cur_rejected = key, False
             try:
-                self.handle_frame(key, payload)
+                self.handle_frame(key, payload, shed)
             except Exception as e:  # noqa: BLE001 - a failure met on an input is counted as lost, never fatal
                 self._handler_failed(key, e)
             finally:
@@ -1610,10 +1626,11 @@ class Runner:
         self.count_drop(k, "handler_error", n)
 
     # ---- fleet frames (contract v3) ----------------------------------------------------------------
-    def handle_frame(self, key: str, payload: bytes) -> None:
+    def handle_frame(self, key: str, payload: bytes, shed: bool = False) -> None:
         """A fleet frame: decoded once, cut to the vehicles and streams this service takes (and, in a group,
         holds), each vehicle's stream seq tracked as for single samples (gaps counted as loss, the journal
-        written after the handler), then handed to ``on_frame`` whole or to the per-vehicle handlers."""
+        written after the handler), then handed to ``on_frame`` whole or to the per-vehicle handlers.
+        ``shed``: the same, but the rows go to no handler and are counted lost as ``shed_behind``."""
         info = keys.parse(key)
         kind = info.rest[1]
         now = time.monotonic()
@@ -1666,7 +1683,10 @@ class Runner:
             return
         self._frame_times(fr.vehicles, vmask, taken, now)
         sub = fleetframe.Frame(fr.shard, kind, fr.t_s, fr.seq, fr.vehicles, taken)
-        if self.svc.on_frame is not None:
+        if shed:
+            self.drops[key]["shed_behind"] += sub.n
+            self.frames_shed += 1
+        elif self.svc.on_frame is not None:
             try:
                 self.svc.on_frame(sub)
             except Exception as e:  # noqa: BLE001 - counted as lost on the frame key, never fatal
@@ -1821,6 +1841,11 @@ class Runner:
     @property
     def seq_jump_max(self) -> int:
         return int(getattr(self.svc.settings, "seq_jump_max", SEQ_JUMP_MAX) or SEQ_JUMP_MAX)
+
+    @property
+    def shed_after_s(self) -> float:
+        v = getattr(self.svc.settings, "shed_after_s", None)
+        return SHED_AFTER_S if v is None else max(0.0, float(v))
 
     @property
     def evict_idle_s(self) -> float:
@@ -2073,6 +2098,7 @@ class Runner:
                 "frames_in": self.frames_in,  # contract v3: in/out count a frame key's rows
                 "frames_out": self.frames_out,
                 "frames_missed": self.frames_missed,
+                "frames_shed": self.frames_shed,
                 "out_total": sum(c.n for c in list(self.count_out.values())) + self.evicted_out,
                 # per-vehicle rows numbered (in out) but not put while no subscriber matched their key: skipped by
                 # design, nothing lost (a subscriber that comes sees the key's seq from where it stands)
@@ -2293,6 +2319,7 @@ class Runner:
         tick = self.tick_period()
         next_tick = time.monotonic() + (tick or 0)
         due_at = getattr(self.svc, "tick_due_at", None)  # a service's next deadline: the tick runs then, not later
+        shed_after = self.shed_after_s
         while not self.stop_event.is_set():
             if tick and due_at is not None:
                 due = due_at()
@@ -2305,8 +2332,14 @@ class Runner:
                 ev = None
             if ev is not None:
                 if ev[0] == "S":
-                    for k, p in ev[1]:
-                        self.handle_sample(k, p)
+                    self.cur_queued_at = ev[2]
+                    if shed_after and time.monotonic() - ev[2] > shed_after:
+                        for k, p in ev[1]:
+                            self.handle_sample(k, p, shed=True)
+                    else:
+                        for k, p in ev[1]:
+                            self.handle_sample(k, p)
+                    self.cur_queued_at = None
                 elif ev[0] == "s":
                     self.handle_sample(ev[1], ev[2])
                 elif ev[0] == "q":

@@ -294,3 +294,49 @@ def test_publish_rows_in_a_group_gates_only_vehicles_in_a_hand_over(tmp_path, mo
     (fp,) = [p for k, p in sess.out if k.startswith("magmesh/fleet/")]
     st = frame.decode(fp).streams["dmc"]
     assert sorted(st.seq.tolist()) == [0, 0, 1] and st.n == 3
+
+
+def test_a_frame_that_waited_too_long_is_shed_counted_and_its_seqs_tracked(tmp_path, monkeypatch):
+    """Overload: a frame queued longer than shed_after_s goes to no handler; its rows are counted lost as
+    shed_behind on the frame key and its seqs are tracked, so the next frame shows no gap; a fresh one is handled."""
+    import time as _time
+
+    from magmesh import runtime
+
+    svc = _FrameSvc(instance="f-1")
+    r, _ = _runner(svc, tmp_path, monkeypatch)
+    assert r.shed_after_s == runtime.SHED_AFTER_S > 0
+    now = _time.monotonic()
+    old = _clean_frame(0, {"mag/1": _mag_rows([(0, 1.0, 0), (0, 1.02, 1), (1, 1.0, 10)]),
+                           "imu": _imu_rows([(0, 1.0, 4)])})
+    fresh = _clean_frame(1, {"mag/1": _mag_rows([(0, 1.04, 2), (1, 1.02, 11)])})
+    r.q.put(("S", [(FKEY, old)], now - runtime.SHED_AFTER_S - 0.5))
+    r.q.put(("S", [(FKEY, fresh)], now))
+    r.q.put(("stop",))
+    r.loop()
+    assert len(svc.got) == 1 and svc.got[0].seq == 1  # only the fresh frame reached the service
+    assert r.drops[FKEY]["shed_behind"] == 4 and r.frames_shed == 1
+    assert "shed_behind" in runtime.LOST_REASONS
+    k1, k2 = keys.clean_mag("car-1", "1"), keys.clean_mag("car-2", "1")
+    assert r.in_seq[k1] == 2 and r.in_seq[k2] == 11
+    assert r.drops[k1].get("upstream_gap", 0) == 0 and r.drops[k2].get("upstream_gap", 0) == 0
+    assert r.count_in[FKEY].n == 6  # shed rows were received: in, then counted as lost
+
+
+def test_shedding_is_a_setting_zero_never_sheds(tmp_path, monkeypatch):
+    import time as _time
+    from dataclasses import dataclass
+
+    from magmesh import runtime
+
+    @dataclass(frozen=True)
+    class _S:
+        shed_after_s: float = 0.0
+
+    svc = _FrameSvc(settings=_S(), instance="f-1")
+    r, _ = _runner(svc, tmp_path, monkeypatch)
+    assert r.shed_after_s == 0.0
+    r.q.put(("S", [(FKEY, _clean_frame(0, {"mag/1": _mag_rows([(0, 1.0, 0)])}))], _time.monotonic() - 3600))
+    r.q.put(("stop",))
+    r.loop()
+    assert len(svc.got) == 1 and not r.drops[FKEY].get("shed_behind") and runtime.SHED_AFTER_S > 0

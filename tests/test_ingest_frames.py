@@ -252,7 +252,7 @@ def test_a_frame_window_goes_out_when_due_not_a_tick_later(tmp_path, monkeypatch
     th.start()
     time.sleep(0.22)  # just after the loop's first tick (0.2 s): periodic ticks alone would flush at 0.8 s
     t_in = time.monotonic()
-    r.q.put(("S", [(keys.raw_batch("car-1"), p)]))
+    r.q.put(("S", [(keys.raw_batch("car-1"), p)], time.monotonic()))
     while not s.out and time.monotonic() - t0 < 5:
         time.sleep(0.005)
     t_out = time.monotonic()
@@ -260,3 +260,41 @@ def test_a_frame_window_goes_out_when_due_not_a_tick_later(tmp_path, monkeypatch
     th.join(2)
     assert [k for k, _ in s.out] == [keys.fleet_frame("ing-t", "clean")]
     assert 0.39 <= t_out - t_in < 0.52, t_out - t_in
+
+
+def test_a_window_whose_input_waited_too_long_is_shed_and_counted_its_seqs_tracked(tmp_path, monkeypatch):
+    """Overload: a window whose input waited longer than shed_after_s in the queue is checked (its seqs move on)
+    but not sent; its samples are counted lost as shed_behind on the frame key. The next window goes out, and
+    shows no upstream gap for what was shed."""
+    import threading
+    import time
+
+    from magmesh import runtime
+
+    r, s = _ingest(tmp_path, monkeypatch, "shed", output="frames", batch_window_s=0.05)
+    assert r.shed_after_s == runtime.SHED_AFTER_S > 0
+
+    def imu(seq0, t0):
+        return batch.encode("car-1", seq0, {"imu": {"t_s": [t0, t0 + 0.01], "seq": [seq0, seq0 + 1], "cols": {
+            "gyro_rad_s": [[0.0, 0.0, 0.0]] * 2, "accel_m_s2": [[0.0, 0.0, 9.8]] * 2}}}, binary=True)
+
+    r.svc.on_start()
+    th = threading.Thread(target=r.loop, daemon=True)
+    th.start()
+    r.q.put(("S", [(keys.raw_batch("car-1"), imu(0, 1.0))], time.monotonic() - runtime.SHED_AFTER_S - 1))
+    time.sleep(0.3)
+    assert s.out == []
+    r.q.put(("S", [(keys.raw_batch("car-1"), imu(2, 1.02))], time.monotonic()))
+    t0 = time.monotonic()
+    while not s.out and time.monotonic() - t0 < 5:
+        time.sleep(0.005)
+    r.stop_event.set()
+    th.join(2)
+    fkey = keys.fleet_frame("ing-t", "clean")
+    assert [k for k, _ in s.out] == [fkey]
+    assert r.drops[fkey]["shed_behind"] == 2 and r.frames_shed == 1
+    st = r.svc.status_extra()
+    assert st["upstream_gaps"] in (0, {}, []), st["upstream_gaps"]
+    f = frame.decode(s.out[0][1])
+    # what went out is the second batch, numbered on the clean key from 0: the consumers see no gap either
+    assert f.streams["imu"].t_s.tolist() == [1.02, 1.03] and f.streams["imu"].seq.tolist() == [0, 1]

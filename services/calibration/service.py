@@ -23,7 +23,7 @@ import numpy as np
 
 from magmesh import declare, magcal, paths
 from magmesh.declare import Input, Output, setting
-from magmesh.runtime import Service
+from magmesh.runtime import Service, shed_after_setting
 from schemas import frame as fleetframe
 from schemas import keys
 from services.physical import refuse_unphysical
@@ -68,6 +68,7 @@ class Settings:
     publish_cal_mag: bool = setting(True, "publish cal/mag (false: publish parameters only)")
     persist: bool = setting(True, "keep parameter sets on disk (state_dir()/state_subdir) and reload them on start")
     state_subdir: str = setting("calibration", "directory of the saved parameter sets under state_dir()")
+    shed_after_s: float = shed_after_setting()
 
     def __post_init__(self) -> None:
         declare.check(self)

@@ -45,6 +45,7 @@ class FcmSettings:
     raise_after_s: float = raise_after_setting()
     clear_after_s: float = clear_after_setting()
     severity: str = severity_setting()
+    shed_after_s: float = runtime.shed_after_setting()
 
     def __post_init__(self):
         declare.check(self)
@@ -153,6 +154,7 @@ class QuasiStaticServiceSettings:
     raise_after_s: float = raise_after_setting()
     clear_after_s: float = clear_after_setting()
     severity: str = severity_setting()
+    shed_after_s: float = runtime.shed_after_setting()
 
     def __post_init__(self):
         declare.check(self)

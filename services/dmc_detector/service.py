@@ -21,7 +21,7 @@ from magmesh import declare
 from magmesh.align import REASONS, TimeAligner
 from magmesh.declare import Input, Output, setting
 from magmesh.magcal import MagParams
-from magmesh.runtime import Service
+from magmesh.runtime import Service, shed_after_setting
 from schemas import keys
 from services.physical import refuse_unphysical
 
@@ -71,6 +71,7 @@ class Settings:
     raise_after_s: float = raise_after_setting()
     clear_after_s: float = clear_after_setting()
     severity: str = severity_setting()
+    shed_after_s: float = shed_after_setting()
 
     def __post_init__(self):
         declare.check(self)

@@ -27,7 +27,7 @@ import numpy as np
 from magmesh import declare
 from magmesh.declare import Input, Output, setting
 from magmesh.magcal import MagParams
-from magmesh.runtime import Service
+from magmesh.runtime import Service, shed_after_setting
 from schemas import keys
 from services.physical import refuse_unphysical
 
@@ -65,6 +65,7 @@ class Settings(core.Settings):
     max_imu_gap_s: float = setting(1.0, "a longer gap in the IMU stream restarts the filter", lo=0)
     alarm_clear_frac: float = setting(0.8, "clear the alarm below this fraction of heading_alarm_std_rad", lo=0)
     compiled: bool = setting(True, "the compiled filter (compiled.py, numba; same results); false: core.HeadingFilter")
+    shed_after_s: float = shed_after_setting()
     # filter settings whose comment in core.Settings is only its group's heading: described here (default: core's)
     init_tilt_std_rad: float = setting(core.Settings.init_tilt_std_rad, "initial 1-σ of roll and pitch", lo=0)
     init_heading_std_rad: float = setting(core.Settings.init_heading_std_rad, "initial 1-σ of the heading", lo=0)

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from magmesh.declare import setting
+from magmesh.runtime import SHED_AFTER_S
 from schemas import batch as batches
 from schemas import keys, streams
 from schemas.batch import looks_binary
@@ -42,6 +43,9 @@ class IngestServiceSettings(IngestSettings):
                           choices=("singles", "batches", "frames"))
     batch_window_s: float = setting(0.01, "longest wall-clock wait of an accepted sample before its batch or frame "
                                     "goes out", gt=0, hi=5.0)
+    shed_after_s: float = setting(SHED_AFTER_S, "output=frames: a window whose input waited longer than this in the "
+                                  "input queue (overload) is checked and counted but not sent: its samples counted "
+                                  "lost as shed_behind on the frame key; 0 = never shed", lo=0)
 
 
 def order_masks(t: np.ndarray, ok: np.ndarray, last_t: float | None) -> tuple[np.ndarray, np.ndarray]:

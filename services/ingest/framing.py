@@ -23,6 +23,7 @@ import numpy as np
 
 from schemas import batch as batches
 from schemas import frame as fleetframe
+from schemas import keys
 from schemas.messages import MESSAGES
 
 from . import fleet
@@ -292,7 +293,7 @@ class FramingIngest:
         if d is None:
             d = self.__dict__["_fr_d"] = {
                 "fs": fleet.FleetStreams(self.settings), "slot": {}, "vehicles": [], "vidx": {}, "window": {},
-                "rows": 0, "since": None, "batches": [], "raw": [], "raw_bytes": 0, "names": {}}
+                "rows": 0, "since": None, "batches": [], "raw": [], "raw_bytes": 0, "names": {}, "queued": None}
         return d
 
     def _frame_slot(self, fr: dict, vehicle: str, raw_key: str) -> tuple[int, int]:
@@ -306,9 +307,17 @@ class FramingIngest:
         return vi, s
 
     # ---- input ----------------------------------------------------------------------------------
+    def _note_queued(self, fr: dict) -> None:
+        """The window's oldest input by when it was queued (the runtime's queue): a window that went out only
+        after waiting longer than ``shed_after_s`` is shed (:meth:`frame_flush`)."""
+        q = self._rt.cur_queued_at
+        if q is not None and (fr["queued"] is None or q < fr["queued"]):
+            fr["queued"] = q
+
     def frame_single(self, info: Any, msg: dict) -> None:
         """A decoded v1 sample into the window."""
         fr = self._fr()
+        self._note_queued(fr)
         if fr["raw"]:
             self._settle(fr)  # binary batches that came before this input go in before it
         vi, s = self._frame_slot(fr, info.vehicle, info.key)
@@ -320,6 +329,7 @@ class FramingIngest:
         """A binary batch (version 3) as it came: decoded with the others of its window when the window is read
         or another kind of input comes (:meth:`_settle`), in one typed pass each."""
         fr = self._fr()
+        self._note_queued(fr)
         now = time.monotonic()
         fr["raw"].append((key, info, payload, now))
         fr["raw_bytes"] += len(payload)
@@ -415,6 +425,7 @@ class FramingIngest:
     def frame_batch(self, key: str, vehicle: str, b: Any, payload_len: int, now: float | None = None) -> None:
         """A decoded v2 batch, or a binary one with its structure checked, into the window, stream by stream."""
         fr = self._fr()
+        self._note_queued(fr)
         if fr["raw"]:
             self._settle(fr)  # binary batches that came before this input go in before it
         if now is None:
@@ -457,6 +468,7 @@ class FramingIngest:
             return
         self._settle(fr)
         window, fr["window"], fr["rows"], fr["since"] = fr["window"], {}, 0, None
+        queued, fr["queued"] = fr["queued"], None
         blist, fr["batches"] = fr["batches"], []
         out: dict[str, fleetframe.Stream] = {}
         rows = {}
@@ -486,8 +498,17 @@ class FramingIngest:
                 continue
             if st is not None and st.n:
                 out[name] = st
-        if out:
-            self.publish_frame("clean", fr["vehicles"], out)
+        if not out:
+            return
+        shed = self._rt.shed_after_s
+        if shed and queued is not None and time.monotonic() - queued > shed:
+            # overload: the window's input waited too long in the queue; its samples are checked and counted as
+            # every window's are (their seqs move on, so nothing shows later as a gap), but not sent: counted lost
+            # as shed_behind on the frame's key, so the stages after catch up instead of working off stale input
+            self.count_drop(keys.fleet_frame(self.shard, "clean"), "shed_behind", sum(st.n for st in out.values()))
+            self._rt.frames_shed += 1
+            return
+        self.publish_frame("clean", fr["vehicles"], out)
 
     def _decide(self, fr: dict, name: str, acc: _Acc, rows: tuple, refused: dict) -> fleetframe.Stream | None:
         mt = acc.msg_type
