@@ -314,7 +314,10 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
     tokens: list[str] = []
     members: dict[str, list[str]] = {}  # stage -> its instances
     batch_stream = None
-    ingest_args = ["services.ingest"]
+    # as fast as possible the stages run behind by design: nothing is shed there (shed_after_s = 0), so the run
+    # measures what the stages carry, not what they would drop to stay current
+    no_shed = ["--set", "shed_after_s=0"] if max_mode else []
+    ingest_args = ["services.ingest", *no_shed]
     if kind == "ingest" or wire in ("v2", "v3"):
         ingest_args += ["--set", "output=frames", "--set", f"batch_window_s={frame_s}"]
     if kind == "ingest":
@@ -325,8 +328,8 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         for role, name, log in (("dmc_detector", "b-dmc", "dmc"), ("calibration", "b-cal", "cal"),
                                 ("heading_fuser", "b-heading", "heading")):
             if role == "dmc_detector" or role in stages:
-                _start_stage(procs, tokens, members, role, [f"services.{role}", "--manifest", str(man)], name,
-                             instances, port, tmp / f"{log}.log")
+                _start_stage(procs, tokens, members, role, [f"services.{role}", "--manifest", str(man), *no_shed],
+                             name, instances, port, tmp / f"{log}.log")
         sink_key = keys.dmc("*")
         if _sink(sink, wire) == "frames":  # the DMC's fleet frames, as the services beside it take them
             sink_key, batch_stream = keys.fleet_frames("dmc"), "dmc"

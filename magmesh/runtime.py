@@ -73,8 +73,9 @@ EVICT_IDLE_S = 600.0
 #: a fleet frame that waited longer than this in the input queue (overload: the stage runs behind) is shed: its
 #: seq is tracked and journaled as usual, its rows are not handled and are counted lost as ``shed_behind``, so a
 #: stage catches up when the load drops instead of working off seconds of stale input (services may set
-#: ``shed_after_s``; 0 never sheds). Per-vehicle inputs (alarms, calibration parameters, v1/v2 samples) are
-#: never shed.
+#: ``shed_after_s``; 0 never sheds). Ingest with fleet frames out sheds a window the same way (checked and
+#: counted, not sent). Messages on per-vehicle keys (alarms, calibration parameters, a v1/v2 consumer's samples)
+#: are never shed.
 SHED_AFTER_S = 2.0
 
 
@@ -2334,6 +2335,9 @@ class Runner:
                 if ev[0] == "S":
                     self.cur_queued_at = ev[2]
                     if shed_after and time.monotonic() - ev[2] > shed_after:
+                        self.log_limited("shed", "running behind: input queued %.1f s ago (shed_after_s %g): "
+                                         "fleet frames shed, counted as shed_behind", time.monotonic() - ev[2],
+                                         shed_after)
                         for k, p in ev[1]:
                             self.handle_sample(k, p, shed=True)
                     else:

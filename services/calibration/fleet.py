@@ -725,6 +725,10 @@ class Declinations:
         self.computed = 0
         self.batches = 0
 
+    def warm(self) -> None:
+        """Read and interpolate the coefficients now (a service does this before serving)."""
+        self._coefficients()
+
     def _coefficients(self):
         if self._coef is None:
             import datetime as _dt

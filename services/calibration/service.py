@@ -119,10 +119,16 @@ class Calibration(Service):
                                        heading_noise_rad=math.radians(s.ekf_heading_noise_deg),
                                        min_speed_m_s=s.ekf_min_speed_m_s, gate_sigma=s.ekf_gate_sigma,
                                        random_walk_nt_sqrt_s=s.ekf_random_walk_nt_sqrt_s))
-        self.fleet = FleetCalibration(self.cal_settings, self.online_settings, fit_budget_frac=s.fit_budget_frac)
+        # slots for the manifest's vehicles and their magnetometers made now (two per vehicle at least: a DMC car's
+        # pair): growing them while a fleet first arrives copies every window array at once (about 1 s of the
+        # loop at 500 vehicles), a stall the stages after see as seconds of queued input
+        sensors = sum(max(2, len((c or {}).get("mag_params", {}) or {})) for c in self.vehicles_config.values())
+        self.fleet = FleetCalibration(self.cal_settings, self.online_settings, fit_budget_frac=s.fit_budget_frac,
+                                      capacity=max(16, sensors))
         from .fleet import warm
 
         warm()  # compile (or load from numba's disk cache) before serving: never on a sample
+        self.fleet.declinations.warm()  # the IGRF coefficients read once now (0.8 s), not on the first GNSS fix
         self._by_name: dict[str, VehicleSlot] = {}
         self._vcache: list | None = None  # on_frame: the last frame's vehicle list and their slots
         self._unusable = np.zeros(0, np.int64)  # on_frame: rows without a usable set per sensor slot (to count)
