@@ -228,29 +228,9 @@ def evaluate_broad(directory: Path | None, max_s: float | None, peers: bool = Tr
     from bench import heading_broad as hb
     from services.heading_fuser import profiles
 
-    where = Path(directory or hb.BROAD_DIR)
-    if not where.is_dir():
-        raise FileNotFoundError(f"BROAD directory {where} does not exist")
-    files = hb.trial_files(where)
-    if not files:
-        raise FileNotFoundError(f"no BROAD trial files (*.hdf5, *.mat) in {where}")
     profile = profile or profiles.IMU_ONLY
-    skipped = {} if skipped is None else skipped
     out = {}
-    for path in files:
-        try:
-            trial = hb.load_trial(path)
-        except hb.TrialError as e:
-            skipped[path.stem] = str(e)
-            continue
-        if max_s is not None:
-            trial = trial.sliced(int(max_s * trial.rate_hz))
-        if not trial.movement.any():
-            skipped[trial.name] = "no samples marked as movement (nothing to score)"
-            continue
-        if not np.isfinite(trial.quat_true[trial.movement]).any():
-            skipped[trial.name] = "no optical reference during the movement samples"
-            continue
+    for trial in hb.scorable_trials(directory, max_s, skipped):
         q, info = hb.run_magmesh(trial, profiles.settings(profile))
         row = {"profile": profile, "magmesh": hb.heading_rms_deg(q, trial)}
         if peers:

@@ -98,6 +98,34 @@ def load_trial(path: Path | str) -> Trial:
                  np.asarray(d["movement"], bool).ravel())
 
 
+def scorable_trials(directory: Path | str | None = None, max_s: float | None = None,
+                    skipped: dict[str, str] | None = None):
+    """Each trial of ``directory`` (default ``data/broad``) that can be scored, in file order (the first
+    ``max_s`` seconds if given); a file that cannot goes into ``skipped`` (name → why) instead."""
+    where = Path(directory or BROAD_DIR)
+    if not where.is_dir():
+        raise FileNotFoundError(f"BROAD directory {where} does not exist")
+    files = trial_files(where)
+    if not files:
+        raise FileNotFoundError(f"no BROAD trial files (*.hdf5, *.mat) in {where}")
+    skipped = {} if skipped is None else skipped
+    for path in files:
+        try:
+            trial = load_trial(path)
+        except TrialError as e:
+            skipped[path.stem] = str(e)
+            continue
+        if max_s is not None:
+            trial = trial.sliced(int(max_s * trial.rate_hz))
+        if not trial.movement.any():
+            skipped[trial.name] = "no samples marked as movement (nothing to score)"
+            continue
+        if not np.isfinite(trial.quat_true[trial.movement]).any():
+            skipped[trial.name] = "no optical reference during the movement samples"
+            continue
+        yield trial
+
+
 def is_disturbed(name: str) -> bool:
     return "disturbed" in name and "undisturbed" not in name
 

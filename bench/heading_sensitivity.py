@@ -97,23 +97,8 @@ def make_variants(factors=DEFAULT_FACTORS, only: list[str] | None = None) -> tup
 
 def load_trials(directory: Path | str | None = None, max_s: float | None = None) -> tuple[list[hb.Trial], dict[str, str]]:
     """Every scorable trial of ``directory`` (default ``data/broad``) and the skipped files (name → why)."""
-    where = Path(directory or hb.BROAD_DIR)
-    files = hb.trial_files(where)
-    if not files:
-        raise FileNotFoundError(f"no BROAD trial files (*.hdf5, *.mat) in {where}")
-    trials, skipped = [], {}
-    for path in files:
-        try:
-            t = hb.load_trial(path)
-        except hb.TrialError as e:
-            skipped[path.stem] = str(e)
-            continue
-        if max_s is not None:
-            t = t.sliced(int(max_s * t.rate_hz))
-        if not t.movement.any() or not np.isfinite(t.quat_true[t.movement]).any():
-            skipped[t.name] = "no scorable movement samples"
-            continue
-        trials.append(t)
+    skipped: dict[str, str] = {}
+    trials = list(hb.scorable_trials(directory, max_s, skipped))
     return trials, skipped
 
 
