@@ -70,10 +70,11 @@ MAX_EXTRA_BYTES = 1024
 SEQ_JUMP_MAX = 10_000
 #: per-vehicle and per-key state is freed after this long without input (services may set ``evict_idle_s``)
 EVICT_IDLE_S = 600.0
-#: a fleet frame that waited longer than this in the input queue (overload: the stage runs behind) is shed: its
-#: seq is tracked and journaled as usual, its rows are not handled and are counted lost as ``shed_behind``, so a
-#: stage catches up when the load drops instead of working off seconds of stale input (services may set
-#: ``shed_after_s``; 0 never sheds). Ingest with fleet frames out sheds a window the same way (checked and
+#: a fleet frame that waited longer than this in the input queue, once the stage has been handling such stale
+#: input for this long already (overload: the stage stays behind), is shed: its seq is tracked and journaled as
+#: usual, its rows are not handled and are counted lost as ``shed_behind``, so a stage catches up when the load
+#: drops instead of working off seconds of stale input; the backlog of one stall (a slow first sample, a pause)
+#: is worked off, not shed (services may set ``shed_after_s``; 0 never sheds). Ingest with fleet frames out sheds a window the same way (checked and
 #: counted, not sent). Messages on per-vehicle keys (alarms, calibration parameters, a v1/v2 consumer's samples)
 #: are never shed.
 SHED_AFTER_S = 2.0
@@ -81,9 +82,9 @@ SHED_AFTER_S = 2.0
 
 def shed_after_setting() -> Any:
     """The ``shed_after_s`` setting of a service that takes fleet frames (one declaration for all of them)."""
-    return declare.setting(SHED_AFTER_S, "a fleet frame that waited longer than this in the input queue (the "
-                           "stage running behind under overload) is shed: its rows counted lost as shed_behind, "
-                           "not handled; 0 = never shed", lo=0)
+    return declare.setting(SHED_AFTER_S, "a fleet frame that waited longer than this in the input queue, once the "
+                           "stage has handled such late input for this long (it stays behind: overload), is shed: "
+                           "its rows counted lost as shed_behind, not handled; 0 = never shed", lo=0)
 #: status replies list at most this many keys per table (the largest), plus totals over all keys
 STATUS_TOP_KEYS = 50
 #: the same kind of log line at most once per this many seconds (the rest are counted in the next one)
@@ -671,6 +672,7 @@ class Runner:
         self.frames_out = 0
         self.frames_shed = 0  # frames shed because they waited longer than shed_after_s (their rows: drops)
         self.cur_queued_at: float | None = None  # when the input being handled was queued (monotonic s)
+        self._behind_since: float | None = None  # since when the loop has handled only late input (shedding)
         self.frames_missed = 0  # frames whose seq never arrived (their samples show as per-stream seq gaps)
         self.frame_seq_in: dict[str, int] = {}
         self._ofkeys: dict[tuple[str, str, str], tuple] = {}  # output frame rows: per (kind, name) keys and slots
@@ -1843,6 +1845,26 @@ class Runner:
     def seq_jump_max(self) -> int:
         return int(getattr(self.svc.settings, "seq_jump_max", SEQ_JUMP_MAX) or SEQ_JUMP_MAX)
 
+    def _behind(self, queued_at: float, shed_after: float) -> bool:
+        """Whether input queued at ``queued_at`` is shed: it waited longer than ``shed_after`` and every input
+        handled for ``shed_after`` before it had waited that long too (a stage that stays behind). A stall's
+        backlog is worked off in less, so it is handled, not shed."""
+        now = time.monotonic()
+        if now - queued_at <= shed_after:
+            self._behind_since = None
+            return False
+        if self._behind_since is None:
+            self._behind_since = now
+        return now - self._behind_since >= shed_after
+
+    def shedding(self, queued_at: float | None) -> bool:
+        """Whether a window whose oldest input was queued at ``queued_at`` is shed now (ingest's frames): late by
+        more than ``shed_after_s`` while the loop has been behind for that long (see :meth:`_behind`)."""
+        shed_after = self.shed_after_s
+        now = time.monotonic()
+        return bool(shed_after and queued_at is not None and now - queued_at > shed_after
+                    and self._behind_since is not None and now - self._behind_since >= shed_after)
+
     @property
     def shed_after_s(self) -> float:
         v = getattr(self.svc.settings, "shed_after_s", None)
@@ -2334,7 +2356,7 @@ class Runner:
             if ev is not None:
                 if ev[0] == "S":
                     self.cur_queued_at = ev[2]
-                    if shed_after and time.monotonic() - ev[2] > shed_after:
+                    if shed_after and self._behind(ev[2], shed_after):
                         self.log_limited("shed", "running behind: input queued %.1f s ago (shed_after_s %g): "
                                          "fleet frames shed, counted as shed_behind", time.monotonic() - ev[2],
                                          shed_after)

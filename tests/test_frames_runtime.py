@@ -296,9 +296,30 @@ def test_publish_rows_in_a_group_gates_only_vehicles_in_a_hand_over(tmp_path, mo
     assert sorted(st.seq.tolist()) == [0, 0, 1] and st.n == 3
 
 
+def test_one_stalls_backlog_is_worked_off_not_shed(tmp_path, monkeypatch):
+    """A loop that stalled once (a slow first sample) finds frames queued longer than shed_after_s: it has not
+    been behind for that long, so it handles them, and the next fresh input ends the spell."""
+    import time as _time
+
+    from magmesh import runtime
+
+    svc = _FrameSvc(instance="f-1")
+    r, _ = _runner(svc, tmp_path, monkeypatch)
+    now = _time.monotonic()
+    for i in range(3):
+        r.q.put(("S", [(FKEY, _clean_frame(i, {"mag/1": _mag_rows([(0, 1.0 + i, i)])}))],
+                 now - runtime.SHED_AFTER_S - 1))
+    r.q.put(("S", [(FKEY, _clean_frame(3, {"mag/1": _mag_rows([(0, 4.0, 3)])}))], now))
+    r.q.put(("stop",))
+    r.loop()
+    assert [f.seq for f in svc.got] == [0, 1, 2, 3]
+    assert not r.drops[FKEY].get("shed_behind") and r.frames_shed == 0 and r._behind_since is None
+
+
 def test_a_frame_that_waited_too_long_is_shed_counted_and_its_seqs_tracked(tmp_path, monkeypatch):
-    """Overload: a frame queued longer than shed_after_s goes to no handler; its rows are counted lost as
-    shed_behind on the frame key and its seqs are tracked, so the next frame shows no gap; a fresh one is handled."""
+    """Overload: once the loop has handled only late input for shed_after_s, a frame queued longer than that goes
+    to no handler; its rows are counted lost as shed_behind on the frame key and its seqs are tracked, so the next
+    frame shows no gap; a fresh one is handled."""
     import time as _time
 
     from magmesh import runtime
@@ -307,6 +328,7 @@ def test_a_frame_that_waited_too_long_is_shed_counted_and_its_seqs_tracked(tmp_p
     r, _ = _runner(svc, tmp_path, monkeypatch)
     assert r.shed_after_s == runtime.SHED_AFTER_S > 0
     now = _time.monotonic()
+    r._behind_since = now - runtime.SHED_AFTER_S - 0.1  # behind (handling late input only) for that long already
     old = _clean_frame(0, {"mag/1": _mag_rows([(0, 1.0, 0), (0, 1.02, 1), (1, 1.0, 10)]),
                            "imu": _imu_rows([(0, 1.0, 4)])})
     fresh = _clean_frame(1, {"mag/1": _mag_rows([(0, 1.04, 2), (1, 1.02, 11)])})
@@ -336,6 +358,7 @@ def test_shedding_is_a_setting_zero_never_sheds(tmp_path, monkeypatch):
     svc = _FrameSvc(settings=_S(), instance="f-1")
     r, _ = _runner(svc, tmp_path, monkeypatch)
     assert r.shed_after_s == 0.0
+    r._behind_since = _time.monotonic() - 3600
     r.q.put(("S", [(FKEY, _clean_frame(0, {"mag/1": _mag_rows([(0, 1.0, 0)])}))], _time.monotonic() - 3600))
     r.q.put(("stop",))
     r.loop()

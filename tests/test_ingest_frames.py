@@ -281,6 +281,7 @@ def test_a_window_whose_input_waited_too_long_is_shed_and_counted_its_seqs_track
     r.svc.on_start()
     th = threading.Thread(target=r.loop, daemon=True)
     th.start()
+    r._behind_since = time.monotonic() - runtime.SHED_AFTER_S - 0.1  # behind for that long already (overload)
     r.q.put(("S", [(keys.raw_batch("car-1"), imu(0, 1.0))], time.monotonic() - runtime.SHED_AFTER_S - 1))
     time.sleep(0.3)
     assert s.out == []

@@ -120,8 +120,8 @@ def test_v1_singles_and_batches_reach_dmc_with_encodings(tmp_path, output, binar
         from schemas import frame
 
         fr = [frame.decode(p) for _, p in tap.on(keys.fleet_frame("ing-v2", "clean"))]
-        rows = {v: sum(int((s.vi == i).sum()) for f in fr for s in f.streams.values()
-                       for i in [f.vehicles.index(v)] if v in f.vehicles) for v in ("car-1", "car-2")}
+        rows = {v: sum(int((s.vi == f.vehicles.index(v)).sum()) for f in fr if v in f.vehicles
+                       for s in f.streams.values()) for v in ("car-1", "car-2")}  # (a frame may lack a vehicle)
         assert rows == {"car-1": 2 * N, "car-2": 2 * N - 1}, rows  # every accepted sample, in frames
         mirrored = [frame.decode(p) for _, p in tap.on(keys.fleet_frame("dmc-v2", "dmc"))]
         assert sum(f.streams["dmc"].n for f in mirrored) == len(d1) + len(d2)  # the verdicts, mirrored

@@ -500,10 +500,9 @@ class FramingIngest:
                 out[name] = st
         if not out:
             return
-        shed = self._rt.shed_after_s
-        if shed and queued is not None and time.monotonic() - queued > shed:
+        if self._rt.shedding(queued):
             self._rt.log_limited("shed", "running behind: a window's input queued %.1f s ago (shed_after_s %g): "
-                                 "not sent, counted as shed_behind", time.monotonic() - queued, shed)
+                                 "not sent, counted as shed_behind", time.monotonic() - queued, self._rt.shed_after_s)
             # overload: the window's input waited too long in the queue; its samples are checked and counted as
             # every window's are (their seqs move on, so nothing shows later as a gap), but not sent: counted lost
             # as shed_behind on the frame's key, so the stages after catch up instead of working off stale input
