@@ -74,9 +74,9 @@ EVICT_IDLE_S = 600.0
 #: input for this long already (overload: the stage stays behind), is shed: its seq is tracked and journaled as
 #: usual, its rows are not handled and are counted lost as ``shed_behind``, so a stage catches up when the load
 #: drops instead of working off seconds of stale input; the backlog of one stall (a slow first sample, a pause)
-#: is worked off, not shed (services may set ``shed_after_s``; 0 never sheds). Ingest with fleet frames out sheds a window the same way (checked and
-#: counted, not sent). Messages on per-vehicle keys (alarms, calibration parameters, a v1/v2 consumer's samples)
-#: are never shed.
+#: is worked off, not shed (services may set ``shed_after_s``; 0 never sheds). Ingest with fleet frames out
+#: sheds a window the same way (checked and counted, not sent). Messages on per-vehicle keys (alarms, calibration
+#: parameters, a v1/v2 consumer's samples) are never shed.
 SHED_AFTER_S = 2.0
 
 

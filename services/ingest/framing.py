@@ -308,8 +308,8 @@ class FramingIngest:
 
     # ---- input ----------------------------------------------------------------------------------
     def _note_queued(self, fr: dict) -> None:
-        """The window's oldest input by when it was queued (the runtime's queue): a window that went out only
-        after waiting longer than ``shed_after_s`` is shed (:meth:`frame_flush`)."""
+        """The window's oldest input by when it was queued (the runtime's queue): a window whose input waited
+        longer than ``shed_after_s`` while the stage stays behind is shed (:meth:`frame_flush`)."""
         q = self._rt.cur_queued_at
         if q is not None and (fr["queued"] is None or q < fr["queued"]):
             fr["queued"] = q
