@@ -237,29 +237,40 @@ def test_binary_batches_kept_whole_then_joined_decide_as_one_by_one(tmp_path, mo
 
 def test_a_frame_window_goes_out_when_due_not_a_tick_later(tmp_path, monkeypatch):
     """The runtime's loop wakes at the open window's deadline (Ingest.tick_due_at), not at its next periodic tick:
-    a batch arriving just after a tick is published ``batch_window_s`` later, not up to half a window more."""
+    a batch arriving just after a tick is published ``batch_window_s`` later, not up to half a window more. Wall
+    clock on a shared machine: the best of up to three tries counts (a loop that waits for its tick never gets
+    under 0.6 s, however quiet the machine)."""
     import threading
     import time
 
-    r, s = _ingest(tmp_path, monkeypatch, "due", output="frames", batch_window_s=0.4)
-    assert r.tick_period() == pytest.approx(0.2)
     p = batch.encode("car-1", 0, {"imu": {"t_s": [1.0, 1.01], "seq": [0, 1], "cols": {
         "gyro_rad_s": [[0.0, 0.0, 0.0]] * 2, "accel_m_s2": [[0.0, 0.0, 9.8]] * 2}}}, binary=True)
-    r.svc.on_start()  # (the compiled window kernel loaded, as a started service has it)
-    r.svc.frame_flush(force=True)
-    th = threading.Thread(target=r.loop, daemon=True)
-    t0 = time.monotonic()
-    th.start()
-    time.sleep(0.22)  # just after the loop's first tick (0.2 s): periodic ticks alone would flush at 0.8 s
-    t_in = time.monotonic()
-    r.q.put(("S", [(keys.raw_batch("car-1"), p)], time.monotonic()))
-    while not s.out and time.monotonic() - t0 < 5:
-        time.sleep(0.005)
-    t_out = time.monotonic()
-    r.stop_event.set()
-    th.join(2)
-    assert [k for k, _ in s.out] == [keys.fleet_frame("ing-t", "clean")]
-    assert 0.39 <= t_out - t_in < 0.52, t_out - t_in
+
+    def once(k: int) -> float:
+        r, s = _ingest(tmp_path, monkeypatch, f"due-{k}", output="frames", batch_window_s=0.4)
+        assert r.tick_period() == pytest.approx(0.2)
+        r.svc.on_start()  # (the compiled window kernel loaded, as a started service has it)
+        r.svc.frame_flush(force=True)
+        th = threading.Thread(target=r.loop, daemon=True)
+        t0 = time.monotonic()
+        th.start()
+        time.sleep(0.22)  # just after the loop's first tick (0.2 s): periodic ticks alone would flush at 0.8 s
+        t_in = time.monotonic()
+        r.q.put(("S", [(keys.raw_batch("car-1"), p)], time.monotonic()))
+        while not s.out and time.monotonic() - t0 < 5:
+            time.sleep(0.005)
+        t_out = time.monotonic()
+        r.stop_event.set()
+        th.join(2)
+        assert [k for k, _ in s.out] == [keys.fleet_frame("ing-t", "clean")]
+        return t_out - t_in
+
+    took = []
+    for k in range(3):
+        took.append(once(k))
+        if 0.39 <= took[-1] < 0.52:
+            break
+    assert 0.39 <= min(took) < 0.52, took
 
 
 def test_a_window_whose_input_waited_too_long_is_shed_and_counted_its_seqs_tracked(tmp_path, monkeypatch):
