@@ -1007,12 +1007,18 @@ class Runner:
             row = _row_type(("type", "version", "vehicle", "t_s", "seq", *names))
             vals = None  # each row's field values, in names' order: made at the first row built
             skipped = 0
+            first = j is not None
             for i in rows:
                 k = keys_[i]
                 c = cache[k]
                 s = seq.get(k, -1) + 1
                 if arr is not None and c[1] >= 0:
                     arr[c[1]] = s  # before the put, as _send journals (a kill between never repeats a seq)
+                if first:  # and the sent count with it, as _send does: after a kill here the input being handled
+                    # is handled (its output numbered: a seq gap if it never left), never also a lost input
+                    # (the count written after the loop left a window where both were counted)
+                    j.sent(self.n_sent + 1)
+                    first = False
                 if c[3].on:
                     if vals is None:
                         vals = list(zip(*lists(), strict=True))

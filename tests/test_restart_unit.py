@@ -285,3 +285,38 @@ def test_journal_index_grows_by_appended_lines(tmp_path):
     j2 = Journal(tmp_path / "svc.seq")
     j2.open(prev)  # the next run starts from a fresh index and an empty log
     assert j2.index_log.read_bytes() == b"" and Journal(tmp_path / "svc.seq").load()["omagmesh/car-3/dmc"] == 3
+
+
+class _RowRelay(_Relay):
+    """The same relay, its outputs through publish_rows (the path the fleet-frame services take per vehicle)."""
+
+    def on_message(self, info, msg, state):
+        self.publish_rows("mag", [keys.cal_mag(info.vehicle, "1")], [info.vehicle], [msg["t_s"]],
+                          {"sensor": "1", "b_nt": [msg["b_nt"]]})
+
+
+class _Killed(BaseException):  # not an Exception: nothing in the runtime catches it, as nothing survives a kill
+    pass
+
+
+def test_a_kill_at_a_rows_put_counts_its_input_handled_and_leaves_a_seq_gap(tmp_path, monkeypatch):
+    """Killed at the put of a row (publish_rows): the journal has numbered the output, so the input counts as
+    handled — the output that never left is the seq gap its consumers see, not also a lost input (the sent
+    count written after the loop had counted it twice)."""
+    r, s = _runner(tmp_path, monkeypatch, _RowRelay)
+    _feed(r, range(0, 10))
+    assert [m["seq"] for _, m in s.out] == list(range(10))
+
+    def die(payload):
+        raise _Killed
+
+    for c in r._row_cache.values():
+        c[0].put = die
+    try:
+        _feed(r, range(10, 11))
+    except _Killed:
+        pass
+    r2, s2 = _runner(tmp_path, monkeypatch, _RowRelay)
+    _feed(r2, range(15, 16))
+    assert r2.drops[keys.clean_mag("car-1", "1")]["lost_during_restart"] == 4  # 11..14; 10 was handled
+    assert [m["seq"] for _, m in s2.out] == [11]  # 10 was numbered and never left: a gap, not a repeat
