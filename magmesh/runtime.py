@@ -2632,6 +2632,13 @@ def run(svc: Service, conf: Any, ready: threading.Event | None = None, standby: 
         runner.stop()
         runner.close()
         session.close()
+        # the threads that wait in Zenoh (readers, the group's coordination) end once the session is closed: wait
+        # for them, so that none is still inside the library when the interpreter finalises (a daemon thread
+        # stopped there can abort the process: "FATAL: exception not rethrown")
+        deadline = time.monotonic() + 2.0
+        group_thread = runner.group._thread if runner.group is not None else None
+        for t in [*runner.threads, *([group_thread] if group_thread is not None else [])]:
+            t.join(max(0.0, deadline - time.monotonic()))
         svc.log.info("stopped")
 
 
