@@ -19,7 +19,7 @@ membership changes, per vehicle, with the live-swap protocol (cut at an agreed s
   vehicle already promised to one member is not released to another. A member warms on at most ``MAX_WARMING`` vehicles at once (a warming vehicle costs its work twice).
 - **failure** (the holder's liveliness is gone, e.g. kill -9): the new owner takes the vehicle at once from what
   the dead members left in the state directory: their seq journals (last output seq per key, last input seq
-  handled) and alarm files (a raised alarm stays raised until the new owner's logic decides). Every input the
+  handled, the vehicle's drop counts) and alarm files (a raised alarm stays raised until the new owner's logic decides). Every input the
   dead holder had not handled before the new owner's first one is counted as ``lost_in_takeover`` on its key;
   a vehicle for which nothing was persisted is counted in ``group.unrecovered``.
 - **duplicates** (two members took one new vehicle before they saw each other): the one the rule does not pick
@@ -61,6 +61,10 @@ MAX_WARMING = 4
 #: feature windows take 0.7 s and its alarm clears after 3 s of valid epochs (raises after 0.3 s): with less, a
 #: new owner's latch could clear later than the holder's would have (seen with 3 s: a clear 3.6 s late)
 WARMUP_S = 5.0
+
+
+#: the drop counts a member's seq journal keeps per key, by the letter of their entries (magmesh/runtime.py)
+_JOURNALLED = {"upstream_gap": "u", "lost_during_restart": "l", "lost_in_takeover": "t"}
 
 
 def vehicle_of(key: str) -> str | None:
@@ -305,22 +309,16 @@ class GroupMember:
         rt.first_in_t.pop(v, None)
         rt.last_in_t.pop(v, None)
 
-    def _forget(self, v: str, counts_moved: bool = True) -> None:
-        """A vehicle handed over (or held by another): its state, raised alarms and alarm states are not ours.
-        ``counts_moved``: its drop counts went with it to the new owner (a hand-over carries them), so they go
-        from here too, journal included (a restart of this instance must not bring them back: counted twice)."""
+    def _forget(self, v: str) -> None:
+        """A vehicle handed over (or held by another): its state, raised alarms, alarm states and drop counts are
+        not ours (the counts went with it: see :meth:`_drop_counts`)."""
         rt = self.rt
         self.owned.discard(v)
         self.post_cut.pop(v, None)
         rt.vehicle_state.pop(v, None)
         self._clear_vehicle(v)
         pre = f"{keys.ROOT}/{v}/"
-        if counts_moved:
-            gone = [k for k in rt.drops if k.startswith(pre)]
-            for k in gone:
-                del rt.drops[k]  # the vehicle's counts went with it to the new owner (group totals stay exact)
-            if rt.journal is not None and gone:
-                rt.journal.forget([c + k for k in gone for c in "ult"])
+        self._drop_counts(v)
         for k in [k for k in rt.alarm_published if k.startswith(pre)]:
             del rt.alarm_published[k]
         with rt.lock:
@@ -328,6 +326,18 @@ class GroupMember:
                 del rt.raised[k]
         rt.reconcile_pending = {k: x for k, x in rt.reconcile_pending.items() if not k.startswith(pre)}
         rt._persist_alarms()
+
+    def _drop_counts(self, v: str) -> None:
+        """Forget ``v``'s drop counts here, journal included: they went with the vehicle to another member (a
+        hand-over carries them, a take-over reads them from the journal), so a restart of this instance must not
+        bring them back (counted twice)."""
+        rt = self.rt
+        pre = f"{keys.ROOT}/{v}/"
+        gone = [k for k in rt.drops if k.startswith(pre)]
+        for k in gone:
+            del rt.drops[k]  # (group totals stay exact)
+        if rt.journal is not None and gone:
+            rt.journal.forget([c + k for k in gone for c in "ult"])
 
     def _drop_duplicate(self, v: str) -> None:
         if v in self.owned:
@@ -388,6 +398,9 @@ class GroupMember:
         pre = f"{keys.ROOT}/{v}/"
         for k in [k for k in rt.resumed_in if k.startswith(pre)]:
             rt.resumed_in.discard(k)
+        # and its counts: the member that took it over from this instance's journal took them, and the hand-over
+        # brings them back (kept here too, they were counted twice)
+        self._drop_counts(v)
         self.warming[v] = holder
         self._replay_params(v)
 
@@ -416,8 +429,9 @@ class GroupMember:
             for reason, n in d.items():  # the vehicle's counts come with it
                 rt.drops[k][reason] = max(int(n), rt.drops[k].get(reason, 0)) if reason == "lost_in_takeover" \
                     else rt.drops[k].get(reason, 0) + int(n)
-            if rt.journal is not None and "lost_in_takeover" in d:
-                rt.journal.set("t" + k, rt.drops[k]["lost_in_takeover"])
+                c = _JOURNALLED.get(reason)
+                if rt.journal is not None and c is not None:  # (a kill of this member must not lose them)
+                    rt.journal.set(c + k, rt.drops[k][reason])
         for k, s in seqs.items():
             rt.seq[k] = max(int(s), rt.seq.get(k, -1))
             if rt.journal is not None:
@@ -471,8 +485,10 @@ class GroupMember:
                 rt.in_seq[k] = s
                 rt.recovering[v] = "lost_during_restart"
         if dead["found"]:
-            self._adopt(v, dead["seqs"], dead["alarms"], dead["raised"],
-                        {k: {"lost_in_takeover": n} for k, n in dead["lost"].items()})
+            counts = {k: dict(d) for k, d in dead.get("counts", {}).items()}
+            for k, n in dead["lost"].items():
+                counts.setdefault(k, {})["lost_in_takeover"] = n
+            self._adopt(v, dead["seqs"], dead["alarms"], dead["raised"], counts)
             for k, s in dead["inputs"].items():
                 if k in resumed and resumed[k] > int(s):
                     continue  # handled later by this instance's run before its restart: that gap is the restart's
@@ -670,10 +686,13 @@ class GroupMember:
                     self._post(lambda v=v: self._drop_duplicate(v))
                 continue
             if complete and v in holdings and v not in self.warming and v not in self.release:
-                # alarm state restored from an earlier life of this instance, for a vehicle another member holds
-                if any(k.startswith(f"{keys.ROOT}/{v}/") for k in list(self.rt.alarm_published)):
+                # alarm state or drop counts restored from an earlier life of this instance, for a vehicle another
+                # member holds: that member took it over from this instance's journal, its counts included
+                pre = f"{keys.ROOT}/{v}/"
+                if any(k.startswith(pre) for k in list(self.rt.alarm_published)) \
+                        or any(k.startswith(pre) for k in list(self.rt.drops)):
                     self._post(lambda v=v: v not in self.owned and v not in self.warming and v not in self.arm
-                               and self._forget(v, counts_moved=False))
+                               and self._forget(v))
             if v in self.warming:
                 h = self.warming[v]
                 if h not in live:
@@ -731,7 +750,7 @@ class GroupMember:
         from .paths import state_dir
 
         pre = f"{keys.ROOT}/{v}/"
-        out: dict = {"seqs": {}, "inputs": {}, "lost": {}, "alarms": {}, "raised": {}, "found": False}
+        out: dict = {"seqs": {}, "inputs": {}, "lost": {}, "counts": {}, "alarms": {}, "raised": {}, "found": False}
         alarm_seq: dict[str, int] = {}
         first_rx: dict[str, int] = {}
         d = state_dir()
@@ -753,6 +772,11 @@ class GroupMember:
                     tgt = out["seqs"] if k[0] == "o" else out["inputs"] if k[0] == "i" else out["lost"]
                     tgt[k[1:]] = max(int(s), tgt.get(k[1:], -1))
                     out["found"] = True
+                elif k[:1] in "ul" and k[1:].startswith(pre):  # its other counts (the holder's, carried along:
+                    # the largest, as a member that handed the vehicle on forgot its own)
+                    reason = "upstream_gap" if k[0] == "u" else "lost_during_restart"
+                    cnt = out["counts"].setdefault(k[1:], {})
+                    cnt[reason] = max(int(s), cnt.get(reason, 0))
         for k, s in first_rx.items():  # a key no dead member handled is missed from the first seq any received
             out["inputs"].setdefault(k, s - 1)
         from .alarmstore import load

@@ -486,6 +486,53 @@ def test_counts_that_move_with_a_handed_over_vehicle_leave_the_holders_journal(t
     assert m1 not in rt.drops and rt.drops[other] == {"upstream_gap": 1}
 
 
+def test_a_vehicles_counts_survive_a_kill_of_the_member_that_took_them_and_are_counted_once(tmp_path,
+                                                                                          monkeypatch):
+    """A vehicle's drop counts carried in by a hand-over are journalled (a kill of the new owner then keeps
+    them); the survivor taking the vehicle over from the dead member's journal takes them with it; and the dead
+    member, restarted, forgets what its journal restored of them once it warms on the vehicle again (the
+    hand-over brings them back): every count once. (Seen before: an upstream gap of 53 samples carried into a
+    member by a hand-over was lost with that member's kill -9.)"""
+    from magmesh.journal import Journal
+
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
+    m1 = "magmesh/car-1/clean/mag/1"
+    g, rt, posted = _member("dmc-1", ["dmc-1", "dmc-2"], {})
+    jpath = tmp_path / "journal" / "dmc_detector.dmc-1.seq"
+    jpath.parent.mkdir(parents=True)
+    rt.journal = Journal(jpath)
+    rt.journal.open({})
+    g.warming["car-1"] = "dmc-2"
+    g._arm("car-1", "dmc-2", 10.0)
+    g._takeover("car-1", {"seqs": {"magmesh/car-1/dmc": 40}, "drops": {
+        m1: {"upstream_gap": 53, "lost_during_restart": 2, "lost_in_takeover": 6, "unpaired": 1}}})
+    rt.journal.mm.flush()
+    left = Journal(jpath).load()
+    assert (left["u" + m1], left["l" + m1], left["t" + m1]) == (53, 2, 6)  # journalled as they came
+
+    # dmc-1 killed: dmc-2 takes car-1 over from its journal, counts included
+    g2, rt2, _ = _member("dmc-2", ["dmc-2"], {})
+    g2.live = {"dmc-2"}
+    dead = g2._dead_state("car-1")
+    assert dead["counts"] == {m1: {"upstream_gap": 53, "lost_during_restart": 2}} and dead["lost"] == {m1: 6}
+    g2._failover("car-1", dead, None)
+    assert rt2.drops[m1] == {"upstream_gap": 53, "lost_during_restart": 2, "lost_in_takeover": 6}
+
+    # dmc-1 restarted: its journal restores the counts; warming on car-1 again, it forgets them (the hand-over
+    # from dmc-2 carries them)
+    g3, rt3, _ = _member("dmc-1", ["dmc-1", "dmc-2"], {})
+    rt3.journal = Journal(jpath)
+    rt3.journal.open({k: v for k, v in Journal(jpath).load().items() if not k.startswith("~")})
+    rt3.drops[m1] = {"upstream_gap": 53, "lost_during_restart": 2, "lost_in_takeover": 6}
+    g3._begin_warm("car-1", "dmc-2")
+    assert m1 not in rt3.drops
+    rt3.journal.mm.flush()
+    assert not any(k[1:] == m1 for k in Journal(jpath).load() if k[:1] in "ult")
+    g3._arm("car-1", "dmc-2", 20.0)
+    g3._takeover("car-1", {"drops": {m1: dict(rt2.drops[m1])}})
+    assert rt3.drops[m1] == {"upstream_gap": 53, "lost_during_restart": 2, "lost_in_takeover": 6}
+
+
 def test_a_frames_vehicles_are_admitted_as_one_by_one(tmp_path, monkeypatch):
     """The runtime cuts each fleet frame to the vehicles a member handles with one mask (GroupMember.admitted, a
     set lookup per vehicle): the same answer as admits() vehicle by vehicle, in every state a vehicle can be in,
