@@ -53,8 +53,7 @@ def test_group_of_three_survives_a_kill_and_scales_to_four_and_two(tmp_path):
     _check(res, 6, 1, ["dmc-1", "dmc-2"])
 
 
-@pytest.mark.slow  # a known defect: after several kills a vehicle can miss more epochs than are counted
-# (seen: 14 missing, 9 counted lost_in_takeover); out of the default suite until it is fixed
+@pytest.mark.slow  # 2-3 min: four kills -9 and three scalings of 12 cars (6 of 6 runs passed, load average 2-10)
 def test_group_kills_and_scaling_long(tmp_path):
     steps = [("wait", 2), ("kill",), ("scale", 1), ("wait", 3), ("scale", 4), ("kill",), ("kill",), ("scale", 2),
              ("kill",)]
