@@ -38,12 +38,12 @@ def _aligned(**kw) -> core.HeadingFilter:
     return f
 
 
-def ref_accel(Rq, P, accel, sig_base, rate, s: core.Settings):
+def ref_accel(Rq, P, accel, sig_base, rate, s: core.Settings, floor: float = 0.0):
     a = np.asarray(accel, float)
     na = float(np.linalg.norm(a))
     g = Rq.T @ np.array([0.0, 0.0, 1.0])
     H = np.hstack([cross_mat(g), np.zeros((3, 3))])
-    sig = (sig_base + 2.0 * abs(na - G) + s.accel_noise_per_rate_m_s2_per_rad_s * rate) / G
+    sig = max((sig_base + 2.0 * abs(na - G) + s.accel_noise_per_rate_m_s2_per_rad_s * rate) / G, floor)
     K = P @ H.T @ np.linalg.inv(H @ P @ H.T + sig**2 * np.eye(3))
     K[:3] = (np.eye(3) - np.outer(g, g)) @ K[:3]
     dx = K @ (a / na - g)
@@ -194,6 +194,36 @@ def test_update_imu_with_the_gravity_low_pass_fuses_its_output():
         assert np.allclose(f._acc_lp_i, lp, atol=1e-12), i
         assert np.allclose(rmat(f.q), R1 @ rexp(dx[:3]), atol=1e-13), i
         assert np.allclose(f.P, P, atol=1e-14), i
+
+
+@pytest.mark.parametrize("in_estimate,loop_gain", [(True, 1.7), (False, 1.7), (True, 0.0)])
+def test_the_tilt_loop_limit_floors_the_low_passed_gravitys_noise(in_estimate, loop_gain):
+    """gravity_lpf_loop_gain: with the low-pass in the estimate's frame, the low-passed gravity's σ is at least
+    √(λ (1 − k) / k), λ the largest eigenvalue of the nav-frame (east, north) tilt covariance after the prediction and
+    k = 1 − exp(−T · gain / τ), T the time since the last accelerometer update; in the gyro's frame (no loop) or with
+    the gain 0 it is not floored."""
+    tau, period = 0.5, 0.02
+    s = dict(gravity_lpf_tau_s=tau, gravity_lpf_noise_m_s2=0.01, gravity_lpf_in_estimate=in_estimate,
+             gravity_lpf_loop_gain=loop_gain, accel_update_period_s=period)
+    f = _aligned(**s)
+    f.P = np.diag([0.01, 0.02, 0.03, 1e-4, 1e-4, 1e-4])
+    f.P[0, 1] = f.P[1, 0] = 0.005
+    f.q = qof(Rotation.from_euler("ZYX", [0.3, -0.05, 0.04]).as_matrix())
+    f._last_accel_t = f.t_s + DT - period
+    gyro, a = (0.2, -0.1, 0.3), LEVEL + np.array([0.5, -0.4, 0.2])
+    g = _aligned(**s)
+    g.q, g.P, g._qg, g.bias = f.q, f.P.copy(), f._qg, f.bias.copy()
+    g._predict(gyro, DT)
+    R1, P1 = rmat(g.q), g.P.copy()
+    lam = float(np.linalg.eigvalsh(R1[:2] @ P1[:3, :3] @ R1[:2].T)[-1])
+    k = 1.0 - math.exp(-period * loop_gain / tau)
+    floor = math.sqrt(lam * (1.0 - k) / k) if in_estimate and loop_gain > 0 else 0.0
+    if floor:
+        assert floor > (0.01 + 2.0 * abs(np.linalg.norm(a) - G)) / G  # the floor is what counts here
+    dx, P = ref_accel(R1, P1, a, 0.01, 0.0, g.settings, floor=floor)  # the low-pass's first output: a itself
+    f.update_imu(gyro, a, DT)
+    assert np.allclose(rmat(f.q), R1 @ rexp(dx[:3]), atol=1e-13)
+    assert np.allclose(f.P, P, atol=1e-14)
 
 
 # ---- the gravity low-pass ---------------------------------------------------------------------------------------------

@@ -113,7 +113,8 @@ MIN_HOLD_S = 59
 AGREEMENT_FROM_CLEAR = 60
 REJECTION_TIMEOUT_S = 61
 HEADING_ALARM_STD_RAD = 62
-N_SETTINGS = 63
+GRAVITY_LPF_LOOP_GAIN = 63
+N_SETTINGS = 64
 
 SETTING_NAMES = tuple(f.name for f in fields(core.Settings))
 assert len(SETTING_NAMES) == N_SETTINGS and all(globals()[n.upper()] == i for i, n in enumerate(SETTING_NAMES)), (
@@ -597,7 +598,7 @@ def _vector_update(x, P, h0, h1, h2, z0, z1, z2, var, project_up, W):
 
 
 @njit(cache=True, error_model="numpy")
-def _fuse_accel(s, x, iv, P, a0, a1, a2, rate, noise, W):
+def _fuse_accel(s, x, iv, P, a0, a1, a2, rate, noise, floor, W):
     na = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
     err = na - G0
     x[X_AERR] = err
@@ -611,8 +612,29 @@ def _fuse_accel(s, x, iv, P, a0, a1, a2, rate, noise, W):
     g1 = 2 * (qy * qz + qw * qx)
     g2 = 1 - 2 * (qx * qx + qy * qy)
     base = s[ACCEL_NOISE_M_S2] if math.isnan(noise) else noise
-    sig = (base + 2.0 * abs(err) + s[ACCEL_NOISE_PER_RATE_M_S2_PER_RAD_S] * rate) / G0
+    sig = max((base + 2.0 * abs(err) + s[ACCEL_NOISE_PER_RATE_M_S2_PER_RAD_S] * rate) / G0, floor)
     _vector_update(x, P, g0, g1, g2, z0, z1, z2, sig * sig, True, W)
+
+
+@njit(cache=True, error_model="numpy")
+def _lpf_loop_floor(s, x, P, interval, R):
+    """core.HeadingFilter._lpf_loop_floor."""
+    k = 1.0 - math.exp(-interval * s[GRAVITY_LPF_LOOP_GAIN] / s[GRAVITY_LPF_TAU_S])
+    if k >= 1.0:
+        return 0.0
+    _qmat(x[X_Q], x[X_Q + 1], x[X_Q + 2], x[X_Q + 3], R)
+    # the nav-frame tilt (east, north) covariance: rows 0 and 1 of R times P times their transpose
+    v00 = R[0, 0] * P[0, 0] + R[0, 1] * P[1, 0] + R[0, 2] * P[2, 0]
+    v01 = R[0, 0] * P[0, 1] + R[0, 1] * P[1, 1] + R[0, 2] * P[2, 1]
+    v02 = R[0, 0] * P[0, 2] + R[0, 1] * P[1, 2] + R[0, 2] * P[2, 2]
+    v10 = R[1, 0] * P[0, 0] + R[1, 1] * P[1, 0] + R[1, 2] * P[2, 0]
+    v11 = R[1, 0] * P[0, 1] + R[1, 1] * P[1, 1] + R[1, 2] * P[2, 1]
+    v12 = R[1, 0] * P[0, 2] + R[1, 1] * P[1, 2] + R[1, 2] * P[2, 2]
+    a = v00 * R[0, 0] + v01 * R[0, 1] + v02 * R[0, 2]
+    b = v00 * R[1, 0] + v01 * R[1, 1] + v02 * R[1, 2]
+    c = v10 * R[1, 0] + v11 * R[1, 1] + v12 * R[1, 2]
+    lam = 0.5 * (a + c) + math.sqrt(0.25 * (a - c) * (a - c) + b * b)
+    return math.sqrt(max(lam, 0.0) * (1.0 - k) / k)
 
 
 @njit(cache=True, error_model="numpy")
@@ -1055,14 +1077,18 @@ def _imu(s, x, iv, L, g0, g1, g2, a0, a1, a2, dt, t_in, W):
         c1 = R[0, 1] * l0 + R[1, 1] * l1 + R[2, 1] * l2
         c2 = R[0, 2] * l0 + R[1, 2] * l1 + R[2, 2] * l2
     if x[X_T] - x[X_LAST_ACC_T] >= s[ACCEL_UPDATE_PERIOD_S] - 1e-9:
+        interval = x[X_T] - x[X_LAST_ACC_T]
         x[X_LAST_ACC_T] = x[X_T]
         if iv[I_AT_REST]:
-            _fuse_accel(s, x, iv, P, a0, a1, a2, 0.0, math.sqrt(x[X_NAV]), W)
+            _fuse_accel(s, x, iv, P, a0, a1, a2, 0.0, math.sqrt(x[X_NAV]), 0.0, W)
             _zero_rate(x, P, g0, g1, g2, W)
         elif lpf:
-            _fuse_accel(s, x, iv, P, c0, c1, c2, 0.0, s[GRAVITY_LPF_NOISE_M_S2], W)
+            floor = 0.0
+            if s[GRAVITY_LPF_LOOP_GAIN] > 0.0 and s[GRAVITY_LPF_IN_ESTIMATE]:
+                floor = _lpf_loop_floor(s, x, P, interval, W.r3)
+            _fuse_accel(s, x, iv, P, c0, c1, c2, 0.0, s[GRAVITY_LPF_NOISE_M_S2], floor, W)
         else:
-            _fuse_accel(s, x, iv, P, a0, a1, a2, rate, NAN, W)
+            _fuse_accel(s, x, iv, P, a0, a1, a2, rate, NAN, 0.0, W)
     x[X_TSF] = x[X_T] - x[X_LAST_FUSED_T]
     x[X_GOD] = 0.0 if math.isnan(x[X_GO_SINCE]) else x[X_T] - x[X_GO_SINCE]
     qw, qx, qy, qz = x[X_Q], x[X_Q + 1], x[X_Q + 2], x[X_Q + 3]

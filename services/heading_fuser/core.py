@@ -153,6 +153,14 @@ class Settings:
     rejection_timeout_s: float = 5.0  # persistent gate rejections this long in magnetic → recovering
     # alarm
     heading_alarm_std_rad: float = 0.087  # heading σ above this while not magnetic raises the flag (5°)
+    # the gravity low-pass in the estimate's own frame (gravity_lpf_in_estimate) closes a loop: a tilt correction
+    # reaches the low-pass's output only with its lag (≈ gravity_lpf_tau_s = τ), so the update observes the tilt
+    # error of about τ ago; with the second-order low-pass a tilt gain k (per second) above 2/τ makes the loop
+    # unstable (a tilt oscillation of period ≈ 2π τ/√2 that grows), and near it barely damped. That update's noise
+    # is floored so that its gain per update, on the largest horizontal tilt variance, stays at most
+    # 1 − exp(−T k_max) with k_max = gravity_lpf_loop_gain / τ (T: the time since the last accelerometer update);
+    # 0: no limit
+    gravity_lpf_loop_gain: float = 0.0
 
     def __post_init__(self):
         for f in fields(self):
@@ -519,12 +527,15 @@ class HeadingFilter:
         if s.gravity_lpf_tau_s > 0.0:
             acc = self._gravity_lpf(accel_m_s2, dt_s)
         if self.t_s - self._last_accel_t >= s.accel_update_period_s - 1e-9:
+            interval = self.t_s - self._last_accel_t
             self._last_accel_t = self.t_s
             if self.at_rest:
                 self._fuse_accel(accel_m_s2, 0.0, math.sqrt(self._noise_acc_var))
                 self._zero_rate(gyro_rad_s)
             elif s.gravity_lpf_tau_s > 0.0:
-                self._fuse_accel(acc, 0.0, s.gravity_lpf_noise_m_s2)
+                loop = s.gravity_lpf_loop_gain > 0.0 and s.gravity_lpf_in_estimate
+                floor = self._lpf_loop_floor(interval) if loop else 0.0
+                self._fuse_accel(acc, 0.0, s.gravity_lpf_noise_m_s2, floor)
             else:
                 self._fuse_accel(accel_m_s2, rate)
         st = self.states
@@ -639,7 +650,22 @@ class HeadingFilter:
         P = self.P - K @ self.P[3:, :]
         self.P = 0.5 * (P + P.T)
 
-    def _fuse_accel(self, accel, rate_rad_s: float = 0.0, noise_m_s2: float | None = None) -> None:
+    def _lpf_loop_floor(self, interval_s: float) -> float:
+        """The smallest 1-σ (rad) of the low-passed gravity fused in the estimate's own frame that keeps the tilt
+        loop through the low-pass well inside its stability limit (``gravity_lpf_loop_gain``): a gain per update of
+        at most k = 1 − exp(−T k_max) on the largest horizontal tilt variance λ needs σ² ≥ λ (1 − k) / k."""
+        s = self.settings
+        k = 1.0 - math.exp(-interval_s * s.gravity_lpf_loop_gain / s.gravity_lpf_tau_s)
+        if k >= 1.0:
+            return 0.0
+        Rh = _qmat(self.q)[:2]
+        Pn = Rh @ self.P[:3, :3] @ Rh.T  # the nav-frame tilt (east, north) covariance
+        a, b, c = Pn[0, 0], Pn[0, 1], Pn[1, 1]
+        lam = 0.5 * (a + c) + math.sqrt(0.25 * (a - c) * (a - c) + b * b)
+        return math.sqrt(max(lam, 0.0) * (1.0 - k) / k)
+
+    def _fuse_accel(self, accel, rate_rad_s: float = 0.0, noise_m_s2: float | None = None,
+                    floor_rad: float = 0.0) -> None:
         s = self.settings
         a = np.asarray(accel, float)  # pragma: no mutate (dtype: a / na converts)
         na = math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
@@ -656,7 +682,7 @@ class HeadingFilter:
         H = np.zeros((3, 6))
         H[:, :3] = _skew(g)
         base = s.accel_noise_m_s2 if noise_m_s2 is None else noise_m_s2
-        sig = (base + 2.0 * abs(err) + s.accel_noise_per_rate_m_s2_per_rad_s * rate_rad_s) / maths.G0
+        sig = max((base + 2.0 * abs(err) + s.accel_noise_per_rate_m_s2_per_rad_s * rate_rad_s) / maths.G0, floor_rad)
         PHt = self.P @ H.T
         S = H @ PHt + np.eye(3) * sig * sig
         K = np.linalg.solve(S, PHt.T).T

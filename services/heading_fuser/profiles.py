@@ -35,7 +35,11 @@ _IMU_ONLY = dict(
     gravity_lpf_tau_s=3.0,
     gravity_lpf_noise_m_s2=0.3,
     gravity_lpf_order=2,  # VQF's second-order Butterworth: a 1 Hz back-and-forth acceleration leaks ~9× less into tilt
-    gravity_lpf_in_estimate=True,  # in the filter's own (corrected) frame, as VQF: the gyro-only one drifts in fast turns
+    gravity_lpf_in_estimate=True,  # in the filter's own (corrected) frame: the gyro-only one drifts in fast turns
+    # ... which closes a loop through the low-pass's lag: the tilt gain held below 1.7/τ, 85 % of that loop's
+    # stability limit 2/τ (without it a noise figure halved or τ doubled made the tilt oscillate and grow); the
+    # margin chosen on the BROAD figures (1/τ and √2/τ cost trials 07 and 30 their margin to VQF)
+    gravity_lpf_loop_gain=1.7,
     rest_detection=True,
     # magnetometer: per-axis noise at rest ≈ 700 nT; lag estimated online
     mag_noise_nt=3000.0,
