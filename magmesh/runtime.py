@@ -56,7 +56,10 @@ _HEADER_NAMES = frozenset(("type", "version", "vehicle", "t_s", "seq"))
 _KNOWN_FIELDS = {name: _HEADER_NAMES | {f.name for f in mt.fields} for name, mt in messages.MESSAGES.items()}
 FIFO_CAPACITY = 4096
 STOP_GRACE_S = 1.5
-CAL_CONFIRM_TIMEOUT_S = 2.0  # wait for a calibration service to confirm a cal/params sample it published
+CAL_CONFIRM_TIMEOUT_S = 2.0  # a status query confirming cal/params waits this long; its answers count this long
+CAL_REASK_S = 0.3  # a parked cal/params set (see Runner.cal_params_admit) is asked about again this often
+CAL_GIVE_UP_S = 10.0  # a parked set no answer has reported this long after it came is refused (untrusted)
+CAL_PARKED_MAX = 64  # parked sets per key (the oldest beyond it is refused: a flood, not a backlog)
 CAL_RECENT = 16  # parameter sets a calibration instance remembers per key besides the last (cal_params_recent)
 
 # ---- the input path's bounds (see Runner.handle_sample) ---------------------------------------
@@ -581,6 +584,28 @@ def reject_code(e: SchemaError) -> str:
     return "version" if e.field == "version" else ("decode" if e.field == "<payload>" else "schema")
 
 
+def _cal_id(msg: dict) -> list:
+    """What identifies a parameter set in the calibration instances' status: ``[param_id, seq, t_s]``."""
+    return [msg.get("param_id"), msg.get("seq"), msg.get("t_s")]
+
+
+def _cal_note(reply: Any, seen: dict[str, list[list]]) -> None:
+    """Add to ``seen`` (by key) the sets one calibration instance's status reply reports having published."""
+    if reply.ok is None:
+        return
+    try:
+        st = msgpack.unpackb(reply.ok.payload.to_bytes())
+    except Exception:  # noqa: BLE001 - a garbage answer confirms nothing
+        return
+    if not (isinstance(st, dict) and st.get("role") == "calibration" and isinstance(st.get("cal_params_sent"), dict)):
+        return
+    recent = st.get("cal_params_recent")
+    recent = recent if isinstance(recent, dict) else {}
+    for k, last in st["cal_params_sent"].items():
+        older = recent.get(k)
+        seen.setdefault(k, []).extend([last, *(older if isinstance(older, list) else ())])
+
+
 class Runner:
     """Runs one :class:`Service` on an open Zenoh session."""
 
@@ -624,6 +649,12 @@ class Runner:
         # recent ones before it)
         self._cal_sent: dict[str, list[list]] = {}
         self._cal_sent_t = float("-inf")  # when they reported it (monotonic s): a report is used for 2 s
+        # cal/params sets waiting for such a report (cal_params_admit), by key, oldest first: [info, msg, give-up
+        # time]; the status query asking for them (at most one in flight: its replies, what they reported so far)
+        # and when to ask again
+        self._cal_parked: dict[str, list[list]] = {}
+        self._cal_ask: tuple[Any, dict] | None = None
+        self._cal_next_ask = 0.0
         self.journal = None  # magmesh.journal.Journal: last input/output seq per key, survives kill -9
         self.resumed_in: set[str] = set()  # input keys whose first gap after a restart is lost_during_restart
         self.restart_gaps: dict[str, list[list[int]]] = {}  # input key -> [first, last] seq missed by a restart
@@ -1238,7 +1269,7 @@ class Runner:
 
     # ---- who may steer: calibration parameters -------------------------------------------------
     def cal_params_trusted(self, key: str, msg: dict) -> bool:
-        """Adopt ``cal/params`` only as published by a calibration service instance.
+        """Adopt ``cal/params`` only as published by a calibration service instance: the rule, answered now.
 
         The rule: a live instance of role ``calibration`` must report, in its status, this very parameter set
         (same ``param_id``, ``seq`` and ``t_s``) as the last it published on this key (``cal_params_sent``) or as
@@ -1247,43 +1278,26 @@ class Runner:
         it adopts in its turn. A put no instance published (a forged or stray parameter set) is refused and
         reported on ``rejects`` (code ``other``, reason "untrusted: ..."). On the secured mesh only services may
         publish ``cal/`` or answer status at all (router ACL), so the check cannot be fooled there.
+
+        This asks and waits (up to :data:`CAL_CONFIRM_TIMEOUT_S`, refusing when no answer reports the set in
+        that time). The input path does not: it parks a set the last answers do not report and confirms it
+        without blocking the loop (:meth:`cal_params_admit`).
         """
         import zenoh
 
         if not isinstance(self.session, zenoh.Session) or self.svc.role == "calibration":
             return True
-        want = [msg.get("param_id"), msg.get("seq"), msg.get("t_s")]
-        why = "no live calibration service instance reports having published this parameter set"
-        # what the live calibration instances reported having sent, by key: one answer confirms every parameter
-        # set they had sent when they answered (hundreds arrive together when a fleet's vehicles first appear)
-        asked = time.monotonic()
-        if want in self._cal_sent.get(key, ()) and asked - self._cal_sent_t < CAL_CONFIRM_TIMEOUT_S:
+        if self._cal_reported(key, msg):
             return True
+        why = "no live calibration service instance reports having published this parameter set"
         try:
-            deadline = asked + CAL_CONFIRM_TIMEOUT_S
+            deadline = time.monotonic() + CAL_CONFIRM_TIMEOUT_S
             while why and time.monotonic() < deadline:
                 seen: dict[str, list[list]] = {}
-                for r in self.session.get(f"{keys.ROOT}/{keys.SVC}/calibration/*/status"
-                                          "?only=cal_params_sent,cal_params_recent", timeout=CAL_CONFIRM_TIMEOUT_S,
-                                          # ahead of data (Zenoh keeps a queue per priority; the reply takes the
-                                          # query's): under overload a link holds seconds of queued frames
-                                          priority=_control_priority()):
-                    if r.ok is None:
-                        continue
-                    try:
-                        st = msgpack.unpackb(r.ok.payload.to_bytes())
-                    except Exception:  # noqa: BLE001 - a garbage answer confirms nothing
-                        continue
-                    if not (isinstance(st, dict) and st.get("role") == "calibration"
-                            and isinstance(st.get("cal_params_sent"), dict)):
-                        continue
-                    recent = st.get("cal_params_recent")
-                    recent = recent if isinstance(recent, dict) else {}
-                    for k, last in st["cal_params_sent"].items():
-                        older = recent.get(k)
-                        seen.setdefault(k, []).extend([last, *(older if isinstance(older, list) else ())])
+                for r in self._cal_query():
+                    _cal_note(r, seen)
                 self._cal_sent, self._cal_sent_t = seen, time.monotonic()
-                if want in seen.get(key, ()):
+                if _cal_id(msg) in seen.get(key, ()):
                     why = None
                 if why:  # a status asked a moment before the put was sent: ask once more
                     time.sleep(0.05)
@@ -1291,10 +1305,126 @@ class Runner:
             why = f"confirmation failed ({type(e).__name__})"
         if why is None:
             return True
+        self._cal_refuse(key, msg, why)
+        return False
+
+    def _cal_reported(self, key: str, msg: dict) -> bool:
+        """Whether the calibration instances' last answers (while fresh) report this set on ``key``: one answer
+        confirms every set they had sent when they answered (hundreds arrive together when a fleet's vehicles
+        first appear)."""
+        return (time.monotonic() - self._cal_sent_t < CAL_CONFIRM_TIMEOUT_S
+                and _cal_id(msg) in self._cal_sent.get(key, ()))
+
+    def _cal_query(self, handler: Any = None) -> Any:
+        """Ask the live calibration instances what they published (``cal_params_sent`` and ``_recent``)."""
+        return self.session.get(f"{keys.ROOT}/{keys.SVC}/calibration/*/status?only=cal_params_sent,"
+                                "cal_params_recent", handler, timeout=CAL_CONFIRM_TIMEOUT_S,
+                                # ahead of data (Zenoh keeps a queue per priority; the reply takes the query's):
+                                # under overload a link holds seconds of queued frames
+                                priority=zconf.control_priority())
+
+    def _cal_refuse(self, key: str, msg: dict, why: str) -> None:
+        """Refuse a parameter set as untrusted (reported on ``rejects``, counted ``rejected:other``)."""
         self.reject(key, "other", f"untrusted: calibration parameters on {key} (param_id "
                     f"{str(msg.get('param_id'))[:64]!r}, seq {msg.get('seq')}) not adopted: {why}; only a calibration "
                     f"service instance may set them", "param_id", 0, msg.get("vehicle"), msg.get("t_s"), "cal_params")
+
+    def cal_params_admit(self, info: KeyInfo, msg: dict) -> bool:
+        """The input path's step for ``cal/params`` (the rule of :meth:`cal_params_trusted`, without waiting):
+        True to dispatch ``msg`` now; False when it is parked to be confirmed later (or refused).
+
+        A set the last answers report, with none parked before it on its key, goes on at once. Any other is
+        parked (per key, in arrival order) and the calibration instances are asked from the loop
+        (:meth:`_cal_poll`: one query in flight, again every :data:`CAL_REASK_S`; the loop goes on handling
+        input meanwhile). When answers report a parked set it is dispatched then, as if it had just come; the
+        sets parked before it on its key are superseded: counted ``cal_params_superseded`` (skipped by design:
+        the key's parameters are the newer genuine set's, nothing is lost) when reported too, refused as
+        untrusted when not (as :meth:`cal_params_trusted` would). A set no answer has reported
+        :data:`CAL_GIVE_UP_S` after it came (answers that do not report it, or none) is refused as untrusted.
+        Status shows how many sets wait (``cal_params_pending``).
+        """
+        import zenoh
+
+        if not isinstance(self.session, zenoh.Session) or self.svc.role == "calibration":
+            return True
+        key = info.key
+        parked = self._cal_parked.get(key)
+        if self._cal_reported(key, msg):
+            if parked:
+                self._cal_supersede(key, self._cal_parked.pop(key), self._cal_sent.get(key, ()))
+            return True
+        if parked is None:
+            parked = self._cal_parked[key] = []
+        parked.append([info, msg, time.monotonic() + CAL_GIVE_UP_S])
+        if len(parked) > CAL_PARKED_MAX:
+            self._cal_settled(key, parked.pop(0)[1], f"more than {CAL_PARKED_MAX} parameter sets wait for "
+                              "confirmation on this key")
         return False
+
+    def _cal_settled(self, key: str, msg: dict, why: str | None) -> None:
+        """A parked set that is not dispatched: refused as untrusted (``why``), else superseded. Either way its
+        seq is no gap of the key's stream, and the sample being handled (if any) is not the one refused."""
+        cur, self._cur_key = self._cur_key, None
+        try:
+            if why is None:
+                self.count_drop(key, "cal_params_superseded")
+            else:
+                self._cal_refuse(key, msg, why)
+        finally:
+            self._cur_key = cur
+        if type(msg.get("seq")) is int:
+            r = self._refused_seqs.setdefault(key, set())
+            if len(r) < 1024:
+                r.add(msg["seq"])
+
+    def _cal_supersede(self, key: str, older: list[list], reported: Any) -> None:
+        """The parked sets before a set of ``key`` being adopted (see :meth:`cal_params_admit`)."""
+        for _, m, _ in older:
+            self._cal_settled(key, m, None if _cal_id(m) in reported else
+                              "a newer set on this key is confirmed, this one is not reported")
+
+    def _cal_poll(self) -> None:
+        """The main loop's step for parked ``cal/params`` sets: read the answers of the query in flight; once it
+        is done, dispatch what they report and refuse what has waited :data:`CAL_GIVE_UP_S`; ask again every
+        :data:`CAL_REASK_S` while sets wait. Never blocks."""
+        import zenoh
+
+        now = time.monotonic()
+        if self._cal_ask is not None:
+            handler, seen = self._cal_ask
+            try:
+                while (r := handler.try_recv()) is not None:
+                    _cal_note(r, seen)
+                return  # the query is still open
+            except Exception:  # noqa: BLE001 - closed (zenoh.ZError): every instance answered, or the timeout passed
+                pass
+            self._cal_ask = None
+            self._cal_sent, self._cal_sent_t = seen, time.monotonic()
+            for key in list(self._cal_parked):
+                parked, reported = self._cal_parked[key], seen.get(key, ())
+                j = max((i for i, (_, m, _) in enumerate(parked) if _cal_id(m) in reported), default=-1)
+                if j >= 0:
+                    self._cal_supersede(key, parked[:j], reported)
+                    info, m, _ = parked[j]
+                    del parked[:j + 1]
+                    self._cur_key, self._cur_rejected = key, False
+                    try:
+                        self.dispatch(info, m)
+                    except Exception as e:  # noqa: BLE001 - as for any input (handle_sample)
+                        self._handler_failed(key, e)
+                    finally:
+                        self._cur_key = None
+                while parked and parked[0][2] <= now:
+                    self._cal_settled(key, parked.pop(0)[1], f"no live calibration service instance reported "
+                                      f"having published it within {CAL_GIVE_UP_S:g} s")
+                if not parked:
+                    del self._cal_parked[key]
+        if self._cal_parked and now >= self._cal_next_ask:
+            self._cal_next_ask = now + CAL_REASK_S
+            try:
+                self._cal_ask = (self._cal_query(zenoh.handlers.FifoChannel(16)), {})
+            except Exception as e:  # noqa: BLE001 - no answers this round; the give-up time still applies
+                self.last_error = f"cal/params confirmation query failed: {type(e).__name__}: {e}"[:500]
 
     def reject(self, key: str, code: str, reason: str, field: str | None, payload_len: int,
                vehicle: str | None, t_s: float | None, input_type: str | None) -> None:
@@ -1924,7 +2054,7 @@ class Runner:
             for k in extra:  # forward-compatible extras are kept only while small: never amplified downstream
                 del msg[k]
             self.count_drop(key, "extra_fields_dropped")
-        if mtype == "cal_params" and not self.cal_params_trusted(key, msg):
+        if mtype == "cal_params" and not self.cal_params_admit(info, msg):
             return None
         return info, msg
 
@@ -2143,6 +2273,7 @@ class Runner:
                 "holds_role": self.mode in ("active", "retiring"),
                 "suppressed": self.suppressed,
                 "cal_params_sent": dict(list(self.params_sent.items())[:4096]),
+                "cal_params_pending": sum(len(v) for v in list(self._cal_parked.values())),  # wait for confirmation
                 "resumed_from_journal": self.resumed_from,
                 "restart_gaps": {k: v[-10:] for k, v in self.restart_gaps.items()},  # seq ranges lost_during_restart
             }
@@ -2355,6 +2486,8 @@ class Runner:
                 if due is not None and due < next_tick:
                     next_tick = due
             timeout = max(0.0, next_tick - time.monotonic()) if tick else 0.5
+            if self._cal_parked or self._cal_ask is not None:
+                timeout = min(timeout, 0.05)  # parked cal/params wait for answers (_cal_poll)
             try:
                 ev = self.q.get(timeout=timeout)
             except queue.Empty:
@@ -2384,6 +2517,8 @@ class Runner:
                         self.svc.log.error("group step failed: %s\n%s", e, traceback.format_exc(limit=4))
                 elif ev[0] == "stop":
                     break
+            if self._cal_parked or self._cal_ask is not None:
+                self._cal_poll()
             if tick and time.monotonic() >= next_tick:
                 next_tick = time.monotonic() + tick
                 self._safe_tick()
@@ -2457,13 +2592,6 @@ class Runner:
 
 
 _MISSING = object()
-
-
-def _control_priority() -> Any:
-    """Zenoh priority of the control plane (status queries and their replies): above the data's default."""
-    import zenoh
-
-    return zenoh.Priority.INTERACTIVE_HIGH
 
 
 # ---- process entry point ----------------------------------------------------------------------

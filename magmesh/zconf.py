@@ -126,6 +126,14 @@ def open_client(args: argparse.Namespace, timeout_s: float, what: str = "magmesh
     return box["session"]
 
 
+def control_priority():
+    """Zenoh priority of the control plane (status, alarm and control queries; a reply takes its query's):
+    above the data's default, so an overloaded link still carries them ahead of its queued frames."""
+    import zenoh
+
+    return zenoh.Priority.INTERACTIVE_HIGH
+
+
 def control_request(session, role: str, instance: str, req: dict, timeout: float) -> dict | None:
     """Ask an instance's control key (``magmesh/svc/{role}/{instance}/control``); its reply when it answered
     ``ok``, else None (no answer within ``timeout`` s, a refusal, or a reply that is not a msgpack map)."""
@@ -134,7 +142,8 @@ def control_request(session, role: str, instance: str, req: dict, timeout: float
     from schemas import keys
 
     payload = msgpack.packb(req, use_bin_type=True)
-    for rep in session.get(keys.svc_control(role, instance), payload=payload, timeout=timeout):
+    for rep in session.get(keys.svc_control(role, instance), payload=payload, timeout=timeout,
+                           priority=control_priority()):
         if rep.ok is not None:
             try:
                 res = msgpack.unpackb(rep.ok.payload.to_bytes(), strict_map_key=False)

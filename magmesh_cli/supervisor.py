@@ -542,7 +542,7 @@ class Supervisor:
         The supervisor's list of raised alarms follows the holders, not the samples: a transition only makes it
         ask the services' alarm queryables (answered only by an instance holding the role, from its own state),
         so a forged "cleared" (or "raised") from anyone else changes nothing."""
-        for rep in self.session.get(key, timeout=1.0):
+        for rep in self.session.get(key, timeout=1.0, priority=zconf.control_priority()):
             if rep.ok is None:
                 continue
             try:
@@ -557,7 +557,8 @@ class Supervisor:
         while not self.stop_event.wait(self.m.status_period_s):
             try:
                 got = {}
-                for rep in self.session.get(keys.svc_status_all(), timeout=1.0):
+                for rep in self.session.get(keys.svc_status_all(), timeout=1.0,
+                                            priority=zconf.control_priority()):
                     if rep.ok is None:
                         continue
                     st = msgpack.unpackb(rep.ok.payload.to_bytes())

@@ -29,6 +29,7 @@ from typing import Any
 
 import msgpack
 
+from magmesh import zconf
 from schemas import keys
 
 log = logging.getLogger("magmesh_cli.swap")
@@ -56,7 +57,8 @@ class Swapper:
     def _control(self, role: str, instance: str, req: dict, timeout: float = 10.0) -> dict:
         # answered by the instance's own loop, behind its queue: on a loaded machine that takes seconds
         payload = msgpack.packb(req, use_bin_type=True)
-        for rep in self.sup.session.get(keys.svc_control(role, instance), payload=payload, timeout=timeout):
+        for rep in self.sup.session.get(keys.svc_control(role, instance), payload=payload, timeout=timeout,
+                                        priority=zconf.control_priority()):
             if rep.ok is not None:
                 res = msgpack.unpackb(rep.ok.payload.to_bytes())
                 if not res.get("ok"):

@@ -126,7 +126,8 @@ with a leak of Python objects), `vehicle_pattern`, `vehicles`, `consumes`, `prod
 (`{key: {n, rate_hz}}`; `out` counts every output numbered), `out_unwatched` (`{type: n}`: per-vehicle rows
 numbered but not put while no subscriber matched their key — skipped by design), `rejects`, `drops`
 (`{key: {reason: n}}`), `drops_total`, `queue_depth`, `last_error`, `settings`, `alarms_raised`, `mode`
-(active, standby, retiring, retired), `holds_role`, `suppressed`, plus service-specific entries.
+(active, standby, retiring, retired), `holds_role`, `suppressed`, `cal_params_pending` (calibration parameter
+sets waiting for a calibration instance to confirm them), plus service-specific entries.
 """)
     return "".join(out)
 

@@ -106,7 +106,8 @@ def run(args: argparse.Namespace) -> int:
         sub.sample_miss_listener(lambda m: q.put(("miss", str(m.source), m.nb)))
         try:
             query_s = args.timeout if deadline is None else max(0.1, min(args.timeout, deadline - time.monotonic()))
-            for rep in session.get(keys.alarms_all(args.vehicle), timeout=query_s):
+            for rep in session.get(keys.alarms_all(args.vehicle), timeout=query_s,
+                                   priority=zconf.control_priority()):
                 if rep.ok is not None:
                     printer.feed(str(rep.ok.key_expr), rep.ok.payload.to_bytes(), "(currently raised) ")
             while deadline is None or time.monotonic() < deadline:

@@ -33,7 +33,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def request_scale(session, name: str, n: int, supervisor: str = "main", timeout: float = 120.0) -> dict:
     payload = msgpack.packb({"op": "scale", "name": name, "n": n}, use_bin_type=True)
-    for rep in session.get(keys.svc_control("supervisor", supervisor), payload=payload, timeout=timeout):
+    for rep in session.get(keys.svc_control("supervisor", supervisor), payload=payload, timeout=timeout,
+                           priority=zconf.control_priority()):
         if rep.ok is None:
             return {"ok": False, "error": "supervisor error: "
                     f"{rep.err.payload.to_bytes().decode('utf-8', 'replace')[:500]}"}

@@ -45,7 +45,7 @@ def collect(session, timeout: float = 2.0) -> dict:
             live.append(str(rep.ok.key_expr))
     statuses = {}
     bad: list[str] = []
-    for rep in session.get(keys.svc_status_all(), timeout=timeout):
+    for rep in session.get(keys.svc_status_all(), timeout=timeout, priority=zconf.control_priority()):
         if rep.ok is None:
             continue
         st, why = decode_status(rep.ok.payload.to_bytes())

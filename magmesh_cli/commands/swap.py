@@ -52,7 +52,8 @@ def request_swap(session, role: str, impl: str, supervisor: str = "main", timeou
     if vehicles:
         req["vehicles"] = vehicles
     payload = msgpack.packb(req, use_bin_type=True)
-    for rep in session.get(keys.svc_control("supervisor", supervisor), payload=payload, timeout=timeout + 45):
+    for rep in session.get(keys.svc_control("supervisor", supervisor), payload=payload, timeout=timeout + 45,
+                           priority=zconf.control_priority()):
         if rep.ok is None:
             return {"ok": False, "error": f"supervisor error: {_text(rep.err.payload.to_bytes())}"}
         try:
