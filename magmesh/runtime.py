@@ -2518,7 +2518,10 @@ class Runner:
                 elif ev[0] == "stop":
                     break
             if self._cal_parked or self._cal_ask is not None:
-                self._cal_poll()
+                try:
+                    self._cal_poll()
+                except Exception as e:  # noqa: BLE001 - a failure settling a parked set must never stop the loop
+                    self.last_error = f"cal/params confirmation failed: {type(e).__name__}: {e}"[:500]
             if tick and time.monotonic() >= next_tick:
                 next_tick = time.monotonic() + tick
                 self._safe_tick()
