@@ -735,6 +735,26 @@ def test_hard_iron_innovation_limits_and_wrap():
     assert out == pytest.approx(2 * math.pi - 3.5, abs=1e-9)
 
 
+
+def test_hard_iron_from_rotation_must_explain_the_strength_offset():
+    """A body-fixed h changes the strength by at most |h|: a magnet weaker than the window's strength offset
+    |mean − reference| is not used even when it passes the strength tolerance; one exactly at the offset is."""
+    f = _aligned(hard_iron_tracking=True, hard_iron_from_rotation=True, hard_iron_min_info=0.5)
+    f._hi_rot.A = np.eye(3)
+    B = f.ref_field_nt
+    lim = f.settings.field_strength_tol_frac * B
+    offset = 2.0 * lim
+    m = FIELD + np.array([offset, 0.0, 0.0])
+    for mean in (B + offset, B - offset):
+        off = abs(mean - B)  # (the offset as the filter computes it, to the last bit)
+        f._hi_rot.b = np.array([off, 0.0, 0.0])
+        assert f._hard_iron_innovation(FIELD + f._hi_rot.b, np.eye(3), 0.01, mean) == pytest.approx(0.0, abs=1e-12)
+        f._hi_rot.b = np.array([np.nextafter(off, 0.0), 0.0, 0.0])
+        assert f._hard_iron_innovation(FIELD + f._hi_rot.b, np.eye(3), 0.01, mean) is None
+    f._hi_rot.b = np.array([1.5 * lim, 0.0, 0.0])  # above the tolerance, below the offset
+    assert f._hard_iron_innovation(m, np.eye(3), 0.01, B + offset) is None
+    assert f._hard_iron_innovation(m, np.eye(3), 0.01, B) is not None  # no offset given: the tolerance alone
+
 def test_min_eig_sym3_against_numpy():
     rng = np.random.default_rng(4)
     for _ in range(5):

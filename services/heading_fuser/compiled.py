@@ -1110,8 +1110,9 @@ def _window_full(x, iv, L, t, length_s):
 
 
 @njit(cache=True, error_model="numpy")
-def _hard_iron_innovation(s, x, Rm, m0, m1, m2, dt, W):
-    """The heading innovation of the field without the tracked hard iron, or NaN (None)."""
+def _hard_iron_innovation(s, x, Rm, m0, m1, m2, dt, mean_b, W):
+    """The heading innovation of the field without the tracked hard iron, or NaN (None); ``mean_b`` the
+    window's mean strength."""
     D, dip = s[DECLINATION_RAD], x[X_REF_DIP]
     B = x[X_REF_B]
     if s[HARD_IRON_FROM_ROTATION]:  # from the rotation alone
@@ -1125,7 +1126,8 @@ def _hard_iron_innovation(s, x, Rm, m0, m1, m2, dt, W):
             B31[i, 0] = x[X_HR_B + i]
         _solve3(S3, B31, X31)
         h0, h1, h2 = X31[0, 0], X31[1, 0], X31[2, 0]
-        if math.sqrt(h0 * h0 + h1 * h1 + h2 * h2) < s[FIELD_STRENGTH_TOL_FRAC] * B:
+        # at least the strength tolerance and the window's strength offset (|b + h| − |b| ≤ |h|)
+        if math.sqrt(h0 * h0 + h1 * h1 + h2 * h2) < max(s[FIELD_STRENGTH_TOL_FRAC] * B, abs(mean_b - B)):
             return NAN
     else:  # the slow mean of measured − expected field
         b0 = B * (math.cos(dip) * math.sin(D))
@@ -1342,7 +1344,7 @@ def _mag(s, x, iv, L, m0, m1, m2, dmc, t_in, W):
             x[X_INSIDE_SINCE] = NAN
             gain_weak = s[DISTURBED_NOISE_GAIN]
             if s[HARD_IRON_TRACKING] and dmc_valid:
-                nu_c = _hard_iron_innovation(s, x, Rm, m0, m1, m2, dt_mag, W)
+                nu_c = _hard_iron_innovation(s, x, Rm, m0, m1, m2, dt_mag, mb if full else ref_b, W)
                 if not math.isnan(nu_c):
                     nu, gain_weak = nu_c, s[HARD_IRON_NOISE_GAIN]
                     if s[HARD_IRON_FROM_ROTATION]:  # the compensated field: the sensor's own noise

@@ -756,6 +756,7 @@ class HeadingFilter:
         gain = 1.0
         fl.quasi_static = True
         window_bad = False
+        mb = self.ref_field_nt  # the window's mean strength (the reference until the window is full)
         if self._window.full(t):
             mb, var_b, md, var_d, dpsi = self._window.stats()
             window_bad = s.use_field_check and (
@@ -822,7 +823,7 @@ class HeadingFilter:
                     # a magnet that moves with the sensor adds a constant body-frame field: track it
                     # as the slow mean of (measured − expected) field and fuse what remains when that
                     # is consistent with the reference (the vehicle's rotation separates the two)
-                    nu_c = self._hard_iron_innovation(m, R_m, dt_mag)
+                    nu_c = self._hard_iron_innovation(m, R_m, dt_mag, mb)
                     if nu_c is not None:
                         nu, gain_weak = nu_c, s.hard_iron_noise_gain
                         if self._hi_rot is not None:
@@ -940,16 +941,24 @@ class HeadingFilter:
         P = A @ self.P @ A.T + var_unit * (K @ K.T)
         self.P = 0.5 * (P + P.T)
 
-    def _hard_iron_innovation(self, m: np.ndarray, R_m: np.ndarray, dt: float) -> float | None:
+    def _hard_iron_innovation(self, m: np.ndarray, R_m: np.ndarray, dt: float,
+                              mean_strength_nt: float | None = None) -> float | None:
         """Heading innovation of the field with the tracked extra hard iron removed, or None while the
-        compensated field is not yet consistent with the reference."""
+        compensated field is not yet consistent with the reference. ``mean_strength_nt``: the window's
+        mean field strength (None: the reference's)."""
         s = self.settings
         D, dip = s.declination_rad, self.ref_dip_rad
+        if mean_strength_nt is None:
+            mean_strength_nt = self.ref_field_nt
         if self._hi_rot is not None:  # from the rotation alone
             hard_iron = self._hi_rot.estimate()
             # a body-fixed field weaker than the strength tolerance cannot be what put the field off its
             # reference (a homogeneous field that changed, the sensor carried elsewhere, leaves it small)
-            if hard_iron is None or math.sqrt(float(hard_iron @ hard_iron)) < s.field_strength_tol_frac * self.ref_field_nt:
+            # nor one weaker than the window's strength offset: a body-fixed h changes |b + h| by at most |h|, so
+            # a field |mean − reference| off its reference in strength is not explained by a smaller h (the board
+            # carried to a stronger field and moved through its gradient gives h of a few % that explains nothing)
+            if hard_iron is None or math.sqrt(float(hard_iron @ hard_iron)) < max(
+                    s.field_strength_tol_frac * self.ref_field_nt, abs(mean_strength_nt - self.ref_field_nt)):
                 return None
         else:  # the slow mean of measured − expected field
             b_ref = self.ref_field_nt * np.array([math.cos(dip) * math.sin(D), math.cos(dip) * math.cos(D),
