@@ -148,7 +148,7 @@ def _raised_alarms(session, exprs: list[str]) -> list[tuple[str, bytes]]:
     """Alarms currently raised (services answer queries on their alarm keys), for a late joiner."""
     out = []
     try:
-        for rep in session.get(keys.alarms_all(), timeout=2.0):
+        for rep in session.get(keys.alarms_all(), timeout=2.0, priority=zconf.control_priority()):
             if rep.ok is not None:
                 k = str(rep.ok.key_expr)
                 if matches_any(exprs, k):
