@@ -21,7 +21,9 @@ membership changes, per vehicle, with the live-swap protocol (cut at an agreed s
   the dead members left in the state directory: their seq journals (last output seq per key, last input seq
   handled, the vehicle's drop counts) and alarm files (a raised alarm stays raised until the new owner's logic decides). Every input the
   dead holder had not handled before the new owner's first one is counted as ``lost_in_takeover`` on its key;
-  a vehicle for which nothing was persisted is counted in ``group.unrecovered``.
+  a vehicle for which nothing was persisted is counted in ``group.unrecovered``. A holder killed after passing the
+  cut of a hand-over (it journals that) leaves the hand-over to complete from its journal: the new owner publishes
+  the outputs it held from the cut on, nothing lost.
 - **duplicates** (two members took one new vehicle before they saw each other): the one the rule does not pick
   among the holders drops it at once (``group.duplicates_dropped``).
 
@@ -204,7 +206,8 @@ class GroupMember:
         if cut is not None:
             if t_s < cut:
                 return True
-            self.passed.add(vehicle)  # the new owner publishes from the cut on
+            if vehicle not in self.passed:
+                self._set_passed(vehicle, True)  # the new owner publishes from the cut on
             buf = self.release_buf.get(vehicle)  # (kept until it confirms: published here if it never takes it)
             if buf is None:
                 buf = self.release_buf[vehicle] = deque(maxlen=WARM_BUFFER)
@@ -253,7 +256,7 @@ class GroupMember:
                 cut = (t if t is not None else 0.0) + lead
                 if isinstance(nb, (int, float)) and not isinstance(nb, bool) and nb > cut:
                     cut = float(nb)
-                self.passed.discard(v)
+                self._set_passed(v, False)
                 # (released before it stops being held: the reader threads never see it as another's, see skips)
                 self.release[v] = cut
                 self.release_to[v] = to
@@ -265,7 +268,7 @@ class GroupMember:
                     del self.release[v]
                     self.release_to.pop(v, None)
                     self.release_buf.pop(v, None)
-                    self.passed.discard(v)
+                    self._set_passed(v, False)
                     self._forget(v)
         elif op == "g_leave":  # leave the group: the others take every vehicle over (hand-over)
             self.leaving = True
@@ -327,6 +330,20 @@ class GroupMember:
         rt.reconcile_pending = {k: x for k, x in rt.reconcile_pending.items() if not k.startswith(pre)}
         rt._persist_alarms()
 
+    def _set_passed(self, v: str, passed: bool) -> None:
+        """Whether this holder has passed the cut of ``v``'s hand-over (published all of it before the cut, and
+        nothing from it on): journalled, so that a new owner whose holder is killed there takes the vehicle over
+        with the outputs it held from the cut on instead of counting them lost (see :meth:`_failover`)."""
+        j, name = getattr(self.rt, "journal", None), f"p{keys.ROOT}/{v}/"
+        if passed:
+            self.passed.add(v)
+            if j is not None:
+                j.set(name, 1)
+        else:
+            self.passed.discard(v)
+            if j is not None and name in j.slot:  # (also one an earlier life of this member left)
+                j.forget([name])
+
     def _drop_counts(self, v: str) -> None:
         """Forget ``v``'s drop counts here, journal included: they went with the vehicle to another member (a
         hand-over carries them, a take-over reads them from the journal), so a restart of this instance must not
@@ -353,7 +370,7 @@ class GroupMember:
         self.owned.add(v)  # (first: see skips)
         del self.release[v]
         self.release_to.pop(v, None)
-        self.passed.discard(v)
+        self._set_passed(v, False)
         buf = list(self.release_buf.pop(v, ()))
         self.stats["reclaimed"] += 1
         self.stats["handovers_out"] -= 1
@@ -373,7 +390,7 @@ class GroupMember:
             del self.release[v]
             self.release_to.pop(v, None)
             self.release_buf.pop(v, None)
-            self.passed.discard(v)
+            self._set_passed(v, False)
             self.stats["handovers_out"] -= 1
             self._failover(v, other, since)
         else:
@@ -467,12 +484,23 @@ class GroupMember:
         """Take ``v`` from what the members that are not live persisted (journal and alarm file)."""
         if v in self.owned:
             return
+        counts = {k: dict(d) for k, d in dead.get("counts", {}).items()}
+        for k, n in dead["lost"].items():
+            counts.setdefault(k, {})["lost_in_takeover"] = n
+        a = self.arm.get(v)
+        if a is not None and dead["found"] and self._dead_state(v, only=a[0])["passed"]:
+            # the holder died past the cut: it published every output before it and none from it on, and this
+            # member holds those from the cut on: the hand-over completes from its journal, nothing lost
+            self._takeover(v, {"seqs": dead["seqs"], "alarms": dead["alarms"], "raised": dead["raised"],
+                               "drops": counts})
+            self._took(since, v)
+            return
         self.owned.add(v)  # (first: the reader threads queue its samples from now on, see skips)
         self._cancel(v)
         if self.release.pop(v, None) is not None:  # (a hand-over of it from here is over)
             self.release_to.pop(v, None)
             self.release_buf.pop(v, None)
-            self.passed.discard(v)
+            self._set_passed(v, False)
         rt = self.rt
         rt.vehicle_state.pop(v, None)
         # what this instance's own run before a restart handled of v (its journal, resume_journal) and nobody
@@ -485,9 +513,6 @@ class GroupMember:
                 rt.in_seq[k] = s
                 rt.recovering[v] = "lost_during_restart"
         if dead["found"]:
-            counts = {k: dict(d) for k, d in dead.get("counts", {}).items()}
-            for k, n in dead["lost"].items():
-                counts.setdefault(k, {})["lost_in_takeover"] = n
             self._adopt(v, dead["seqs"], dead["alarms"], dead["raised"], counts)
             for k, s in dead["inputs"].items():
                 if k in resumed and resumed[k] > int(s):
@@ -504,6 +529,9 @@ class GroupMember:
             self.stats["unrecovered"] += 1
         self.owned.add(v)
         self._replay_params(v)
+        self._took(since, v)
+
+    def _took(self, since: float | None, v: str) -> None:
         if since is not None:
             self.stats["failovers"] += 1
             took = time.monotonic() - since
@@ -750,7 +778,8 @@ class GroupMember:
         from .paths import state_dir
 
         pre = f"{keys.ROOT}/{v}/"
-        out: dict = {"seqs": {}, "inputs": {}, "lost": {}, "counts": {}, "alarms": {}, "raised": {}, "found": False}
+        out: dict = {"seqs": {}, "inputs": {}, "lost": {}, "counts": {}, "alarms": {}, "raised": {}, "found": False,
+                     "passed": False}
         alarm_seq: dict[str, int] = {}
         first_rx: dict[str, int] = {}
         d = state_dir()
@@ -772,6 +801,8 @@ class GroupMember:
                     tgt = out["seqs"] if k[0] == "o" else out["inputs"] if k[0] == "i" else out["lost"]
                     tgt[k[1:]] = max(int(s), tgt.get(k[1:], -1))
                     out["found"] = True
+                elif k == "p" + pre:  # it had passed the cut of a hand-over of v (see _set_passed)
+                    out["passed"] = True
                 elif k[:1] in "ul" and k[1:].startswith(pre):  # its other counts (the holder's, carried along:
                     # the largest, as a member that handed the vehicle on forgot its own)
                     reason = "upstream_gap" if k[0] == "u" else "lost_during_restart"

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from collections import deque
 from pathlib import Path
 
 import pytest
@@ -531,6 +532,50 @@ def test_a_vehicles_counts_survive_a_kill_of_the_member_that_took_them_and_are_c
     g3._arm("car-1", "dmc-2", 20.0)
     g3._takeover("car-1", {"drops": {m1: dict(rt2.drops[m1])}})
     assert rt3.drops[m1] == {"upstream_gap": 53, "lost_during_restart": 2, "lost_in_takeover": 6}
+
+
+def test_a_holder_killed_past_the_cut_hands_the_vehicle_over_from_its_journal(tmp_path, monkeypatch):
+    """A holder that passed the cut of a hand-over published every output before it and none from it on, and
+    journalled that; killed there, the new owner (armed, holding its outputs from the cut on) completes the
+    hand-over from the journal: it publishes what it held, continuing the holder's seqs, and counts nothing lost
+    (it used to discard them and count them lost, and the holder's one output at the cut went uncounted). A holder
+    killed before the cut leaves no such mark: the new owner takes the vehicle over as from any dead member."""
+    from magmesh.journal import Journal
+
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
+    m1, out = "magmesh/car-1/clean/mag/1", "magmesh/car-1/dmc"
+    jd = tmp_path / "journal"
+    jd.mkdir()
+    h, hrt, _ = _member("dmc-2", ["dmc-1", "dmc-2"], {})
+    hrt.journal = Journal(jd / "dmc_detector.dmc-2.seq")
+    hrt.journal.open({"o" + out: 40, "i" + m1: 80})
+    h.owned.add("car-1")
+    hrt.last_in_t["car-1"] = 9.5
+    h.control({"op": "g_release", "vehicles": ["car-1"], "from": "dmc-1", "not_before": 10.0})
+    assert h.release["car-1"] == 10.0
+    assert h.gate(out, "dmc", "car-1", 9.98, {}) and not h.gate(out, "dmc", "car-1", 10.0, {})  # passed here
+    assert Journal(jd / "dmc_detector.dmc-2.seq").load()["pmagmesh/car-1/"] == 1
+
+    n, nrt, _ = _member("dmc-1", ["dmc-1"], {})
+    n.warming["car-1"] = "dmc-2"
+    n.warm_buf["car-1"] = deque([(out, "dmc", "car-1", t, {}) for t in (9.98, 10.0, 10.02)])
+    n._arm("car-1", "dmc-2", 10.0)
+    n.live = {"dmc-1"}  # dmc-2 killed
+    n._failover("car-1", n._dead_state("car-1"), 0.0)
+    assert [x[3] for x in nrt.released] == [10.0, 10.02] and "car-1" in n.owned and not n.arm
+    assert nrt.seq[out] == 40 and m1 not in nrt.takeover_in and not nrt.drops.get(m1)
+    assert n.stats["failovers"] == 1
+
+    # the same, killed before the cut: no mark, the outputs it held are not published, its inputs' gap is counted
+    h._set_passed("car-1", False)
+    assert "pmagmesh/car-1/" not in Journal(jd / "dmc_detector.dmc-2.seq").load()
+    n2, nrt2, _ = _member("dmc-1", ["dmc-1"], {})
+    n2.warming["car-1"] = "dmc-2"
+    n2.warm_buf["car-1"] = deque([(out, "dmc", "car-1", 10.0, {})])
+    n2._arm("car-1", "dmc-2", 10.0)
+    n2.live = {"dmc-1"}
+    n2._failover("car-1", n2._dead_state("car-1"), 0.0)
+    assert not nrt2.released and nrt2.in_seq[m1] == 80 and m1 in nrt2.takeover_in
 
 
 def test_a_frames_vehicles_are_admitted_as_one_by_one(tmp_path, monkeypatch):
