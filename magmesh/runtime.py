@@ -730,6 +730,12 @@ class Runner:
                 # heartbeats let an AdvancedSubscriber detect and recover a missed sample
                 from zenoh import ext
 
+                if kind == "alarm":
+                    # sent at once (not batched) and ahead of queued data: an overloaded member killed 150 ms after
+                    # an alarm put had not got it out (its outputs queued seconds deep), and the member taking
+                    # its vehicles over continued from it (a transition lost to subscribers)
+                    opts.update(express=True, priority=zconf.control_priority())
+
                 pub = ext.declare_advanced_publisher(
                     self.session, key, cache=ext.CacheConfig(max_samples=ALARM_HISTORY),
                     sample_miss_detection=ext.MissDetectionConfig(heartbeat=0.5), publisher_detection=True, **opts)
