@@ -488,7 +488,7 @@ class GroupMember:
         for k, n in dead["lost"].items():
             counts.setdefault(k, {})["lost_in_takeover"] = n
         a = self.arm.get(v)
-        if a is not None and dead["found"] and self._dead_state(v, only=a[0])["passed"]:
+        if a is not None and dead["found"] and a[0] in dead.get("passed", ()):
             # the holder died past the cut: it published every output before it and none from it on, and this
             # member holds those from the cut on: the hand-over completes from its journal, nothing lost
             self._takeover(v, {"seqs": dead["seqs"], "alarms": dead["alarms"], "raised": dead["raised"],
@@ -681,6 +681,8 @@ class GroupMember:
             elif to in states and v not in states[to].get("taking", []) and v not in states[to].get("owned", []):
                 self._post(lambda v=v, to=to: self._release_lost(v, to, None))
         warm_slots = MAX_WARMING - len(self.warming) - len(self.arm)
+        # vehicles with alarm state or drop counts here (once a round, not a scan per vehicle)
+        stated = {vehicle_of(k) for k in list(self.rt.alarm_published)} | {vehicle_of(k) for k in list(self.rt.drops)}
         for v in list(self.seen):
             mine = not self.leaving and groups.owner(v, members) == self.me
             if v in self.arm:
@@ -716,9 +718,7 @@ class GroupMember:
             if complete and v in holdings and v not in self.warming and v not in self.release:
                 # alarm state or drop counts restored from an earlier life of this instance, for a vehicle another
                 # member holds: that member took it over from this instance's journal, its counts included
-                pre = f"{keys.ROOT}/{v}/"
-                if any(k.startswith(pre) for k in list(self.rt.alarm_published)) \
-                        or any(k.startswith(pre) for k in list(self.rt.drops)):
+                if v in stated:
                     self._post(lambda v=v: v not in self.owned and v not in self.warming and v not in self.arm
                                and self._forget(v))
             if v in self.warming:
@@ -779,7 +779,7 @@ class GroupMember:
 
         pre = f"{keys.ROOT}/{v}/"
         out: dict = {"seqs": {}, "inputs": {}, "lost": {}, "counts": {}, "alarms": {}, "raised": {}, "found": False,
-                     "passed": False}
+                     "passed": set()}
         alarm_seq: dict[str, int] = {}
         first_rx: dict[str, int] = {}
         d = state_dir()
@@ -802,7 +802,7 @@ class GroupMember:
                     tgt[k[1:]] = max(int(s), tgt.get(k[1:], -1))
                     out["found"] = True
                 elif k == "p" + pre:  # it had passed the cut of a hand-over of v (see _set_passed)
-                    out["passed"] = True
+                    out["passed"].add(inst)
                 elif k[:1] in "ul" and k[1:].startswith(pre):  # its other counts (the holder's, carried along:
                     # the largest, as a member that handed the vehicle on forgot its own)
                     reason = "upstream_gap" if k[0] == "u" else "lost_during_restart"
