@@ -232,9 +232,10 @@ DMC = _register(
             _F("ddh_rad_s", "float", "rate of Δh, rad/s"),
             _F("heading_rad", "float", "magnetic heading of compass 1 after compensation (+ declination), rad"),
             _F("stage1_pass", "bool", "all threshold tests passed"),
-            _F("credibility", "float", "credibility K_c in [0, 1] (1/0 for threshold-only detectors)", lo=0, hi=1),
+            _F("credibility", "float", "credibility K_c in [0, 1] (1/0 for threshold-only detectors; gyro_track: "
+               "1 − the heading disagreement / its gate)", lo=0, hi=1),
             _F("valid", "bool", "the magnetic heading is trustworthy at this epoch"),
-            _F("impl", "str", "detector implementation (threshold, fcm, single, quasistatic)"),
+            _F("impl", "str", "detector implementation (threshold, fcm, single, quasistatic, gyro_track)"),
             _F("param_source", "str", "where compensation parameters came from", choices=("manifest", "cal", "none")),
         ),
     )

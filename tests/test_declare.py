@@ -35,6 +35,8 @@ BEFORE = {
                                   "magmesh/*/cal/params/2"],
     "services.dmc_detector:single": ["magmesh/*/clean/mag/1", "magmesh/*/cal/params/1"],
     "services.dmc_detector:quasistatic": ["magmesh/*/clean/mag/1", "magmesh/*/clean/imu", "magmesh/*/cal/params/1"],
+    "services.dmc_detector:gyro_track": ["magmesh/*/clean/mag/1", "magmesh/*/clean/mag/2", "magmesh/*/clean/imu",
+                                         "magmesh/*/cal/params/1", "magmesh/*/cal/params/2"],
     "services.heading_fuser:ekf": ["magmesh/*/clean/imu", "magmesh/*/cal/mag/1", "magmesh/*/clean/mag/1",
                                    "magmesh/*/cal/params/1", "magmesh/*/dmc"],
     "services.heading_fuser:vqf": ["magmesh/*/clean/imu", "magmesh/*/cal/mag/1", "magmesh/*/clean/mag/1",

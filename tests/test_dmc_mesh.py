@@ -35,7 +35,7 @@ def _manifest(tmp_path) -> str:
     return str(p)
 
 
-@pytest.mark.parametrize("impl", ["threshold", "fcm"])
+@pytest.mark.parametrize("impl", ["threshold", "fcm", "gyro_track"])
 def test_dmc_alarm_raised_and_cleared_on_urban_drive_not_on_clean(tmp_path, impl):
     pytest.importorskip("zenoh")
     port = _free_port()

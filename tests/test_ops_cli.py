@@ -71,7 +71,7 @@ MANIFEST_MISTAKES = {
     "bad setting value": ('[[process]]\nname = "d"\nmodule = "services.dmc_detector"\n'
                           'args = ["--impl", "fcm"]\nsettings = { kc_min = 2.0 }\n', ["process 'd'", "kc_min"]),
     "unknown implementation": ('[[process]]\nname = "d"\nmodule = "services.dmc_detector"\nargs = ["--impl", "zz"]\n',
-                               ["process 'd'", "unknown implementation 'zz'", "fcm, quasistatic, single, threshold"]),
+                               ["process 'd'", "unknown implementation 'zz'", "fcm, gyro_track, quasistatic, single, threshold"]),
     "wrong type": ('[[process]]\nname = "a"\nmodule = "services.ingest"\nenabled = "yes"\n',
                    ["enabled must be a bool"]),
 }
@@ -206,8 +206,8 @@ def test_service_help_names_the_program(module):
 def test_dmc_detector_help_lists_impl():
     r = subprocess.run([sys.executable, "-m", "services.dmc_detector", "--help"], cwd=REPO, capture_output=True,
                        text=True, timeout=WAIT_S)
-    assert "--impl {threshold,fcm,single,quasistatic}" in r.stdout, r.stdout[:600]
-    for impl in ("threshold", "fcm", "single", "quasistatic"):
+    assert "--impl {threshold,fcm,single,quasistatic,gyro_track}" in r.stdout, r.stdout[:600]
+    for impl in ("threshold", "fcm", "single", "quasistatic", "gyro_track"):
         assert f"\n  {impl} " in r.stdout, impl
 
 
@@ -376,7 +376,7 @@ def test_swap_default_candidate_in_the_demo(monkeypatch):
     assert _swapper(monkeypatch, after)._choose("dmc_detector", "threshold", None, "car-1")[0] == "dmc-1-fcm"
     with pytest.raises(SwapError, match="roles: dmc_detector"):
         _swapper(monkeypatch, demo)._choose("dmc_detectr", "fcm", None, None)
-    with pytest.raises(SwapError, match="dmc-1-zz not started.*known: fcm, quasistatic, single, threshold"):
+    with pytest.raises(SwapError, match="dmc-1-zz not started.*known: fcm, gyro_track, quasistatic, single, threshold"):
         _swapper(monkeypatch, {"dmc-1": ("dmc-1", "threshold")})._choose("dmc_detector", "zz", None, None)
 
 

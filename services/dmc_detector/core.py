@@ -300,6 +300,7 @@ _TEST_TEXT = {
     "kc": ("credibility K_c", ""),
     "var": ("field variance", "nT²"),
     "dpsi": ("magnetometer-vs-gyro heading change", "deg"),
+    "track": ("compass heading off the heading the gyro carried from trusted epochs", "deg"),
 }
 
 

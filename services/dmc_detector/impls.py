@@ -4,6 +4,8 @@
 ``fcm``          loose stage 1, then fuzzy c-means credibility K_c > 0.8         (trained centres)
 ``single``       one compass: |Δm| and dΔm only, the paper's Table 2 baseline
 ``quasistatic``  one magnetometer + gyro: window variance and heading-change test
+``gyro_track``   stage 1, then each compass heading checked against a heading the gyro carries from trusted
+                 epochs (magmesh's own second stage; two compasses + gyro)
 """
 
 from __future__ import annotations
@@ -223,11 +225,99 @@ class QuasiStaticDmcDetector(DmcDetectorService):
             self._publish(info.vehicle, state, d, self._param_source(state))
 
 
+# ---- gyro_track -------------------------------------------------------------------------------
+
+
+_GT = quasistatic.GyroTrackSettings
+
+
+@dataclass(frozen=True)
+class GyroTrackServiceSettings(Settings):
+    """The threshold implementation's settings (stage 1), then the second stage's."""
+
+    gate_deg: float = setting(_GT.gate_deg, "an epoch is valid when its compass heading is within this of the heading "
+                              "the gyro carries from trusted epochs", gt=0, lt=90)
+    blend_tau_s: float = setting(_GT.blend_tau_s, "the carried heading is pulled towards trusted compass headings "
+                                 "with this time constant", gt=0)
+    bias_tau_s: float = setting(_GT.bias_tau_s, "the gyro's bias is corrected from trusted epochs with this time "
+                                "constant", gt=0)
+    bias_init_s: float = setting(_GT.bias_init_s, "the gyro's bias starts as its median rate over the first this many "
+                                 "seconds of its stream (the vehicle standing)", lo=0)
+    reseed_after_s: float = setting(_GT.reseed_after_s, "stage 1 passing while the headings disagree this long: the "
+                                    "carried heading is taken from the compass again (the gyro drifted)", gt=0)
+    reacquire_after_s: float = setting(_GT.reacquire_after_s, "… or this long while the tight tests pass too", gt=0)
+    reacquire_dm_nt: float = setting(_GT.reacquire_dm_nt, "the tight field-strength test |Δm| of re-acquisition", gt=0)
+    reacquire_dh_deg: float = setting(_GT.reacquire_dh_deg, "the tight heading-difference test |Δh| of re-acquisition",
+                                      gt=0)
+    trust_dm_nt: float = setting(_GT.trust_dm_nt, "a trusted epoch pulls with weight 1 / (1 + (|Δm|/this)² + "
+                                 "(|Δh|/trust_dh_deg)²)", gt=0)
+    trust_dh_deg: float = setting(_GT.trust_dh_deg, "see trust_dm_nt", gt=0)
+    max_imu_lag_s: float = setting(10.0, "a compass epoch is decided without the gyro reaching it after this much "
+                                   "compass time (counted as imu_lagged_epochs)", gt=0)
+
+    def __post_init__(self):
+        super().__post_init__()
+        self.core()
+
+    def core(self) -> quasistatic.GyroTrackDetectorSettings:
+        return quasistatic.GyroTrackDetectorSettings(
+            core.ThresholdDetectorSettings(self.thresholds(), self.feature_settings(), self.hysteresis()),
+            quasistatic.GyroTrackSettings(
+                gate_deg=self.gate_deg, blend_tau_s=self.blend_tau_s, bias_tau_s=self.bias_tau_s,
+                reseed_after_s=self.reseed_after_s, reacquire_after_s=self.reacquire_after_s,
+                reacquire_dm_nt=self.reacquire_dm_nt, reacquire_dh_deg=self.reacquire_dh_deg,
+                bias_init_s=self.bias_init_s, trust_dm_nt=self.trust_dm_nt, trust_dh_deg=self.trust_dh_deg),
+            self.max_imu_lag_s)
+
+
+class GyroTrackDmcDetector(DmcDetectorService):
+    """Stage 1 on the two compasses, then each epoch's compass heading checked against the heading the gyro
+    carries from the last trusted epochs (docs/methods.md#dmc-gyro-track): valid when they agree, whatever the
+    field tests said; a bend the field tests miss is caught."""
+
+    impl = "gyro_track"
+    Settings = GyroTrackServiceSettings
+    INPUTS = (
+        *DmcDetectorService.INPUTS[:1],
+        Input("magmesh/{vehicle}/clean/imu", "the gyro that carries the reference heading between trusted epochs"),
+        *DmcDetectorService.INPUTS[1:],
+    )
+
+    on_frame = None  # per vehicle only: the runtime hands each vehicle's frame rows to on_message
+
+    def make_fleet(self):
+        return None
+
+    def make_detector(self, vehicle: str, dh_ref_rad: float):
+        s = self.settings.core()
+        st1 = s.stage1
+        return quasistatic.GyroTrackDetector(quasistatic.GyroTrackDetectorSettings(
+            core.ThresholdDetectorSettings(st1.thresholds, self.settings.feature_settings(dh_ref_rad), st1.hysteresis),
+            s.track, s.max_imu_lag_s))
+
+    def on_message(self, info, msg: dict, state: VehicleState) -> None:
+        if info.stream == "imu":
+            if refuse_unphysical(self, info, msg):
+                return
+            for d in state.detector.add_imu(msg["t_s"], msg["gyro_rad_s"], msg["accel_m_s2"]):
+                self._publish(info.vehicle, state, d, self._param_source(state))
+            return
+        super().on_message(info, msg, state)
+
+    def _on_epoch(self, info, state: VehicleState, t_s: float, b_a, b_b) -> None:
+        if not self._have_params(info, state):
+            return
+        a, b = self.sensors
+        for d in state.detector.update(t_s, b_a, b_b, state.params[a], state.params[b], state.declination_rad):
+            self._publish(info.vehicle, state, d, self._param_source(state))
+
+
 IMPLEMENTATIONS: dict[str, type[DmcDetectorService]] = {
     "threshold": ThresholdDmcDetector,
     "fcm": FcmDmcDetector,
     "single": SingleDmcDetector,
     "quasistatic": QuasiStaticDmcDetector,
+    "gyro_track": GyroTrackDmcDetector,
 }
 DEFAULT_IMPL = "threshold"
 __all__ = ["IMPLEMENTATIONS", "DEFAULT_IMPL", "Settings", "pop_impl_arg"]

@@ -24,6 +24,7 @@ Input pairing is by time: a magnetometer epoch is decided once the gyro stream h
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -33,7 +34,18 @@ import numpy as np
 from magmesh import maths
 from magmesh.magcal import MagParams
 
-from .core import AlarmLatch, Decision, HysteresisSettings, compass_heading, reason_sentence
+from .core import (
+    TEST_NAMES,
+    AlarmLatch,
+    Decision,
+    FeatureTracker,
+    HysteresisSettings,
+    ThresholdDetectorSettings,
+    compass_heading,
+    reason_sentence,
+    test_ratios,
+    test_value_and_threshold,
+)
 
 
 @dataclass(frozen=True)
@@ -246,6 +258,58 @@ class GyroTrackResult:
     reseeds: int
 
 
+class GyroTrack:
+    """The second stage's state for one vehicle, one epoch per :meth:`step` (``gyro_track_batch`` runs the same
+    steps over a recording, ``GyroTrackDetector`` one by one as the epochs arrive): the reference heading ψ_ref,
+    the gyro bias b and the disagreement clocks. ``bias_rad_s``: b to start from (the rate at rest)."""
+
+    def __init__(self, settings: GyroTrackSettings | None = None, bias_rad_s: float = 0.0):
+        self.settings = settings or GyroTrackSettings()
+        self.bias_rad_s = float(bias_rad_s)
+        self.est: float | None = None  # ψ_ref (rad, unwrapped), None before the first stage-1 pass
+        self.reseeds = 0
+        self._prev: tuple[float, float] | None = None  # (t, ψ_g) of the previous epoch
+        self._disagree_s = self._tight_s = 0.0
+        self._gate = math.radians(self.settings.gate_deg)
+
+    def step(self, t_s: float, psi_m_rad: float, psi_g_rad: float, stage1: bool, dm_nt: float,
+             dh_deg: float) -> tuple[bool, bool, float, float]:
+        """One epoch: compass heading ψ_m, gyro heading ψ_g (unwrapped, any origin) at t_s, the stage-1 verdict,
+        the worse compass's |Δm| and |Δh| in degrees → (valid, trusted, innovation ψ_m − ψ_ref (rad), ψ_ref (rad;
+        nan before the first stage-1 pass))."""
+        s = self.settings
+        t, pg = float(t_s), float(psi_g_rad)
+        prev, self._prev = self._prev, (t, pg)
+        if self.est is None:
+            if stage1:
+                self.est = float(psi_m_rad)
+                return True, True, 0.0, self.est
+            return False, False, 0.0, math.nan
+        dt = t - prev[0]
+        est = self.est + (pg - prev[1]) - self.bias_rad_s * dt
+        nu = math.remainder(float(psi_m_rad) - est, 2.0 * math.pi)
+        agree = abs(nu) < self._gate
+        trusted = False
+        if stage1 and agree:
+            trusted = True
+            w = 1.0 / (1.0 + (dm_nt / s.trust_dm_nt) ** 2 + (dh_deg / s.trust_dh_deg) ** 2)
+            est += min(dt / s.blend_tau_s, 1.0) * w * nu
+            self.bias_rad_s -= dt / s.bias_tau_s * w * nu
+            self._disagree_s = self._tight_s = 0.0
+        elif stage1:
+            self._disagree_s += dt
+            tight = dm_nt < s.reacquire_dm_nt and dh_deg < s.reacquire_dh_deg
+            self._tight_s = self._tight_s + dt if tight else 0.0
+            if self._disagree_s >= s.reseed_after_s or self._tight_s >= s.reacquire_after_s:
+                est = float(psi_m_rad)
+                self._disagree_s = self._tight_s = 0.0
+                self.reseeds += 1
+        else:
+            self._tight_s = 0.0
+        self.est = est
+        return agree, trusted, nu, est
+
+
 def gyro_heading(t_gyro_s, gyro_rad_s, t_s) -> np.ndarray:
     """Gyro heading ψ_g (rad, unwrapped, 0 at the first gyro sample) at times t_s: the trapezoid integral of
     dψ/dt = −ω_z (a near-level vehicle, FLU body axes, heading clockwise), interpolated."""
@@ -276,49 +340,187 @@ def gyro_track_batch(f, stage1, t_gyro_s, gyro_rad_s, settings: GyroTrackSetting
     stage1 = np.asarray(stage1, bool)
     dm = np.max(np.abs(f.dm_nt), axis=-1)
     dh = np.degrees(np.abs(f.dh_rad))
-    tight = (dm < s.reacquire_dm_nt) & (dh < s.reacquire_dh_deg)
-    weight = 1.0 / (1.0 + (dm / s.trust_dm_nt) ** 2 + (dh / s.trust_dh_deg) ** 2)
     tg = np.asarray(t_gyro_s, float)
     if tg.size < 2 or np.asarray(gyro_rad_s).shape != (tg.size, 3):
         raise ValueError(f"gyro_track_batch needs ≥ 2 gyro samples as t (n,) and rates (n, 3), got {tg.shape} and "
                          f"{np.asarray(gyro_rad_s).shape}")
     pg = gyro_heading(tg, gyro_rad_s, t)
     still = tg < tg[0] + s.bias_init_s
-    b = float(np.median(-np.asarray(gyro_rad_s, float)[still, 2])) if still.any() else 0.0
+    track = GyroTrack(s, float(np.median(-np.asarray(gyro_rad_s, float)[still, 2])) if still.any() else 0.0)
     valid = np.zeros(n, bool)
     trusted = np.zeros(n, bool)
     ref = np.full(n, np.nan)
     innov = np.zeros(n)
-    gate = math.radians(s.gate_deg)
-    est: float | None = None
-    disagree_s = tight_s = 0.0
-    reseeds = 0
+    step = track.step
     for i in range(n):
-        if est is None:
-            if stage1[i]:
-                est = float(psi_m[i])
-                valid[i] = trusted[i] = True
-                ref[i] = est
-            continue
-        dt = t[i] - t[i - 1]
-        est += (pg[i] - pg[i - 1]) - b * dt
-        nu = math.remainder(psi_m[i] - est, 2.0 * math.pi)
-        innov[i] = nu
-        agree = abs(nu) < gate
-        valid[i] = agree
-        if stage1[i] and agree:
-            trusted[i] = True
-            est += min(dt / s.blend_tau_s, 1.0) * weight[i] * nu
-            b -= dt / s.bias_tau_s * weight[i] * nu
-            disagree_s = tight_s = 0.0
-        elif stage1[i]:
-            disagree_s += dt
-            tight_s = tight_s + dt if tight[i] else 0.0
-            if disagree_s >= s.reseed_after_s or tight_s >= s.reacquire_after_s:
-                est = float(psi_m[i])
-                disagree_s = tight_s = 0.0
-                reseeds += 1
-        else:
-            tight_s = 0.0
-        ref[i] = est
-    return GyroTrackResult(valid, np.mod(ref, 2.0 * math.pi), innov, trusted, reseeds)
+        valid[i], trusted[i], innov[i], ref[i] = step(t[i], psi_m[i], pg[i], stage1[i], dm[i], dh[i])
+    return GyroTrackResult(valid, np.mod(ref, 2.0 * math.pi), innov, trusted, track.reseeds)
+
+
+@dataclass(frozen=True)
+class GyroTrackDetectorSettings:
+    """The live ``gyro_track`` detector: stage 1 (the four threshold tests), then :class:`GyroTrackSettings`."""
+
+    stage1: ThresholdDetectorSettings = ThresholdDetectorSettings()
+    track: GyroTrackSettings = GyroTrackSettings()
+    max_imu_lag_s: float = 10.0  # an epoch is decided without the gyro reaching it after this much sample time
+
+    def __post_init__(self):
+        if not (self.max_imu_lag_s > 0 and math.isfinite(self.max_imu_lag_s)):
+            raise ValueError(f"max_imu_lag_s must be a positive finite number, got {self.max_imu_lag_s!r}")
+
+
+class GyroTrackDetector:
+    """The DMC thresholds, then the compass heading checked against a heading the gyro carries (the second stage
+    of :func:`gyro_track_batch`, epoch by epoch). Per vehicle: ``add_imu`` per IMU sample, ``update`` per paired
+    compass epoch; each returns the decisions it could make. An epoch waits until the gyro has reached its time
+    (and the gyro's bias at rest is known, ``bias_init_s`` after the first gyro sample); one still waiting
+    ``max_imu_lag_s`` of compass time later is decided with the gyro data there is and counted
+    (``imu_lagged_epochs``). The decisions are those of ``gyro_track_batch`` over the same epochs and gyro."""
+
+    impl = "gyro_track"
+
+    def __init__(self, settings: GyroTrackDetectorSettings | None = None):
+        self.settings = settings or GyroTrackDetectorSettings()
+        self.latch = AlarmLatch(self.settings.stage1.hysteresis)
+        self.tracker = FeatureTracker(self.settings.stage1.features)
+        self.reset()
+
+    def reset(self):
+        self.tracker.reset()
+        self.latch.reset()
+        self.track = GyroTrack(self.settings.track)
+        self._gt: list[float] = []  # gyro sample times, and ψ_g there (trapezoid integral of −ω_z): the
+        self._gp: list[float] = []  # newest max_imu_lag_s + 1 s of them, for epochs that arrive after the gyro
+        self._last_rate: tuple[float, float] | None = None  # (t, −ω_z) of the newest gyro sample
+        self._psi_g = 0.0
+        self._bias_until: float | None = None  # the rest window's end (first gyro t + bias_init_s)
+        self._rest_rates: list[float] | None = []  # −ω_z in the rest window; None once the bias is set
+        self._trimmed = False
+        self._pending: deque = deque()  # (features, stage-1 ratios) of epochs waiting for the gyro
+        self.last: Decision | None = None
+        self.n_imu_lagged = 0
+
+    def restart_features(self):
+        """Parameters changed: the feature windows restart; ψ_ref, the bias and the alarm keep their state."""
+        self.tracker.reset()
+
+    # ---- inputs ---------------------------------------------------------------------------
+    def add_imu(self, t_s: float, gyro_rad_s, accel_m_s2=None) -> list[Decision]:
+        t = float(t_s)
+        rate = -float(gyro_rad_s[2])
+        if self._last_rate is not None:
+            t0, r0 = self._last_rate
+            if t <= t0:
+                return []  # not newer than the last sample: the integral only runs forward
+            self._psi_g += 0.5 * (r0 + rate) * (t - t0)
+        self._last_rate = (t, rate)
+        self._gt.append(t)
+        self._gp.append(self._psi_g)
+        if self._bias_until is None:
+            self._bias_until = t + self.settings.track.bias_init_s
+        if self._rest_rates is not None:
+            if t < self._bias_until:
+                self._rest_rates.append(rate)
+            else:
+                self.track.bias_rad_s = float(np.median(self._rest_rates)) if self._rest_rates else 0.0
+                self._rest_rates = None
+        out = self._drain()
+        self._trim()
+        return out
+
+    def update(self, t_s: float, b1_nt, b2_nt, p1: MagParams, p2: MagParams,
+               declination_rad: float = 0.0) -> list[Decision]:
+        f = self.tracker.update(t_s, b1_nt, b2_nt, p1, p2, declination_rad)
+        ratios = dict(zip(TEST_NAMES, (float(x) for x in test_ratios(f, self.settings.stage1.thresholds)[0]),
+                          strict=True))
+        self._pending.append((f, ratios))
+        return self._drain(mag_t=float(t_s))
+
+    def _drain(self, mag_t: float | None = None) -> list[Decision]:
+        out = []
+        ready_t = self._gt[-1] if self._gt and self._rest_rates is None else -math.inf
+        while self._pending:
+            t = float(self._pending[0][0].t_s[0])
+            if t > ready_t:
+                if mag_t is None or mag_t - t <= self.settings.max_imu_lag_s:
+                    break
+                self.n_imu_lagged += 1
+            out.append(self._decide(*self._pending.popleft()))
+        return out
+
+    def _trim(self):
+        """Forget gyro samples older than max_imu_lag_s + 1 s before the newest (and before any waiting epoch)."""
+        horizon = self._gt[-1] - self.settings.max_imu_lag_s - 1.0
+        if self._pending:
+            horizon = min(horizon, float(self._pending[0][0].t_s[0]))
+        i = bisect.bisect_left(self._gt, horizon) - 1  # keep the sample before the horizon
+        if i > 256 and i > len(self._gt) // 2:  # in chunks: a list's front is cheap to cut only now and then
+            del self._gt[:i], self._gp[:i]
+            self._trimmed = True
+
+    def _psi_g_at(self, t: float) -> float:
+        """ψ_g at t, linear between gyro samples, held beyond them (np.interp's rule, as the batch form). An epoch
+        older than the samples kept is counted with the lagged ones."""
+        gt, gp = self._gt, self._gp
+        if not gt:
+            return 0.0
+        if t >= gt[-1]:
+            return gp[-1]
+        i = bisect.bisect_left(gt, t)
+        if i == 0:
+            self.n_imu_lagged += t < gt[0] and self._trimmed  # before the samples kept (not before the first)
+            return gp[0]
+        if gt[i] == t:
+            return gp[i]
+        t0, t1 = gt[i - 1], gt[i]
+        return gp[i - 1] + (gp[i] - gp[i - 1]) * (t - t0) / (t1 - t0)
+
+    # ---- the decision ---------------------------------------------------------------------
+    def _decide(self, f, ratios: dict) -> Decision:
+        tr = self.settings.track
+        t = float(f.t_s[0])
+        stage1 = all(v < 1.0 for v in ratios.values())
+        dm = float(np.max(np.abs(f.dm_nt[0])))
+        dh = abs(math.degrees(float(f.dh_rad[0])))
+        valid, _trusted, nu, _ref = self.track.step(t, float(f.heading_rad[0]), self._psi_g_at(t), stage1, dm, dh)
+        ratios = dict(ratios)
+        if self.track.est is not None:
+            ratios["track"] = abs(math.degrees(nu)) / tr.gate_deg
+        failed = () if valid else tuple(sorted((k for k, v in ratios.items() if v >= 1.0), key=lambda k: -ratios[k]))
+        credibility = max(0.0, 1.0 - ratios["track"]) if "track" in ratios else 0.0
+        transition = self.latch.update(t, valid)
+        self.last = Decision(
+            t_s=t, dm_nt=[float(x) for x in f.dm_nt[0]], ddm_nt_s=[float(x) for x in f.ddm_nt_s[0]],
+            dh_rad=float(f.dh_rad[0]), ddh_rad_s=float(f.ddh_rad_s[0]), heading_rad=float(f.heading_rad[0]),
+            stage1_pass=stage1, credibility=credibility if valid else min(credibility, 0.5), valid=bool(valid),
+            ready=bool(f.rates_ready[0]) and self.track.est is not None, ratios=ratios, failed=failed,
+            transition=transition)
+        return self.last
+
+    def describe(self, d: Decision) -> tuple[str, float | None, float | None, str]:
+        """(reason, value, threshold, unit) for an alarm transition at decision ``d``."""
+        if d.transition == "cleared" or not d.failed:
+            return reason_sentence((), {}, {}), None, None, ""
+        th, gate = self.settings.stage1.thresholds, self.settings.track.gate_deg
+
+        def vt(name: str) -> tuple[float, float, str]:
+            if name == "track":
+                return d.ratios[name] * gate, gate, "deg"
+            return test_value_and_threshold(name, d.ratios[name], th)
+
+        units = {n: vt(n)[:2] for n in d.failed}
+        return (reason_sentence(d.failed, d.ratios, units), *vt(d.failed[0]))
+
+    @property
+    def internal_states(self) -> dict:
+        d = self.last
+        out = {"imu_lagged_epochs": self.n_imu_lagged, "reseeds": self.track.reseeds,
+               "gyro_bias_rad_s": self.track.bias_rad_s,
+               "ref_heading_rad": None if self.track.est is None else math.remainder(self.track.est, 2 * math.pi)}
+        return {**out, **({"ratios": d.ratios} if d else {})}
+
+    @property
+    def flags(self) -> dict:
+        d = self.last
+        return {"alarm_raised": self.latch.raised, "valid": bool(d and d.valid), "warming": bool(d is None or not d.ready)}
