@@ -375,6 +375,24 @@ def stage_gain_against_thresholds(drives, valid_of, loose=None, scales=CURVE_SCA
         out[f"drives_positive_{key}"] = f"{sum(v > 0 for v in vals)}/{len(vals)}"
     out["beats_thresholds_beyond_spread"] = bool(
         (g is not None and sp is not None and g > sp) or (g2 is not None and sp2 is not None and g2 > sp2))
+    # the same per seed: each seed's drives (one of every judged layout) pooled, one gain per seed; the spread of
+    # those is the seed-to-seed spread of the whole experiment (the per-drive one mixes layouts and seeds)
+    seeds = sorted({d.seed for d in drives})
+    if len(seeds) > 1 and len(seeds) < len(drives):
+        per_seed = []
+        for sd in seeds:
+            ds = [d for d in drives if d.seed == sd]
+            ms = T.metrics(valid_of(ds), np.concatenate([d.heading_err_deg for d in ds]))
+            per_seed.append({"seed": sd, "drives": [d.name for d in ds],
+                             **_gain(threshold_curve(ds, loose, scales), ms.rp_pct, ms.mp_pct)})
+        out["per_seed"] = per_seed
+        for key in ("rp_gained_at_equal_mp_pct", "mp_saved_at_equal_rp_pct"):
+            vals = [r[key] for r in per_seed if r[key] is not None]
+            out[f"seed_spread_{key}"] = round(float(np.std(vals)), 3) if len(vals) > 1 else None
+            out[f"seeds_positive_{key}"] = f"{sum(v > 0 for v in vals)}/{len(vals)}"
+        ss, ss2 = out["seed_spread_rp_gained_at_equal_mp_pct"], out["seed_spread_mp_saved_at_equal_rp_pct"]
+        out["beats_thresholds_beyond_seed_spread"] = bool(
+            (g is not None and ss is not None and g > ss) or (g2 is not None and ss2 is not None and g2 > ss2))
     return out
 
 
@@ -564,7 +582,11 @@ def _gain_line(name: str, g: dict) -> str:
             f"(spread {g['spread_rp_gained_at_equal_mp_pct']}), MP saved at equal RP {f(p['mp_saved_at_equal_rp_pct'])} "
             f"(spread {g['spread_mp_saved_at_equal_rp_pct']}): "
             f"{'beats' if g['beats_thresholds_beyond_spread'] else 'does NOT beat'} the thresholds beyond the "
-            "seed-to-seed spread")
+            "per-drive spread" + (
+                "" if "per_seed" not in g else
+                f"; per seed (layouts pooled) spread {g['seed_spread_rp_gained_at_equal_mp_pct']} / "
+                f"{g['seed_spread_mp_saved_at_equal_rp_pct']}, positive on {g['seeds_positive_rp_gained_at_equal_mp_pct']}"
+                f" seeds: {'beats' if g['beats_thresholds_beyond_seed_spread'] else 'does NOT beat'} them beyond it"))
 
 
 def format_text(r: dict) -> str:
