@@ -422,13 +422,16 @@ def check_dmc_frames(frames: list[tuple[str, bytes, float]], dmc: list[tuple[str
 
 def run_scenario(work: Path, n_vehicles: int, instances: int, steps: list[tuple], duration_s: float,
                  port: int | None = None, seed: int = 1, settle_timeout_s: float = 90.0,
-                 end_after_steps_s: float | None = None, save_data: bool = False, frames: bool = False) -> dict:
+                 end_after_steps_s: float | None = None, save_data: bool = False, frames: bool = False,
+                 split_state: bool = False) -> dict:
     """Run the fleet and the group under ``magmesh up`` and play ``steps``: ``("kill",)`` (SIGKILL a member that
     holds vehicles, chosen with ``seed``; the supervisor restarts it and it rejoins), ``("scale", n)``
     (``magmesh scale dmc n``), ``("wait", s)``. The fleet publishes for ``duration_s``, or stops
     ``end_after_steps_s`` after the last step (``save_data``: what the subscribers saw also goes to
     ``work/seen.msgpack``). ``frames``: the fleet goes through ingest as fleet frames (see the module's
-    docstring). Returns everything seen and measured."""
+    docstring). ``split_state``: no supervisor; the members are started by hand, each with a state directory of
+    its own (``work/host-{i}``), as instances on different hosts would be: a killed member's journal and alarm
+    file are not where the survivors look, and it is not restarted. Returns everything seen and measured."""
     import zenoh
 
     from magmesh import zconf
@@ -442,13 +445,30 @@ def run_scenario(work: Path, n_vehicles: int, instances: int, steps: list[tuple]
     rng = random.Random(seed)
     vehicles = vehicle_ids(n_vehicles)
     load_start = [round(x, 2) for x in os.getloadavg()]  # the machine's load (1, 5, 15 min), for the conditions
-    sup = subprocess.Popen([sys.executable, "-m", "magmesh", "up", str(manifest), "--quiet", "--log-dir",
-                            str(work / "logs"), "--duration", str(duration_s + 300)], cwd=REPO, env=env,
-                           stdout=open(work / "up.log", "ab"), stderr=subprocess.STDOUT, start_new_session=True)
+    members = [f"dmc-{i}" for i in range(1, instances + 1)]
+    router = None
+    procs: list[subprocess.Popen] = []
+    if split_state:
+        import zenoh
+
+        from magmesh import zconf
+
+        router = zenoh.open(zconf.build_config(mode="router", listen=[ep]))
+        (work / "logs").mkdir(exist_ok=True)
+        for m in members:
+            procs.append(subprocess.Popen(
+                [sys.executable, "-m", "services.dmc_detector", "--impl", "threshold", "--group", "dmc", "--instance",
+                 m, "--manifest", str(manifest), "--connect", ep], cwd=REPO,
+                env={**env, "MAGMESH_STATE_DIR": str(work / f"host-{m}")},
+                stdout=open(work / "logs" / f"{m}.log", "ab"), stderr=subprocess.STDOUT, start_new_session=True))
+        sup = None
+    else:
+        sup = subprocess.Popen([sys.executable, "-m", "magmesh", "up", str(manifest), "--quiet", "--log-dir",
+                                str(work / "logs"), "--duration", str(duration_s + 300)], cwd=REPO, env=env,
+                               stdout=open(work / "up.log", "ab"), stderr=subprocess.STDOUT, start_new_session=True)
     fleet = None
     events: list[dict] = []
     problems: list[str] = []
-    members = [f"dmc-{i}" for i in range(1, instances + 1)]
     client = None
     try:
         deadline = time.monotonic() + 30
@@ -503,6 +523,8 @@ def run_scenario(work: Path, n_vehicles: int, instances: int, steps: list[tuple]
                             resumed[v] = t_arr - t_kill
                     time.sleep(0.05)
                 takeover = max(resumed.values()) if len(resumed) == len(held) and held else float("inf")
+                if split_state:  # nobody restarts it
+                    members = [m for m in members if m != inst]
                 ok, view, took = wait_settled(client, vehicles, members, settle_timeout_s)
                 events.append({"step": "kill", "instance": inst, "vehicles": held, "t_wall": t_kill,
                                "taken_s": round(taken, 3), "takeover_s": round(takeover, 3),
@@ -536,15 +558,19 @@ def run_scenario(work: Path, n_vehicles: int, instances: int, steps: list[tuple]
     finally:
         if fleet is not None and fleet.poll() is None:
             os.killpg(fleet.pid, signal.SIGKILL)
-        if sup.poll() is None:
-            os.killpg(sup.pid, signal.SIGINT)
+        for p in [sup, *procs]:
+            if p is None or p.poll() is not None:
+                continue
+            os.killpg(p.pid, signal.SIGINT)
             try:
-                sup.wait(20)
+                p.wait(20)
             except subprocess.TimeoutExpired:
-                os.killpg(sup.pid, signal.SIGKILL)
-                sup.wait(5)
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait(5)
         if client is not None:
             client.close()
+        if router is not None:
+            router.close()
     items = [(k, m) for c in data if not c.raw for k, m, _ in c.items]
     frame_problems: list[str] = []
     if frames:  # the clean samples as per-vehicle messages, from the frames that carried them

@@ -39,6 +39,10 @@ class SeqTable(MutableMapping):
         self.slot: dict[str, int] = {}
         self.names: list[str | None] = []
         self.arr = np.full(capacity, NONE, np.int64)
+        #: the sample time of each key's last seq (nan: not known), beside it: a group member's answers carry both,
+        #: from which another member estimates what it handled after its last answer (group_member._mesh_state)
+        self.tarr = np.full(capacity, np.nan)
+        self.td: dict[str, float] = {}
         self.free: list[int] = []
         self.generation = 0  # bumped when a slot is freed: cached slot arrays must be rebuilt
 
@@ -64,10 +68,14 @@ class SeqTable(MutableMapping):
                 grown = np.full(max(2 * self.arr.shape[0], s + 1), NONE, np.int64)
                 grown[:self.arr.shape[0]] = self.arr
                 self.arr = grown
+                grown_t = np.full(grown.shape[0], np.nan)
+                grown_t[:self.tarr.shape[0]] = self.tarr
+                self.tarr = grown_t
         self.names[s] = k
         self.slot[k] = s
         v = self.d.pop(k, None)
         self.arr[s] = NONE if v is None else int(v)
+        self.tarr[s] = self.td.pop(k, np.nan)
         return s
 
     def free_slot(self, k: str) -> None:
@@ -75,8 +83,22 @@ class SeqTable(MutableMapping):
         if s is not None:
             self.names[s] = None
             self.arr[s] = NONE
+            self.tarr[s] = np.nan
             self.free.append(s)
             self.generation += 1
+
+    def set_t(self, k: str, t: float) -> None:
+        """The sample time of key ``k``'s last seq."""
+        s = self.slot.get(k)
+        if s is None:
+            self.td[k] = float(t)
+        else:
+            self.tarr[s] = t
+
+    def get_t(self, k: str) -> float | None:
+        s = self.slot.get(k)
+        v = self.td.get(k) if s is None else float(self.tarr[s])
+        return None if v is None or v != v else v
 
     # ---- the mapping ----------------------------------------------------------------------------
     def __getitem__(self, k: str) -> int:
@@ -106,10 +128,12 @@ class SeqTable(MutableMapping):
         s = self.slot.get(k)
         if s is None:
             del self.d[k]
+            self.td.pop(k, None)
             return
         if self.arr[s] == NONE:
             raise KeyError(k)
         self.arr[s] = NONE
+        self.tarr[s] = np.nan
 
     def __contains__(self, k: object) -> bool:
         s = self.slot.get(k)  # type: ignore[arg-type]

@@ -37,6 +37,7 @@ coordination thread only queries.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections import deque
@@ -114,7 +115,16 @@ class GroupMember:
         self.warm_buf: dict[str, deque] = {}
         self.stats = {"not_owned": 0, "handovers_in": 0, "handovers_out": 0, "failovers": 0, "unrecovered": 0,
                       "duplicates_dropped": 0, "suppressed": 0, "takeover_s_max": 0.0, "last_takeover_s": None,
-                      "rounds": 0, "rounds_incomplete": 0, "liveliness_lapses": 0, "reclaimed": 0}
+                      "rounds": 0, "rounds_incomplete": 0, "liveliness_lapses": 0, "reclaimed": 0,
+                      "failovers_from_mesh": 0}
+        # what the mesh showed of the vehicles other members hold, for a failover from a member whose journal is not
+        # on this host (another host, or another state directory): see _mesh_state
+        self.seen_out: dict[str, dict[str, tuple[int, float]]] = {}  # vehicle -> output key -> (seq, t_s) last seen
+        self.seen_alarm: dict[str, tuple[int, dict]] = {}  # alarm key -> (seq, message) of the last transition seen
+        self.snap: dict[str, dict] = {}  # member -> its vehicles' input seqs and counts, from its last g_state answer
+        self.in_rate: dict[str, tuple[float, int, float, int]] = {}  # input key -> (t0, seq0, t1, seq1) of two answers
+        self._out_sub: Any = None
+        self._alarm_sub: Any = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._dead_since: dict[str, float] = {}  # member -> when its liveliness was seen gone
@@ -294,7 +304,34 @@ class GroupMember:
                        "raised": raised, "last_in_t": last_in_t, "passed": passed, "cut": cut,
                        "to": self.release_to.get(v)}
         return {"group": self.name, "instance": self.me, "leaving": self.leaving, "owned": sorted(list(self.owned)),
-                "taking": sorted(set(self.warming) | set(self.arm)), "releasing": hand}
+                "taking": sorted(set(self.warming) | set(self.arm)), "releasing": hand, "held": self._held()}
+
+    def _held(self) -> dict:
+        """Per vehicle held here: the last input seq handled per key, the sample time of the last input and the
+        journalled drop counts. The others keep the latest answer, for a failover that finds no journal of this
+        member on their host (:meth:`_mesh_state`)."""
+        rt = self.rt
+        owned = self.owned
+        out: dict[str, dict] = {}
+        in_seq, last_in_t = getattr(rt, "in_seq", {}), getattr(rt, "last_in_t", {})
+        get_t = getattr(in_seq, "get_t", lambda k: None)
+        for k in list(in_seq):
+            v = vehicle_of(k)
+            sq = in_seq.get(k) if v in owned else None
+            if sq is not None:
+                h = out.get(v)
+                if h is None:
+                    h = out[v] = {"t": last_in_t.get(v), "in": {}, "drops": {}}
+                t = get_t(k)
+                h["in"][k] = [int(sq), h["t"] if t is None else t]
+        for k, d in list(getattr(rt, "drops", {}).items()):
+            v = vehicle_of(k)
+            h = out.get(v)
+            if h is not None:
+                c = {r: int(n) for r, n in list(d.items()) if r in _JOURNALLED and n}
+                if c:
+                    h["drops"][k] = c
+        return out
 
     def status(self) -> dict:
         return {"name": self.name, "members": list(self.members), "leaving": self.leaving, "ready": self.ready,
@@ -514,12 +551,17 @@ class GroupMember:
                 rt.recovering[v] = "lost_during_restart"
         if dead["found"]:
             self._adopt(v, dead["seqs"], dead["alarms"], dead["raised"], counts)
+            if dead.get("t_out") is not None:  # (taken from what the mesh showed: outputs up to there went out)
+                self.post_cut[v] = math.nextafter(float(dead["t_out"]), math.inf)
+                self.stats["failovers_from_mesh"] += 1
             for k, s in dead["inputs"].items():
                 if k in resumed and resumed[k] > int(s):
                     continue  # handled later by this instance's run before its restart: that gap is the restart's
                 rt.in_seq[k] = int(s)
                 rt.resumed_in.discard(k)
                 rt.takeover_in.add(k)  # the first gap on it is lost_in_takeover (runtime._accepted)
+                if dead.get("mesh"):
+                    rt.takeover_est.add(k)
             if dead["inputs"]:
                 rt.recovering[v] = "lost_in_takeover"  # what its joins held died with it (count_join_loss)
             if dead["raised"] and not rt.svc.ADOPTS_RESTORED_ALARMS:
@@ -553,6 +595,7 @@ class GroupMember:
                     self._tokens.add(str(rep.ok.key_expr).split("/")[-1])
         except Exception as e:  # noqa: BLE001 - the subscriber fills the membership in
             self.rt.last_error = f"group membership query failed: {type(e).__name__}: {e}"[:500]
+        self._observe_outputs(zenoh)
         self._started = time.monotonic()
         try:
             self._round()  # membership and holdings known before the first input is judged
@@ -563,11 +606,106 @@ class GroupMember:
 
     def stop(self) -> None:
         self._stop.set()
+        for sub in (self._token_sub, self._out_sub, self._alarm_sub):
+            try:
+                if sub is not None:
+                    sub.undeclare()
+            except Exception:  # noqa: BLE001 - a closing session
+                pass
+
+    def _observe_outputs(self, zenoh: Any) -> None:
+        """Watch what the other members publish: the role's fleet frames (each vehicle's output seqs and sample times)
+        and alarm transitions, the newest kept in ring channels drained once a round (:meth:`_observe`). A member
+        that dies on another host leaves no journal here: what subscribers saw of it is where its successor goes on
+        (:meth:`_mesh_state`)."""
+        from schemas import streams
+
+        outs = getattr(type(self.rt.svc), "OUTPUTS", ()) or ()
+        kinds, sources = set(), set()
+        fleet_t, alarm_t = "magmesh/fleet/{shard}/", streams.STREAMS["alarm"].template
+        for o in outs:
+            t = getattr(o, "template", "")
+            if t.startswith(fleet_t) and "{" not in t[len(fleet_t):]:
+                kinds.add(t[len(fleet_t):])
+            elif t == alarm_t and getattr(o, "source", None):
+                sources.add(o.source)
         try:
-            if self._token_sub is not None:
-                self._token_sub.undeclare()
-        except Exception:  # noqa: BLE001 - a closing session
-            pass
+            if len(kinds) == 1:
+                self._out_sub = self.rt.session.declare_subscriber(
+                    keys.fleet_frames(next(iter(kinds))), zenoh.handlers.RingChannel(4096))
+            if len(sources) == 1:
+                self._alarm_sub = self.rt.session.declare_subscriber(
+                    keys.alarm("*", next(iter(sources))), zenoh.handlers.RingChannel(4096))
+        except Exception as e:  # noqa: BLE001 - a failover then finds only journals on this host
+            self.rt.last_error = f"group output watch failed: {type(e).__name__}: {e}"[:500]
+
+    def _observe(self) -> None:
+        """Take in what the watch channels hold: per vehicle of another member, the last seq and sample time of each
+        output key; per alarm key, its last transition."""
+        import numpy as np
+
+        from schemas import frame, messages
+
+        from .frames import stream_key
+
+        sub = self._out_sub
+        while sub is not None:
+            smp = sub.try_recv()
+            if smp is None:
+                break
+            try:
+                fr = frame.decode(smp.payload.to_bytes())
+            except Exception:  # noqa: BLE001 - not a frame of this contract: nothing learnt from it
+                continue
+            if fr.shard == self.me:
+                continue
+            for name, st in fr.streams.items():
+                if st.n == 0:
+                    continue
+                o = np.lexsort((st.seq, st.vi))
+                vi, sq, ts = st.vi[o], st.seq[o], st.t_s[o]
+                for i in np.flatnonzero(np.r_[vi[1:] != vi[:-1], True]).tolist():
+                    v = fr.vehicles[int(vi[i])]
+                    k = stream_key(fr.kind, v, name)
+                    d = self.seen_out.get(v)
+                    if d is None:
+                        d = self.seen_out[v] = {}
+                    old = d.get(k)
+                    if old is None or int(sq[i]) >= old[0]:
+                        d[k] = (int(sq[i]), float(ts[i]))
+        sub = self._alarm_sub
+        while sub is not None:
+            smp = sub.try_recv()
+            if smp is None:
+                break
+            try:
+                m = messages.decode(smp.payload.to_bytes(), expected_type="alarm")
+            except Exception:  # noqa: BLE001 - refused as the alarm stream's readers refuse it
+                continue
+            if m.get("service") == self.me:
+                continue
+            k = str(smp.key_expr)
+            old = self.seen_alarm.get(k)
+            if old is None or int(m["seq"]) >= old[0]:
+                self.seen_alarm[k] = (int(m["seq"]), m)
+
+    def _note_answers(self, states: dict[str, dict]) -> None:
+        """Keep each member's latest ``held`` answer, and per input key two answers' (sample time, seq) apart: the
+        key's rate, with which a failover estimates what the dead member handled after its last answer."""
+        for inst, st in states.items():
+            held = st.get("held")
+            if not isinstance(held, dict):
+                continue
+            self.snap[inst] = held
+            for h in held.values():
+                for k, (sq, t) in h.get("in", {}).items():
+                    if t is None:
+                        continue
+                    r = self.in_rate.get(k)
+                    if r is None:
+                        self.in_rate[k] = (t, sq, t, sq)
+                    elif sq != r[3] and t > r[2]:
+                        self.in_rate[k] = (r[2], r[3], t, sq)
 
     def _post(self, fn: Callable[[], None]) -> None:
         try:
@@ -615,6 +753,7 @@ class GroupMember:
         return zconf.control_request(self.rt.session, self.role, inst, req, timeout)
 
     def _round(self) -> None:
+        self._observe()
         live = self._live_members()
         now = time.monotonic()
         states: dict[str, dict] = {}
@@ -644,6 +783,7 @@ class GroupMember:
             st = self._query(inst, {"op": "g_state"})
             if st is not None:
                 states[inst] = st
+        self._note_answers(states)
         for inst, st in states.items():
             if st.get("leaving"):
                 self._leaving_seen.add(inst)
@@ -833,4 +973,50 @@ class GroupMember:
                     else:
                         out["raised"].pop(k, None)
                     out["found"] = True
+        if not out["found"] and only is None:
+            return self._mesh_state(v, out)
+        return out
+
+    def _mesh_state(self, v: str, out: dict) -> dict:
+        """What the mesh showed of vehicle ``v`` whose holder left nothing on this host (it ran on another host, or
+        with another state directory): the last output seq and sample time of each of its keys as the holder's
+        fleet frames carried them, the last alarm transitions it published, and from its last ``g_state`` answer
+        (one round old at most) the input seqs it had handled and its drop counts. What it handled after that
+        answer is estimated from each input key's rate up to the last output's sample time (``t_out``): inputs
+        after it were not handled, or died in its joins, and count as ``lost_in_takeover``; outputs at or before it
+        were published and are not published again (``t_out``, see :meth:`_failover`)."""
+        pre = f"{keys.ROOT}/{v}/"
+        outs = dict(self.seen_out.get(v, {}))
+        for k, (sq, _t) in outs.items():
+            out["seqs"][k] = max(sq, out["seqs"].get(k, -1))
+        t_out = max((t for _s, t in outs.values()), default=None)
+        for k, (sq, m) in list(self.seen_alarm.items()):
+            if k.startswith(pre):
+                out["alarms"][k] = m["state"]
+                out["seqs"][k] = max(sq, out["seqs"].get(k, -1))
+                if m["state"] == "raised":
+                    out["raised"][k] = m
+        holder = self.last_holder.get(v)
+        snap = (self.snap.get(holder) or {}).get(v) if holder is not None else None
+        if snap is not None:
+            for k, (sq, t_k) in snap.get("in", {}).items():
+                est = int(sq)
+                r = self.in_rate.get(k)
+                if t_out is not None and t_k is not None and t_out > t_k and r is not None and r[2] > r[0] \
+                        and not _is_params(k):
+                    # the key's samples from its last one answered up to the last output's sample time
+                    est += int(math.floor((t_out - t_k) * (r[3] - r[1]) / (r[2] - r[0]) + 0.5))
+                out["inputs"][k] = est
+            for k, c in snap.get("drops", {}).items():
+                if not k.startswith(pre):
+                    continue
+                for reason, n in c.items():
+                    if reason == "lost_in_takeover":
+                        out["lost"][k] = max(int(n), out["lost"].get(k, 0))
+                    elif reason in _JOURNALLED:
+                        out["counts"].setdefault(k, {})[reason] = int(n)
+        if outs or out["alarms"] or snap is not None:
+            out["found"] = True
+            out["mesh"] = True
+            out["t_out"] = t_out
         return out

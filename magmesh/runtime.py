@@ -664,6 +664,9 @@ class Runner:
         self._refused_seqs: dict[str, set[int]] = {}  # input key -> seqs refused since its last accepted sample
         self._rx_lock = threading.Lock()
         self.takeover_in: set[str] = set()  # input keys taken from a dead group member: first gap is lost_in_takeover
+        #: of those, keys whose last seq handled is estimated from what the mesh showed (a member on another host):
+        #: a first sample at or below it is no re-base (the dead member handled it, or the estimate's rounding)
+        self.takeover_est: set[str] = set()
         # vehicle -> lost_during_restart | lost_in_takeover: resumed from a journal, no output yet (count_join_loss)
         self.recovering: dict[str, str] = {}
         self.group = None  # magmesh.group_member.GroupMember when the service runs in a group (--group)
@@ -1041,11 +1044,8 @@ class Runner:
                     w = _Watch(pub)
                     cache[k] = [pub, jslot, self.count_out[k], w]
                     self._unsettled.append((time.monotonic() + WATCH_SETTLE_S, w))
-            row = _row_type(("type", "version", "vehicle", "t_s", "seq", *names))
-            vals = None  # each row's field values, in names' order: made at the first row built
-            skipped = 0
             first = j is not None
-            for i in rows:
+            for i in rows:  # numbered and journalled first, put below
                 k = keys_[i]
                 c = cache[k]
                 s = seq.get(k, -1) + 1
@@ -1056,22 +1056,32 @@ class Runner:
                     # (the count written after the loop left a window where both were counted)
                     j.sent(self.n_sent + 1)
                     first = False
-                if c[3].on:
-                    if vals is None:
-                        vals = list(zip(*lists(), strict=True))
-                    c[0].put(enc(row(msg_type, ver, vehicles[i], t_s[i], s, *vals[i])))
-                else:  # nobody subscribes to this vehicle's key now: numbered, not built or put (see _Watch)
-                    skipped += 1
                 seq[k] = s
                 c[2].n += 1
                 out[i] = s
             self.n_sent += len(rows)
-            if skipped:
-                self.unwatched[msg_type] += skipped
             if j is not None:
                 j.sent(self.n_sent)
         if mirror:
+            # the fleet frame before the per-vehicle puts: a kill between them leaves outputs numbered that never
+            # went out (seq gaps, as a kill between the journal and a put does), never a row published on its
+            # key but missing from the frames, from which a member on another host goes on after a kill
+            # (group_member._mesh_state: it would number that output again)
             self._mirror_rows(mirror, msg_type, vehicles, t_given, given, out)
+        if rows:
+            row = _row_type(("type", "version", "vehicle", "t_s", "seq", *names))
+            vals = None  # each row's field values, in names' order: made at the first row built
+            skipped = 0
+            for i in rows:
+                c = cache[keys_[i]]
+                if c[3].on:
+                    if vals is None:
+                        vals = list(zip(*lists(), strict=True))
+                    c[0].put(enc(row(msg_type, ver, vehicles[i], t_s[i], out[i], *vals[i])))
+                else:  # nobody subscribes to this vehicle's key now: numbered, not built or put (see _Watch)
+                    skipped += 1
+            if skipped:
+                self.unwatched[msg_type] += skipped
         return out
 
     def _mirror_rows(self, kind: str, msg_type: str, vehicles: list[str], t_s: list, cols: dict,
@@ -1727,16 +1737,18 @@ class Runner:
                     self._lost_in_takeover(skey, gap)
                 else:
                     self.drops[skey]["upstream_gap"] += gap
-            elif gap < 0:
+            elif gap < 0 and skey not in self.takeover_est:
                 self.count_rebase("seq_back")
         if self.group is not None:  # a group member's vehicles may be taken from its journal after a kill -9
             self.takeover_in.discard(skey)
+            self.takeover_est.discard(skey)
             if self.journal is not None:
                 self.journal.set("i" + skey, s1)
         inner = s1 - s0 + 1 - c.n  # ingest numbers the samples of a stream consecutively
         if inner > 0:
             self.drops[skey]["upstream_gap"] += inner
         self.in_seq[skey] = s1
+        self.in_seq.set_t(skey, float(c.t_s[-1]))
         self.count_in[skey].n += c.n
         self.key_seen[skey] = time.monotonic()
         t0, t1 = float(min(c.t_s)), float(max(c.t_s))
@@ -1884,7 +1896,7 @@ class Runner:
                     self.drops[k]["upstream_gap"] += gp
                     if self.journal is not None:
                         self.journal.set("u" + k, self.drops[k]["upstream_gap"])
-            elif gp < 0:
+            elif gp < 0 and k not in self.takeover_est:
                 self.count_rebase("seq_back")
             if inner[j] > 0:
                 self.drops[k]["upstream_gap"] += int(inner[j])
@@ -1893,7 +1905,9 @@ class Runner:
                 k = sk.keys[i]
                 self.resumed_in.discard(k)
                 self.takeover_in.discard(k)
+                self.takeover_est.discard(k)
         tab.arr[slots] = lastq
+        tab.tarr[slots] = st.t_s[ends - 1]
 
     def _frame_times(self, vehicles: list[str], vmask: np.ndarray, taken: dict, now: float) -> None:
         """Each vehicle's first and latest input sample time and when it was last heard (swap cuts, group
@@ -2111,13 +2125,15 @@ class Runner:
                     self.drops[key]["upstream_gap"] += gap
                     if self.journal is not None:  # a count of loss survives this process's own restart too
                         self.journal.set("u" + key, self.drops[key]["upstream_gap"])
-            elif gap < 0:
+            elif gap < 0 and key not in self.takeover_est:
                 self.count_rebase("seq_back")  # a publisher that restarted its counter (or a repeat)
         self.in_seq[key] = sq
+        self.in_seq.set_t(key, msg["t_s"])
         if self.resumed_in:
             self.resumed_in.discard(key)
         if self.takeover_in:
             self.takeover_in.discard(key)
+            self.takeover_est.discard(key)
         if self.journal is not None:
             self.journal.set("i" + key, sq)
         t, v = msg["t_s"], info.vehicle
@@ -2152,6 +2168,7 @@ class Runner:
                 self._first_rx.pop(k, None)
             self.resumed_in.discard(k)
             self.takeover_in.discard(k)
+            self.takeover_est.discard(k)
             self._refused_seqs.pop(k, None)
             if self.journal is not None:
                 self.journal.forget([p + k for p in "iflut"])
