@@ -642,3 +642,62 @@ def test_bench_runs_do_not_share_a_state_directory(tmp_path, monkeypatch):
     for port in (7001, 7002):
         mesh_bench._spawn(["-m", "services.ingest"], port, tmp_path / "ingest.log")
     assert len(set(seen)) == 2 and all(s.startswith(str(tmp_path)) for s in seen), seen
+
+
+def test_a_dead_member_whose_journal_is_elsewhere_is_taken_from_what_the_mesh_showed(tmp_path, monkeypatch):
+    """No journal of the dead member here (it ran on another host): its outputs' last seqs and times come from its
+    fleet frames, its alarm from the alarm key, its input seqs and counts from its last answer, and what it handled
+    after that answer from each key's rate up to its last output's time."""
+    import numpy as np
+
+    from magmesh.group_member import GroupMember
+    from schemas import frame
+
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
+    m1, m2, d, a = ("magmesh/car-1/clean/mag/1", "magmesh/car-1/clean/mag/2", "magmesh/car-1/dmc",
+                    "magmesh/car-1/alarm/dmc")
+    g = GroupMember(_Rt(), "dmc")
+    g.live = {"dmc-1"}
+    g.last_holder["car-1"] = "dmc-2"
+    # two answers 0.4 s of sample time apart: 50 Hz on each compass; the last one at t = 10.0 (mag/1: seq 500)
+    for t, s in ((9.6, 480), (10.0, 500)):
+        g._note_answers({"dmc-2": {"held": {"car-1": {"t": t, "in": {m1: [s, t], m2: [s - 1, t - 0.02]},
+                                                      "drops": {m1: {"upstream_gap": 3, "lost_in_takeover": 2}}}}}})
+    # then its fleet frames: outputs up to t = 10.3 (seq 515), from another shard (its own frames are skipped)
+    class _Sub:
+        def __init__(self, items):
+            self.items = list(items)
+
+        def try_recv(self):
+            return self.items.pop(0) if self.items else None
+
+    class _Smp:
+        def __init__(self, payload, key=""):
+            self.payload = type("P", (), {"to_bytes": lambda _s: payload})()
+            self.key_expr = key
+
+    def dmc_frame(shard, seq, t):
+        one = np.array([0.0])
+        st = frame.Stream("dmc", "dmc", np.array([0], np.uint32), np.array([t]), np.array([seq], np.int64),
+                          {"dm_nt": np.zeros((1, 2)), "ddm_nt_s": np.zeros((1, 2)), "dh_rad": one, "ddh_rad_s": one,
+                           "heading_rad": one, "stage1_pass": np.array([True]), "credibility": one + 1.0,
+                           "valid": np.array([True]), "impl": "threshold", "param_source": "manifest"})
+        return frame.encode(shard, "dmc", 0, ["car-1"], {"dmc": st})
+
+    g._out_sub = _Sub([_Smp(dmc_frame("dmc-2", 514, 10.28)), _Smp(dmc_frame("dmc-2", 515, 10.3)),
+                       _Smp(dmc_frame("dmc-1", 900, 99.0))])
+    from schemas import messages
+
+    alarm = messages.make("alarm", "car-1", 10.1, 3, source="dmc", state="raised", severity="warning",
+                          reason="Magnetic interference suspected.", value=None, threshold=None, service="dmc-2")
+    g._alarm_sub = _Sub([_Smp(messages.encode(alarm), a)])
+    g._observe()
+    st = g._dead_state("car-1")
+    assert st["found"] and st["mesh"] and st["t_out"] == pytest.approx(10.3)
+    assert st["seqs"] == {d: 515, a: 3} and st["alarms"] == {a: "raised"} and st["raised"][a]["seq"] == 3
+    # 0.3 s at 50 Hz after each compass's last answered sample: 15 more handled on mag/1, 16 on mag/2
+    assert st["inputs"] == {m1: 515, m2: 515}
+    assert st["counts"] == {m1: {"upstream_gap": 3}} and st["lost"] == {m1: 2}
+    g.last_holder["car-1"] = "dmc-9"  # a holder never heard from: what the frames showed, no input estimate
+    st = g._dead_state("car-2")
+    assert not st["found"]
