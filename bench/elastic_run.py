@@ -431,7 +431,8 @@ def run_scenario(work: Path, n_vehicles: int, instances: int, steps: list[tuple]
     ``work/seen.msgpack``). ``frames``: the fleet goes through ingest as fleet frames (see the module's
     docstring). ``split_state``: no supervisor; the members are started by hand, each with a state directory of
     its own (``work/host-{i}``), as instances on different hosts would be: a killed member's journal and alarm
-    file are not where the survivors look, and it is not restarted. Returns everything seen and measured."""
+    file are not where the survivors look; once its vehicles are taken over it is started again on its "host"
+    (as a supervisor there would). Returns everything seen and measured."""
     import zenoh
 
     from magmesh import zconf
@@ -447,7 +448,15 @@ def run_scenario(work: Path, n_vehicles: int, instances: int, steps: list[tuple]
     load_start = [round(x, 2) for x in os.getloadavg()]  # the machine's load (1, 5, 15 min), for the conditions
     members = [f"dmc-{i}" for i in range(1, instances + 1)]
     router = None
-    procs: list[subprocess.Popen] = []
+    procs: dict[str, subprocess.Popen] = {}
+
+    def start_member(m: str) -> None:
+        procs[m] = subprocess.Popen(
+            [sys.executable, "-m", "services.dmc_detector", "--impl", "threshold", "--group", "dmc", "--instance",
+             m, "--manifest", str(manifest), "--connect", ep], cwd=REPO,
+            env={**env, "MAGMESH_STATE_DIR": str(work / f"host-{m}")},
+            stdout=open(work / "logs" / f"{m}.log", "ab"), stderr=subprocess.STDOUT, start_new_session=True)
+
     if split_state:
         import zenoh
 
@@ -456,11 +465,7 @@ def run_scenario(work: Path, n_vehicles: int, instances: int, steps: list[tuple]
         router = zenoh.open(zconf.build_config(mode="router", listen=[ep]))
         (work / "logs").mkdir(exist_ok=True)
         for m in members:
-            procs.append(subprocess.Popen(
-                [sys.executable, "-m", "services.dmc_detector", "--impl", "threshold", "--group", "dmc", "--instance",
-                 m, "--manifest", str(manifest), "--connect", ep], cwd=REPO,
-                env={**env, "MAGMESH_STATE_DIR": str(work / f"host-{m}")},
-                stdout=open(work / "logs" / f"{m}.log", "ab"), stderr=subprocess.STDOUT, start_new_session=True))
+            start_member(m)
         sup = None
     else:
         sup = subprocess.Popen([sys.executable, "-m", "magmesh", "up", str(manifest), "--quiet", "--log-dir",
@@ -523,8 +528,9 @@ def run_scenario(work: Path, n_vehicles: int, instances: int, steps: list[tuple]
                             resumed[v] = t_arr - t_kill
                     time.sleep(0.05)
                 takeover = max(resumed.values()) if len(resumed) == len(held) and held else float("inf")
-                if split_state:  # nobody restarts it
-                    members = [m for m in members if m != inst]
+                if split_state:  # started again on its own "host", with its own state directory
+                    procs[inst].wait(10)
+                    start_member(inst)
                 ok, view, took = wait_settled(client, vehicles, members, settle_timeout_s)
                 events.append({"step": "kill", "instance": inst, "vehicles": held, "t_wall": t_kill,
                                "taken_s": round(taken, 3), "takeover_s": round(takeover, 3),
@@ -558,7 +564,7 @@ def run_scenario(work: Path, n_vehicles: int, instances: int, steps: list[tuple]
     finally:
         if fleet is not None and fleet.poll() is None:
             os.killpg(fleet.pid, signal.SIGKILL)
-        for p in [sup, *procs]:
+        for p in [sup, *procs.values()]:
             if p is None or p.poll() is not None:
                 continue
             os.killpg(p.pid, signal.SIGINT)

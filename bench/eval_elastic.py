@@ -18,6 +18,12 @@ every vehicle no kill touched (moved only by hand-overs), whether its alarm tran
 detector fed every epoch offline (the service's own code on the same samples): a move that caused or hid a
 transition shows there. ``--quick`` runs 10 cars and 3 kills (a smoke check, not the figures of the README).
 
+``--split-state``: the kill run with each member started by hand with a state directory of its own, as members on
+different hosts (no supervisor: the run starts a killed member again itself, on its own "host"): a survivor cannot
+read the dead member's journal or alarm file and goes on from what the mesh showed of its vehicles (their outputs'
+seqs and times in its fleet frames, its alarm transitions, its last answer to the group's rounds). The scale run
+needs the supervisor and is not part of it.
+
 ``--frames``: the fleet publishes raw batches to an ingest process with ``output = "frames"``, and the members take
 its fleet frames (cut to the vehicles each holds); besides the checks above, each member's dmc frames must carry
 exactly the dmc rows it published (``dmc_rows_in_two_frames``, ``dmc_frame_rows_not_published``,
@@ -46,6 +52,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true", help="10 cars, 3 kills")
     p.add_argument("--frames", action="store_true",
                    help="the fleet through ingest as fleet frames (output = frames): the members take frames")
+    p.add_argument("--split-state", action="store_true",
+                   help="the kill run with a state directory per member, as on different hosts (no scale run)")
     p.add_argument("--keep", default=None, metavar="DIR", help="keep logs, state and what the subscribers saw in DIR")
 
 
@@ -67,20 +75,24 @@ def run(args: argparse.Namespace) -> dict:
     cars, kills = (10, 3) if args.quick else (args.cars, args.kills)
     rng = random.Random(args.seed)
     base = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="magmesh-eval-elastic-"))
-    out: dict = {"cars": cars, "seed": args.seed, "frames": args.frames}
+    split = bool(getattr(args, "split_state", False))
+    out: dict = {"cars": cars, "seed": args.seed, "frames": args.frames, "split_state": split}
     if args.only in (None, "kill"):
         steps: list[tuple] = [("wait", 2.0)]
         for _ in range(kills):
             steps += [("wait", round(rng.uniform(1.0, 6.0), 2)), ("kill",)]
         res = run_scenario(base / "kill", cars, 3, steps, duration_s=3600.0, seed=args.seed, end_after_steps_s=3.0,
-                           save_data=bool(args.keep), frames=args.frames)
+                           save_data=bool(args.keep), frames=args.frames, split_state=split)
         k = _summary(res)
         t = [e["takeover_s"] for e in res["events"] if e["step"] == "kill"]
+        groups = [st["group"] for st in res["final"].values() if "group" in st]
+        k["failovers_from_mesh"] = sum(g.get("failovers_from_mesh", 0) for g in groups)
+        k["unrecovered"] = sum(g.get("unrecovered", 0) for g in groups)
         k.update(kills=len(t), takeover_s=t, takeover_s_max=max(t) if t else None,
                  takeover_s_median=statistics.median(t) if t else None,
                  takeover_within_2s=sum(1 for x in t if x <= 2.0))
         out["kill"] = k
-    if args.only in (None, "scale"):
+    if args.only in (None, "scale") and not split:
         steps = [("wait", 5.0), ("scale", 4), ("wait", 5.0), ("scale", 2), ("wait", 5.0)]
         res = run_scenario(base / "scale", cars, 1, steps, duration_s=3600.0, seed=args.seed, end_after_steps_s=3.0,
                            save_data=bool(args.keep), frames=args.frames)
@@ -100,7 +112,8 @@ def run(args: argparse.Namespace) -> dict:
 
 def format_text(r: dict) -> str:
     lines = [f"elastic roles: {r['cars']} cars, seed {r['seed']}"
-             + (", through ingest as fleet frames" if r.get("frames") else "")]
+             + (", through ingest as fleet frames" if r.get("frames") else "")
+             + (", a state directory per member (as on different hosts)" if r.get("split_state") else "")]
     k = r.get("kill")
     if k:
         lines.append(f"  kill: {k['kills']} SIGKILLs of a member of 3; takeover (outputs resumed) max "
@@ -111,7 +124,8 @@ def format_text(r: dict) -> str:
                      f"transitions {k['alarm_transitions']}: lost {k['lost_alarm_transitions']}, repeated "
                      f"{k['repeated_alarm_transitions']}; vehicles moved only by hand-over: "
                      f"{k['transitions_changed_by_moves']} differ from one detector "
-                     f"({k['reference_transitions_compared']} transitions compared)")
+                     f"({k['reference_transitions_compared']} transitions compared); failovers from what the mesh "
+                     f"showed {k.get('failovers_from_mesh', 0)}, unrecovered {k.get('unrecovered', 0)}")
     s = r.get("scale")
     if s:
         took = [e.get("took_s") for e in s["events"] if e["step"] == "scale"]
