@@ -23,7 +23,10 @@ membership changes, per vehicle, with the live-swap protocol (cut at an agreed s
   dead holder had not handled before the new owner's first one is counted as ``lost_in_takeover`` on its key;
   a vehicle for which nothing was persisted is counted in ``group.unrecovered``. A holder killed after passing the
   cut of a hand-over (it journals that) leaves the hand-over to complete from its journal: the new owner publishes
-  the outputs it held from the cut on, nothing lost.
+  the outputs it held from the cut on, nothing lost. A dead member whose journal is not where this member looks
+  (another host, another state directory) is taken over from what the mesh showed (:meth:`GroupMember._mesh_state`:
+  its fleet frames' last seq and time per output key, its alarm transitions, its last ``g_state`` answer's input
+  seqs and counts, and each input key's rate up to its last output).
 - **duplicates** (two members took one new vehicle before they saw each other): the one the rule does not pick
   among the holders drops it at once (``group.duplicates_dropped``).
 
@@ -642,8 +645,6 @@ class GroupMember:
     def _observe(self) -> None:
         """Take in what the watch channels hold: per vehicle of another member, the last seq and sample time of each
         output key; per alarm key, its last transition."""
-        import numpy as np
-
         from schemas import frame, messages
 
         from .frames import stream_key
@@ -654,25 +655,19 @@ class GroupMember:
             if smp is None:
                 break
             try:
-                fr = frame.decode(smp.payload.to_bytes())
-            except Exception:  # noqa: BLE001 - not a frame of this contract: nothing learnt from it
+                shard, kind, rows = frame.last_rows(smp.payload.to_bytes())
+            except ValueError:  # not a frame of this contract: nothing learnt from it
                 continue
-            if fr.shard == self.me:
+            if shard == self.me:
                 continue
-            for name, st in fr.streams.items():
-                if st.n == 0:
-                    continue
-                o = np.lexsort((st.seq, st.vi))
-                vi, sq, ts = st.vi[o], st.seq[o], st.t_s[o]
-                for i in np.flatnonzero(np.r_[vi[1:] != vi[:-1], True]).tolist():
-                    v = fr.vehicles[int(vi[i])]
-                    k = stream_key(fr.kind, v, name)
-                    d = self.seen_out.get(v)
-                    if d is None:
-                        d = self.seen_out[v] = {}
-                    old = d.get(k)
-                    if old is None or int(sq[i]) >= old[0]:
-                        d[k] = (int(sq[i]), float(ts[i]))
+            for v, name, sq, ts in rows:
+                k = stream_key(kind, v, name)
+                d = self.seen_out.get(v)
+                if d is None:
+                    d = self.seen_out[v] = {}
+                old = d.get(k)
+                if old is None or sq >= old[0]:
+                    d[k] = (sq, ts)
         sub = self._alarm_sub
         while sub is not None:
             smp = sub.try_recv()
