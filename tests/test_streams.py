@@ -316,3 +316,36 @@ def test_ingest_frames_refuse_a_binary_batch_whole_at_the_window(tmp_path, monke
     rej = [msgpack.unpackb(p) for k, p in s.out if k == keys.rejects("car-1")]
     assert [(m["code"], m["field"], m["key"]) for m in rej] == [("schema", "mag/1.b_nt", keys.raw_batch("car-1"))]
     assert "must be finite" in rej[0]["reason"]
+
+
+@pytest.mark.parametrize("rows", [1, 3])
+def test_a_frames_last_rows_are_read_without_its_columns(rows):
+    """frame.last_rows (what a group member watches the others' outputs with) gives each vehicle's last row per
+    stream as the full decode does; it refuses what is not a frame."""
+    import numpy as np
+
+    from schemas import frame
+
+    rng = np.random.default_rng(rows)
+    nveh = 5
+    vi = np.repeat(np.arange(nveh, dtype=np.uint32), rows)[1:]  # vehicle 0 has one row less
+    n = vi.size
+    t = np.sort(rng.uniform(0, 10, n))
+    seq = rng.integers(0, 10_000, n)
+    order = np.lexsort((t, vi))
+    z = np.zeros(n)
+    st = frame.Stream("dmc", "dmc", vi[order], t[order], np.sort(seq)[order], {
+        "dm_nt": np.zeros((n, 2)), "ddm_nt_s": np.zeros((n, 2)), "dh_rad": z, "ddh_rad_s": z, "heading_rad": z,
+        "stage1_pass": np.ones(n, bool), "credibility": z + 1, "valid": np.ones(n, bool), "impl": "threshold",
+        "param_source": "manifest"})
+    vehicles = [f"car-{i}" for i in range(nveh)]
+    payload = frame.encode("dmc-7", "dmc", 3, vehicles, {"dmc": st})
+    shard, kind, got = frame.last_rows(payload)
+    full = frame.decode(payload).streams["dmc"]
+    want = {}
+    for i, q, tt in zip(full.vi.tolist(), full.seq.tolist(), full.t_s.tolist(), strict=True):
+        want[vehicles[i]] = ("dmc", q, tt)  # rows sorted by vehicle, then time: the last one stays
+    assert (shard, kind) == ("dmc-7", "dmc")
+    assert {v: (name, q, tt) for v, name, q, tt in got} == want and len(got) == len(want)
+    with pytest.raises(ValueError):
+        frame.last_rows(b"\x81\xa4type\xa5batch")
