@@ -252,6 +252,9 @@ class GyroTrackServiceSettings(Settings):
     trust_dm_nt: float = setting(_GT.trust_dm_nt, "a trusted epoch pulls with weight 1 / (1 + (|Δm|/this)² + "
                                  "(|Δh|/trust_dh_deg)²)", gt=0)
     trust_dh_deg: float = setting(_GT.trust_dh_deg, "see trust_dm_nt", gt=0)
+    max_gyro_gap_s: float = setting(_GT.max_gyro_gap_s, "gyro samples further apart than this (shed, lost, a stalled "
+                                    "stream) lose the carried heading: it is taken from the compass again at the "
+                                    "next epoch stage 1 passes", gt=0)
     max_imu_lag_s: float = setting(10.0, "a compass epoch is decided without the gyro reaching it after this much "
                                    "compass time (counted as imu_lagged_epochs)", gt=0)
 
@@ -266,7 +269,8 @@ class GyroTrackServiceSettings(Settings):
                 gate_deg=self.gate_deg, blend_tau_s=self.blend_tau_s, bias_tau_s=self.bias_tau_s,
                 reseed_after_s=self.reseed_after_s, reacquire_after_s=self.reacquire_after_s,
                 reacquire_dm_nt=self.reacquire_dm_nt, reacquire_dh_deg=self.reacquire_dh_deg,
-                bias_init_s=self.bias_init_s, trust_dm_nt=self.trust_dm_nt, trust_dh_deg=self.trust_dh_deg),
+                bias_init_s=self.bias_init_s, trust_dm_nt=self.trust_dm_nt, trust_dh_deg=self.trust_dh_deg,
+                max_gyro_gap_s=self.max_gyro_gap_s),
             self.max_imu_lag_s)
 
 

@@ -236,10 +236,11 @@ class GyroTrackSettings:
     bias_init_s: float = 2.0  # gyro bias: median rate over the first seconds of the record (the vehicle at rest)
     trust_dm_nt: float = 600.0  # a trusted epoch's pull on ψ_ref and b is 1 / (1 + (|Δm|/this)² + (|Δh|/trust_dh_deg)²)
     trust_dh_deg: float = 2.0
+    max_gyro_gap_s: float = 0.5  # gyro samples further apart (shed, lost, a stalled stream): ψ_ref is lost, seeded again
 
     def __post_init__(self):
         for name in ("gate_deg", "blend_tau_s", "bias_tau_s", "reseed_after_s", "reacquire_after_s",
-                     "reacquire_dm_nt", "reacquire_dh_deg", "trust_dm_nt", "trust_dh_deg"):
+                     "reacquire_dm_nt", "reacquire_dh_deg", "trust_dm_nt", "trust_dh_deg", "max_gyro_gap_s"):
             v = getattr(self, name)
             if not (v > 0 and math.isfinite(v)):
                 raise ValueError(f"{name} must be a positive finite number, got {v!r}")
@@ -268,18 +269,24 @@ class GyroTrack:
         self.bias_rad_s = float(bias_rad_s)
         self.est: float | None = None  # ψ_ref (rad, unwrapped), None before the first stage-1 pass
         self.reseeds = 0
+        self.lost = 0  # epochs at which ψ_ref was lost to a gap in the gyro (seeded again from the compass)
         self._prev: tuple[float, float] | None = None  # (t, ψ_g) of the previous epoch
         self._disagree_s = self._tight_s = 0.0
         self._gate = math.radians(self.settings.gate_deg)
 
     def step(self, t_s: float, psi_m_rad: float, psi_g_rad: float, stage1: bool, dm_nt: float,
-             dh_deg: float) -> tuple[bool, bool, float, float]:
+             dh_deg: float, gyro_ok: bool = True) -> tuple[bool, bool, float, float]:
         """One epoch: compass heading ψ_m, gyro heading ψ_g (unwrapped, any origin) at t_s, the stage-1 verdict,
         the worse compass's |Δm| and |Δh| in degrees → (valid, trusted, innovation ψ_m − ψ_ref (rad), ψ_ref (rad;
-        nan before the first stage-1 pass))."""
+        nan before the first stage-1 pass)). ``gyro_ok`` false: the gyro does not cover the time since the
+        previous epoch (a gap, or not there yet): ψ_ref is lost, and this epoch is judged as the first one."""
         s = self.settings
         t, pg = float(t_s), float(psi_g_rad)
         prev, self._prev = self._prev, (t, pg)
+        if not gyro_ok and self.est is not None:
+            self.est = None
+            self._disagree_s = self._tight_s = 0.0
+            self.lost += 1
         if self.est is None:
             if stage1:
                 self.est = float(psi_m_rad)
@@ -319,6 +326,20 @@ def gyro_heading(t_gyro_s, gyro_rad_s, t_s) -> np.ndarray:
     return np.interp(np.asarray(t_s, float), tg, psi)
 
 
+def gyro_covers(t_gyro_s, t_s, max_gap_s: float) -> np.ndarray:
+    """Per epoch: whether the gyro covers the time since the previous epoch — no two gyro samples further apart than
+    ``max_gap_s`` in (t_{i−1}, t_i], and t_i within the gyro's samples (the first epoch: within them)."""
+    tg = np.asarray(t_gyro_s, float)
+    t = np.asarray(t_s, float)
+    ok = (t >= tg[0]) & (t <= tg[-1]) if tg.size else np.zeros(t.size, bool)
+    for j in np.flatnonzero(np.diff(tg) > max_gap_s).tolist():
+        a, b = tg[j], tg[j + 1]
+        lo = int(np.searchsorted(t, a, side="right"))  # t_i > a
+        hi = int(np.searchsorted(t, b, side="left"))  # t_{i−1} < b  ⇔  i ≤ hi
+        ok[lo:min(hi, t.size - 1) + 1] = False
+    return ok
+
+
 def gyro_track_batch(f, stage1, t_gyro_s, gyro_rad_s, settings: GyroTrackSettings | None = None) -> GyroTrackResult:
     """Second stage over a recording, causal (epoch i depends on epochs ≤ i and the gyro up to t_i).
 
@@ -351,9 +372,10 @@ def gyro_track_batch(f, stage1, t_gyro_s, gyro_rad_s, settings: GyroTrackSetting
     trusted = np.zeros(n, bool)
     ref = np.full(n, np.nan)
     innov = np.zeros(n)
+    ok = gyro_covers(tg, t, s.max_gyro_gap_s)
     step = track.step
     for i in range(n):
-        valid[i], trusted[i], innov[i], ref[i] = step(t[i], psi_m[i], pg[i], stage1[i], dm[i], dh[i])
+        valid[i], trusted[i], innov[i], ref[i] = step(t[i], psi_m[i], pg[i], stage1[i], dm[i], dh[i], ok[i])
     return GyroTrackResult(valid, np.mod(ref, 2.0 * math.pi), innov, trusted, track.reseeds)
 
 
@@ -397,6 +419,8 @@ class GyroTrackDetector:
         self._bias_until: float | None = None  # the rest window's end (first gyro t + bias_init_s)
         self._rest_rates: list[float] | None = []  # −ω_z in the rest window; None once the bias is set
         self._trimmed = False
+        self._gyro_gaps: deque[tuple[float, float]] = deque()  # (a, b): consecutive gyro samples further apart
+        self._first_gyro_t: float | None = None
         self._pending: deque = deque()  # (features, stage-1 ratios) of epochs waiting for the gyro
         self.last: Decision | None = None
         self.n_imu_lagged = 0
@@ -414,6 +438,10 @@ class GyroTrackDetector:
             if t <= t0:
                 return []  # not newer than the last sample: the integral only runs forward
             self._psi_g += 0.5 * (r0 + rate) * (t - t0)
+            if t - t0 > self.settings.track.max_gyro_gap_s:
+                self._gyro_gaps.append((t0, t))
+        else:
+            self._first_gyro_t = t
         self._last_rate = (t, rate)
         self._gt.append(t)
         self._gp.append(self._psi_g)
@@ -476,6 +504,16 @@ class GyroTrackDetector:
         t0, t1 = gt[i - 1], gt[i]
         return gp[i - 1] + (gp[i] - gp[i - 1]) * (t - t0) / (t1 - t0)
 
+    def _gyro_covers(self, t: float) -> bool:
+        """Whether the gyro covers (previous epoch, t] (as :func:`gyro_covers` over a whole recording)."""
+        if self._first_gyro_t is None or t < self._first_gyro_t or t > self._gt[-1]:
+            return False
+        tp = self.track._prev[0] if self.track._prev is not None else -math.inf
+        gaps = self._gyro_gaps
+        while gaps and gaps[0][1] <= tp:  # (epochs come in time order: a gap ended before the last one is done)
+            gaps.popleft()
+        return not any(a < t and b > tp for a, b in gaps)
+
     # ---- the decision ---------------------------------------------------------------------
     def _decide(self, f, ratios: dict) -> Decision:
         tr = self.settings.track
@@ -483,7 +521,8 @@ class GyroTrackDetector:
         stage1 = all(v < 1.0 for v in ratios.values())
         dm = float(np.max(np.abs(f.dm_nt[0])))
         dh = abs(math.degrees(float(f.dh_rad[0])))
-        valid, _trusted, nu, _ref = self.track.step(t, float(f.heading_rad[0]), self._psi_g_at(t), stage1, dm, dh)
+        valid, _trusted, nu, _ref = self.track.step(t, float(f.heading_rad[0]), self._psi_g_at(t), stage1, dm, dh,
+                                                    self._gyro_covers(t))
         ratios = dict(ratios)
         if self.track.est is not None:
             ratios["track"] = abs(math.degrees(nu)) / tr.gate_deg
@@ -515,7 +554,7 @@ class GyroTrackDetector:
     @property
     def internal_states(self) -> dict:
         d = self.last
-        out = {"imu_lagged_epochs": self.n_imu_lagged, "reseeds": self.track.reseeds,
+        out = {"imu_lagged_epochs": self.n_imu_lagged, "reseeds": self.track.reseeds, "lost_to_gyro_gaps": self.track.lost,
                "gyro_bias_rad_s": self.track.bias_rad_s,
                "ref_heading_rad": None if self.track.est is None else math.remainder(self.track.est, 2 * math.pi)}
         return {**out, **({"ratios": d.ratios} if d else {})}
