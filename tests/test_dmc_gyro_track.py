@@ -254,7 +254,11 @@ def test_a_gap_in_the_gyro_loses_the_carried_heading_instead_of_raising_a_false_
     """Gyro samples missing for 4 s while the car starts a turn (shed under load, lost): integrated across the gap
     the carried heading is off by ~9° and clean epochs look bent; with the gap noticed it is taken from the compass
     again. Live and batch forms agree."""
-    from services.dmc_detector.quasistatic import GyroTrackDetector, GyroTrackDetectorSettings, GyroTrackSettings
+    from services.dmc_detector.quasistatic import (
+        GyroTrackDetector,
+        GyroTrackDetectorSettings,
+        GyroTrackSettings,
+    )
 
     t, b_a, b_b, tg, gyro, p = _raw_drive(70.0)
     keep = (tg < 29.0) | (tg > 33.0)
@@ -274,3 +278,29 @@ def test_a_gap_in_the_gyro_loses_the_carried_heading_instead_of_raising_a_false_
     assert (valid == batch.valid).all()
     det0, out0 = outs[100.0]
     assert [d for d in out0 if d.transition == "raised" and 29.0 < d.t_s < 48.0], "the case shows nothing"
+
+
+def test_a_stream_joined_while_the_car_turns_does_not_take_the_turn_for_the_gyros_bias():
+    """The detector's first samples of a car arrive mid-drive, in a turn (it started late, or the first frames were
+    shed): the rest window's median rate is the turn's 0.15 rad/s, not a bias; taken for one, it carried the heading
+    9° off in 1 s and raised a false alarm on a clean road. Live and batch forms agree."""
+    from services.dmc_detector.quasistatic import (
+        GyroTrackDetector,
+        GyroTrackDetectorSettings,
+        GyroTrackSettings,
+    )
+
+    t, b_a, b_b, tg, gyro, p = _raw_drive(70.0)
+    m, mg = t >= 31.0, tg >= 31.0  # joined at 31 s, turning since 30 s
+    outs = {}
+    for lim in (0.01, 1.0):  # the rule, and any median taken for the bias
+        det = GyroTrackDetector(GyroTrackDetectorSettings(track=GyroTrackSettings(max_init_bias_rad_s=lim)))
+        outs[lim] = (det, _feed_live(det, t[m], b_a[m], b_b[m], tg[mg], gyro[mg], p, 0.1))
+    det, out = outs[0.01]
+    assert abs(det.track.bias_rad_s) < 0.01
+    assert not [d for d in out if d.transition == "raised" and d.t_s < 48.0]
+    f = core.features_batch(t[m], b_a[m], b_b[m], p, p, settings=det.settings.stage1.features)
+    batch = gyro_track_batch(f, core.threshold_test(f, det.settings.stage1.thresholds), tg[mg], gyro[mg],
+                             det.settings.track)
+    assert (np.array([d.valid for d in out]) == batch.valid).all()
+    assert [d for d in outs[1.0][1] if d.transition == "raised" and d.t_s < 48.0], "the case shows nothing"

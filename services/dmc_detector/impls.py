@@ -255,6 +255,9 @@ class GyroTrackServiceSettings(Settings):
     max_gyro_gap_s: float = setting(_GT.max_gyro_gap_s, "gyro samples further apart than this (shed, lost, a stalled "
                                     "stream) lose the carried heading: it is taken from the compass again at the "
                                     "next epoch stage 1 passes", gt=0)
+    max_init_bias_rad_s: float = setting(_GT.max_init_bias_rad_s, "the rest window's median rate is taken for the "
+                                         "gyro's bias only if within this and steady (else 0: the stream was joined "
+                                         "while the vehicle moved)", gt=0)
     max_imu_lag_s: float = setting(10.0, "a compass epoch is decided without the gyro reaching it after this much "
                                    "compass time (counted as imu_lagged_epochs)", gt=0)
 
@@ -270,7 +273,7 @@ class GyroTrackServiceSettings(Settings):
                 reseed_after_s=self.reseed_after_s, reacquire_after_s=self.reacquire_after_s,
                 reacquire_dm_nt=self.reacquire_dm_nt, reacquire_dh_deg=self.reacquire_dh_deg,
                 bias_init_s=self.bias_init_s, trust_dm_nt=self.trust_dm_nt, trust_dh_deg=self.trust_dh_deg,
-                max_gyro_gap_s=self.max_gyro_gap_s),
+                max_gyro_gap_s=self.max_gyro_gap_s, max_init_bias_rad_s=self.max_init_bias_rad_s),
             self.max_imu_lag_s)
 
 

@@ -237,10 +237,13 @@ class GyroTrackSettings:
     trust_dm_nt: float = 600.0  # a trusted epoch's pull on ψ_ref and b is 1 / (1 + (|Δm|/this)² + (|Δh|/trust_dh_deg)²)
     trust_dh_deg: float = 2.0
     max_gyro_gap_s: float = 0.5  # gyro samples further apart (shed, lost, a stalled stream): ψ_ref is lost, seeded again
+    max_init_bias_rad_s: float = 0.01  # the rest window's median rate is the bias only when the vehicle stood still:
+    # |median| below this (0.57 °/s, above a MEMS gyro's bias) and the rates' spread below half of it; else 0
 
     def __post_init__(self):
         for name in ("gate_deg", "blend_tau_s", "bias_tau_s", "reseed_after_s", "reacquire_after_s",
-                     "reacquire_dm_nt", "reacquire_dh_deg", "trust_dm_nt", "trust_dh_deg", "max_gyro_gap_s"):
+                     "reacquire_dm_nt", "reacquire_dh_deg", "trust_dm_nt", "trust_dh_deg", "max_gyro_gap_s",
+                     "max_init_bias_rad_s"):
             v = getattr(self, name)
             if not (v > 0 and math.isfinite(v)):
                 raise ValueError(f"{name} must be a positive finite number, got {v!r}")
@@ -326,6 +329,18 @@ def gyro_heading(t_gyro_s, gyro_rad_s, t_s) -> np.ndarray:
     return np.interp(np.asarray(t_s, float), tg, psi)
 
 
+def initial_bias(rates_rad_s, settings: GyroTrackSettings) -> float:
+    """The gyro's bias to start from: the median of −ω_z over the rest window, if the vehicle stood still then (the
+    median within ``max_init_bias_rad_s`` and the median absolute deviation within half of it); else 0 (a stream
+    joined while the car turned would take its turn rate for a bias and carry the heading off)."""
+    r = np.asarray(rates_rad_s, float)
+    if not r.size:
+        return 0.0
+    m = float(np.median(r))
+    lim = settings.max_init_bias_rad_s
+    return m if abs(m) <= lim and float(np.median(np.abs(r - m))) <= 0.5 * lim else 0.0
+
+
 def gyro_covers(t_gyro_s, t_s, max_gap_s: float) -> np.ndarray:
     """Per epoch: whether the gyro covers the time since the previous epoch — no two gyro samples further apart than
     ``max_gap_s`` in (t_{i−1}, t_i], and t_i within the gyro's samples (the first epoch: within them)."""
@@ -367,7 +382,7 @@ def gyro_track_batch(f, stage1, t_gyro_s, gyro_rad_s, settings: GyroTrackSetting
                          f"{np.asarray(gyro_rad_s).shape}")
     pg = gyro_heading(tg, gyro_rad_s, t)
     still = tg < tg[0] + s.bias_init_s
-    track = GyroTrack(s, float(np.median(-np.asarray(gyro_rad_s, float)[still, 2])) if still.any() else 0.0)
+    track = GyroTrack(s, initial_bias(-np.asarray(gyro_rad_s, float)[still, 2], s))
     valid = np.zeros(n, bool)
     trusted = np.zeros(n, bool)
     ref = np.full(n, np.nan)
@@ -421,6 +436,7 @@ class GyroTrackDetector:
         self._trimmed = False
         self._gyro_gaps: deque[tuple[float, float]] = deque()  # (a, b): consecutive gyro samples further apart
         self._first_gyro_t: float | None = None
+        self._prev_uncovered = False
         self._pending: deque = deque()  # (features, stage-1 ratios) of epochs waiting for the gyro
         self.last: Decision | None = None
         self.n_imu_lagged = 0
@@ -451,7 +467,7 @@ class GyroTrackDetector:
             if t < self._bias_until:
                 self._rest_rates.append(rate)
             else:
-                self.track.bias_rad_s = float(np.median(self._rest_rates)) if self._rest_rates else 0.0
+                self.track.bias_rad_s = initial_bias(self._rest_rates, self.settings.track)
                 self._rest_rates = None
         out = self._drain()
         self._trim()
@@ -505,8 +521,17 @@ class GyroTrackDetector:
         return gp[i - 1] + (gp[i] - gp[i - 1]) * (t - t0) / (t1 - t0)
 
     def _gyro_covers(self, t: float) -> bool:
-        """Whether the gyro covers (previous epoch, t] (as :func:`gyro_covers` over a whole recording)."""
-        if self._first_gyro_t is None or t < self._first_gyro_t or t > self._gt[-1]:
+        """Whether the gyro covers (previous epoch, t] (as :func:`gyro_covers` over a whole recording). An epoch
+        decided without it (the gyro not there yet: ``max_imu_lag_s``) left no gyro heading to go on from, so the
+        next one is not covered either."""
+        covered = self._covers(t)
+        ok = covered and not self._prev_uncovered
+        self._prev_uncovered = not covered
+        return ok
+
+    def _covers(self, t: float) -> bool:
+        if self._first_gyro_t is None or t < self._first_gyro_t or t > self._gt[-1] or \
+                (self._trimmed and t < self._gt[0]):
             return False
         tp = self.track._prev[0] if self.track._prev is not None else -math.inf
         gaps = self._gyro_gaps
