@@ -76,6 +76,9 @@ def run(args: argparse.Namespace) -> dict:
     rng = random.Random(args.seed)
     base = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="magmesh-eval-elastic-"))
     split = bool(getattr(args, "split_state", False))
+    if split and args.frames:
+        raise SystemExit("magmesh eval elastic: --split-state starts the members by hand and no ingest process, so it "
+                         "cannot run with --frames; run the two separately.")
     out: dict = {"cars": cars, "seed": args.seed, "frames": args.frames, "split_state": split}
     if args.only in (None, "kill"):
         steps: list[tuple] = [("wait", 2.0)]

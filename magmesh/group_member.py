@@ -79,6 +79,15 @@ def vehicle_of(key: str) -> str | None:
     return parts[1] if len(parts) >= 3 and parts[0] == keys.ROOT and parts[1] != keys.SVC else None
 
 
+def _pending(sub: Any):
+    """The samples a channel holds now (none for no subscriber)."""
+    while sub is not None:
+        smp = sub.try_recv()
+        if smp is None:
+            return
+        yield smp
+
+
 def _is_params(key: str) -> bool:
     parts = key.split("/")
     return len(parts) > 3 and parts[2] == "cal" and parts[3] == "params"
@@ -649,11 +658,7 @@ class GroupMember:
 
         from .frames import stream_key
 
-        sub = self._out_sub
-        while sub is not None:
-            smp = sub.try_recv()
-            if smp is None:
-                break
+        for smp in _pending(self._out_sub):
             try:
                 shard, kind, rows = frame.last_rows(smp.payload.to_bytes())
             except ValueError:  # not a frame of this contract: nothing learnt from it
@@ -668,11 +673,7 @@ class GroupMember:
                 old = d.get(k)
                 if old is None or sq >= old[0]:
                     d[k] = (sq, ts)
-        sub = self._alarm_sub
-        while sub is not None:
-            smp = sub.try_recv()
-            if smp is None:
-                break
+        for smp in _pending(self._alarm_sub):
             try:
                 m = messages.decode(smp.payload.to_bytes(), expected_type="alarm")
             except Exception:  # noqa: BLE001 - refused as the alarm stream's readers refuse it
@@ -732,10 +733,7 @@ class GroupMember:
     def _live_members(self) -> set[str]:
         import zenoh
 
-        while self._token_sub is not None:
-            smp = self._token_sub.try_recv()
-            if smp is None:
-                break
+        for smp in _pending(self._token_sub):
             inst = str(smp.key_expr).split("/")[-1]
             if smp.kind == zenoh.SampleKind.DELETE:
                 self._tokens.discard(inst)

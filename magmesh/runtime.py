@@ -1748,7 +1748,8 @@ class Runner:
         if inner > 0:
             self.drops[skey]["upstream_gap"] += inner
         self.in_seq[skey] = s1
-        self.in_seq.set_t(skey, float(c.t_s[-1]))
+        if self.group is not None:  # (its answers to the group carry it: group_member._held)
+            self.in_seq.set_t(skey, float(c.t_s[-1]))
         self.count_in[skey].n += c.n
         self.key_seen[skey] = time.monotonic()
         t0, t1 = float(min(c.t_s)), float(max(c.t_s))
@@ -2128,7 +2129,8 @@ class Runner:
             elif gap < 0 and key not in self.takeover_est:
                 self.count_rebase("seq_back")  # a publisher that restarted its counter (or a repeat)
         self.in_seq[key] = sq
-        self.in_seq.set_t(key, msg["t_s"])
+        if self.group is not None:  # (its answers to the group carry it: group_member._held)
+            self.in_seq.set_t(key, msg["t_s"])
         if self.resumed_in:
             self.resumed_in.discard(key)
         if self.takeover_in:

@@ -265,9 +265,9 @@ class GyroTrackServiceSettings(Settings):
         super().__post_init__()
         self.core()
 
-    def core(self) -> quasistatic.GyroTrackDetectorSettings:
+    def core(self, dh_ref_rad: float = 0.0) -> quasistatic.GyroTrackDetectorSettings:
         return quasistatic.GyroTrackDetectorSettings(
-            core.ThresholdDetectorSettings(self.thresholds(), self.feature_settings(), self.hysteresis()),
+            core.ThresholdDetectorSettings(self.thresholds(), self.feature_settings(dh_ref_rad), self.hysteresis()),
             quasistatic.GyroTrackSettings(
                 gate_deg=self.gate_deg, blend_tau_s=self.blend_tau_s, bias_tau_s=self.bias_tau_s,
                 reseed_after_s=self.reseed_after_s, reacquire_after_s=self.reacquire_after_s,
@@ -296,11 +296,7 @@ class GyroTrackDmcDetector(DmcDetectorService):
         return None
 
     def make_detector(self, vehicle: str, dh_ref_rad: float):
-        s = self.settings.core()
-        st1 = s.stage1
-        return quasistatic.GyroTrackDetector(quasistatic.GyroTrackDetectorSettings(
-            core.ThresholdDetectorSettings(st1.thresholds, self.settings.feature_settings(dh_ref_rad), st1.hysteresis),
-            s.track, s.max_imu_lag_s))
+        return quasistatic.GyroTrackDetector(self.settings.core(dh_ref_rad))
 
     def on_message(self, info, msg: dict, state: VehicleState) -> None:
         if info.stream == "imu":
