@@ -15,6 +15,40 @@ import sys
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
+#: Zenoh's link lease (ms) for magmesh's own sessions and routers. Each side of a link closes it when the other
+#: sent nothing for the *other's* lease, so a process starved of CPU for longer than its peer's lease cuts the
+#: link, and whatever was put meanwhile is lost (nothing buffers it). 1 s did exactly that on a loaded 2-core
+#: machine: a router stalled by back-pressure sent no keep-alive for 1 s, both car simulators cut their links and
+#: 3,393 samples of a car vanished (seen: seq gaps, and a lost tail nothing counted). A killed process closes its
+#: TCP connections at once, so a crash is still seen at once; 10 s (Zenoh's default) bounds only a frozen process
+#: or a silently lost host. Routers linking hosts (``deploy/multihost``) keep 1 s on purpose: there a link outage
+#: must become a membership change in about a second.
+LEASE_MS = 10_000
+KEEP_ALIVE = 4  # keep-alives per lease
+#: back-pressure, not loss: Zenoh closes a link whose blocking publisher waited 5 s (its default); give an
+#: overloaded consumer 30 s to catch up (any loss after that shows as seq gaps in status)
+WAIT_BEFORE_CLOSE_US = 30_000_000
+
+
+_LOG_STARTED = False
+
+
+def start_zenoh_log() -> None:
+    """Zenoh's own log to stderr (a process's log file): errors by default, more with ``RUST_LOG``, e.g.
+    ``RUST_LOG=warn,zenoh_transport=debug`` shows every link opened, closed or expired. Once per process."""
+    global _LOG_STARTED
+    if not _LOG_STARTED:
+        import zenoh
+
+        zenoh.init_log_from_env_or("error")
+        _LOG_STARTED = True
+
+
+def transport_tx() -> dict:
+    """The ``transport/link/tx`` settings of every magmesh session and router (here and the secured mesh's)."""
+    return {"lease": LEASE_MS, "keep_alive": KEEP_ALIVE,
+            "queue": {"congestion_control": {"block": {"wait_before_close": WAIT_BEFORE_CLOSE_US}}}}
+
 
 def default_endpoint() -> str:
     return os.environ.get("MAGMESH_ENDPOINT", DEFAULT_ENDPOINT)
@@ -30,7 +64,7 @@ def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
                    help="endpoint to listen on (repeatable)")
     g.add_argument("--config", "-c", default=None, metavar="FILE", help="Zenoh JSON5 configuration file")
     g.add_argument("--cfg", action="append", default=None, metavar="KEY:VALUE",
-                   help="a Zenoh configuration entry, VALUE in JSON5 (repeatable), e.g. transport/link/tx/lease:1000")
+                   help="a Zenoh configuration entry, VALUE in JSON5 (repeatable), e.g. transport/link/tx/lease:5000")
     g.add_argument("--multicast-scouting", action="store_true",
                    help="enable multicast scouting (off by default)")
 
@@ -43,6 +77,7 @@ def build_config(mode=None, connect=None, listen=None, config_file=None, cfg=Non
     ``connect_timeout_s`` so that an endpoint nobody answers on is an error within that time."""
     import zenoh
 
+    start_zenoh_log()
     conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
     if connect is None and listen is None and mode is None and not config_file:
         connect = [default_endpoint()]
@@ -59,12 +94,11 @@ def build_config(mode=None, connect=None, listen=None, config_file=None, cfg=Non
         conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if not config_file:
         conf.insert_json5("scouting/multicast/enabled", "true" if multicast else "false")
-        # notice frozen peers within ~1 s instead of ~10 s
-        conf.insert_json5("transport/link/tx/lease", "1000")
-        conf.insert_json5("transport/link/tx/keep_alive", "4")
-        # back-pressure, not loss: Zenoh closes a link whose blocking publisher waited 5 s (its default);
-        # give an overloaded consumer 30 s to catch up (any loss after that shows as seq gaps in status)
-        conf.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close", "30000000")
+        tx = transport_tx()
+        conf.insert_json5("transport/link/tx/lease", str(tx["lease"]))
+        conf.insert_json5("transport/link/tx/keep_alive", str(tx["keep_alive"]))
+        conf.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close",
+                          str(WAIT_BEFORE_CLOSE_US))
     for item in cfg or []:
         k, _, v = item.partition(":")
         if not k or not v:

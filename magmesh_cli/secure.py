@@ -27,6 +27,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from magmesh import zconf
 from magmesh.paths import DEPLOY_DIR
 from schemas import keys
 
@@ -110,8 +111,7 @@ def _tls(pki: Path, cert: str, listen: bool) -> dict:
 def router_config(pki: Path, listen: list[str], vehicles: list[str], connect: list[str] | None = None,
                   operators: list[str] | None = None) -> dict:
     conf = {"mode": "router", "listen": {"endpoints": list(listen)}, "scouting": {"multicast": {"enabled": False}},
-            "transport": {"link": {"tx": {"lease": 1000, "keep_alive": 4},
-                                   "tls": _tls(pki, "router", listen=True)}},
+            "transport": {"link": {"tx": zconf.transport_tx(), "tls": _tls(pki, "router", listen=True)}},
             "access_control": access_control(vehicles, operators)}
     if connect:
         conf["connect"] = {"endpoints": list(connect), "timeout_ms": -1}
@@ -121,7 +121,7 @@ def router_config(pki: Path, listen: list[str], vehicles: list[str], connect: li
 def client_config(pki: Path, cert: str, connect: list[str]) -> dict:
     return {"mode": "client", "connect": {"endpoints": list(connect), "timeout_ms": -1},
             "scouting": {"multicast": {"enabled": False}},
-            "transport": {"link": {"tx": {"lease": 1000, "keep_alive": 4}, "tls": _tls(pki, cert, listen=False)}}}
+            "transport": {"link": {"tx": zconf.transport_tx(), "tls": _tls(pki, cert, listen=False)}}}
 
 
 def tls_endpoint(endpoint: str) -> str:
