@@ -67,6 +67,13 @@ MAX_WARMING = 4
 #: feature windows take 0.7 s and its alarm clears after 3 s of valid epochs (raises after 0.3 s): with less, a
 #: new owner's latch could clear later than the holder's would have (seen with 3 s: a clear 3.6 s late)
 WARMUP_S = 5.0
+#: a held vehicle whose outputs paused this long (wall time) has its next outputs held until a complete round after
+#: them: when a link between hosts comes back, a member that was cut off from the vehicle's input (and taken for
+#: gone by the others, one of which took the vehicle over and went on) must not publish from its stale state first
+PAUSE_S = 1.0
+#: input heard this long before a holder was seen gone still counts as heard since (the take is not put off by a
+#: round): a member cut off by a link outage heard its last input a lease (1 s or more) before it saw the others go
+HEARD_MARGIN_S = 0.5
 
 
 #: the drop counts a member's seq journal keeps per key, by the letter of their entries (magmesh/runtime.py)
@@ -128,7 +135,7 @@ class GroupMember:
         self.stats = {"not_owned": 0, "handovers_in": 0, "handovers_out": 0, "failovers": 0, "unrecovered": 0,
                       "duplicates_dropped": 0, "suppressed": 0, "takeover_s_max": 0.0, "last_takeover_s": None,
                       "rounds": 0, "rounds_incomplete": 0, "liveliness_lapses": 0, "reclaimed": 0,
-                      "failovers_from_mesh": 0}
+                      "failovers_from_mesh": 0, "held_after_pause": 0, "duplicates_behind": 0}
         # what the mesh showed of the vehicles other members hold, for a failover from a member whose journal is not
         # on this host (another host, or another state directory): see _mesh_state
         self.seen_out: dict[str, dict[str, tuple[int, float]]] = {}  # vehicle -> output key -> (seq, t_s) last seen
@@ -147,6 +154,15 @@ class GroupMember:
         self._token_sub: Any = None
         self._started = time.monotonic()
         self.skipped_early = 0  # counted by the reader threads (see skips)
+        #: vehicle -> when its input last reached this member while another held it (monotonic s; noted by the
+        #: reader threads and the frame filter): a vehicle whose holder went is taken once its input has come since
+        #: (or at once when one of its alarms is held raised), so a member cut off from the vehicles (a link outage
+        #: between hosts) takes no more of the others' vehicles than it hears
+        self.heard_t: dict[str, float] = {}
+        self._raised_checked: dict[str, float | None] = {}  # vehicle -> the going (since) its raised alarms were sought for
+        self.last_out: dict[str, float] = {}  # vehicle -> when its last output passed the gate (monotonic s)
+        self.paused: dict[str, int] = {}  # vehicle -> the round its outputs were held in after a pause (PAUSE_S)
+        self.pause_buf: dict[str, deque] = {}
 
     # ---- reader threads ---------------------------------------------------------------------------
     def skips(self, key: str) -> bool:
@@ -160,6 +176,7 @@ class GroupMember:
         if v is None or v not in self.seen or v in self.warming or v in self.arm or v in self.owned \
                 or v in self.release or _is_params(key):
             return False
+        self.heard_t[v] = time.monotonic()
         self.skipped_early += 1
         return True
 
@@ -208,6 +225,7 @@ class GroupMember:
         import numpy as np
 
         seen = self.seen
+        self.heard_t.update(dict.fromkeys(vehicles, time.monotonic()))
         new = [v for v in vehicles if v not in seen] if not seen.issuperset(vehicles) else []
         for v in new:
             self.admits(key_of(v))  # (counts it as not owned when it is not taken)
@@ -220,7 +238,22 @@ class GroupMember:
         """Whether every output of ``vehicle`` is this instance's to publish now, whatever its time: it holds the
         vehicle and no hand-over of it is under way (what :meth:`gate` would say for any ``t_s``)."""
         return vehicle in self.owned and vehicle not in self.post_cut and vehicle not in self.release \
-            and vehicle not in self.arm and vehicle not in self.warming
+            and vehicle not in self.arm and vehicle not in self.warming and self._flowing(vehicle)
+
+    def _flowing(self, v: str) -> bool:
+        """Whether an output of held vehicle ``v`` goes out now: False while its outputs are held after a pause
+        (:data:`PAUSE_S`), until a complete round after it has shown no other member holding ``v`` with outputs
+        ahead of this one's (:meth:`_round`)."""
+        if v in self.paused:
+            return False
+        now = time.monotonic()
+        last = self.last_out.get(v)
+        self.last_out[v] = now
+        if last is not None and now - last > PAUSE_S:
+            self.paused[v] = self.stats["rounds"]
+            self.stats["held_after_pause"] += 1
+            return False
+        return True
 
     def gate(self, key: str, msg_type: str, vehicle: str, t_s: float, fields: dict) -> bool:
         """Whether an output of ``vehicle`` at sample time ``t_s`` is this instance's to publish now."""
@@ -249,6 +282,12 @@ class GroupMember:
                     self.stats["suppressed"] += 1
                     return False
                 del self.post_cut[vehicle]
+            if not self._flowing(vehicle):
+                buf = self.pause_buf.get(vehicle)
+                if buf is None:
+                    buf = self.pause_buf[vehicle] = deque(maxlen=WARM_BUFFER)
+                buf.append((key, msg_type, vehicle, t_s, fields))
+                return False
             return True
         if vehicle in self.warming:
             buf = self.warm_buf.get(vehicle)
@@ -367,6 +406,7 @@ class GroupMember:
         rt = self.rt
         self.owned.discard(v)
         self.post_cut.pop(v, None)
+        self._end_pause(v)
         rt.vehicle_state.pop(v, None)
         self._clear_vehicle(v)
         pre = f"{keys.ROOT}/{v}/"
@@ -404,6 +444,34 @@ class GroupMember:
             del rt.drops[k]  # (group totals stay exact)
         if rt.journal is not None and gone:
             rt.journal.forget([c + k for k in gone for c in "ult"])
+
+    def _end_pause(self, v: str) -> None:
+        """The outputs of ``v`` held after a pause: published if this member still holds it, else dropped (the
+        member holding it published its own)."""
+        self.paused.pop(v, None)
+        held = list(self.pause_buf.pop(v, ()))
+        if v in self.owned:
+            self.last_out[v] = time.monotonic()
+            if held:
+                self.rt._release_held(held)
+        else:
+            self.last_out.pop(v, None)  # (a vehicle taken again later starts with no pause)
+            self.stats["suppressed"] += len(held)
+
+    def _behind(self, v: str) -> bool | None:
+        """Whether another member's outputs of ``v`` (seen in its frames) went further than this one's: True when
+        one of them is ahead on some key and none of this member's is ahead; False for the reverse; None when
+        neither or both (the rule decides)."""
+        seen = self.seen_out.get(v)
+        if not seen:
+            return None
+        seq = self.rt.seq
+        theirs = mine = False
+        for k, (sq, _t) in list(seen.items()):
+            s = seq.get(k, -1)
+            theirs = theirs or sq > s
+            mine = mine or s > sq
+        return None if theirs == mine else theirs
 
     def _drop_duplicate(self, v: str) -> None:
         if v in self.owned:
@@ -521,6 +589,7 @@ class GroupMember:
         if holder is not None:
             self.done_pending[v] = holder
         self._adopt(v, hand.get("seqs", {}), hand.get("alarms", {}), hand.get("raised", {}), hand.get("drops"))
+        self.last_out[v] = time.monotonic()  # (a pause counts from the take)
         self.owned.add(v)  # (held before it stops being armed: see skips)
         del self.arm[v]
         self.post_cut[v] = a[1]
@@ -545,6 +614,9 @@ class GroupMember:
             self._took(since, v)
             return
         self.owned.add(v)  # (first: the reader threads queue its samples from now on, see skips)
+        # a pause counts from the take: taken while cut off from the vehicle (one of its alarms held raised), its
+        # first outputs when the link comes back are held until a round has shown who went further
+        self.last_out[v] = time.monotonic()
         self._cancel(v)
         if self.release.pop(v, None) is not None:  # (a hand-over of it from here is over)
             self.release_to.pop(v, None)
@@ -845,8 +917,17 @@ class GroupMember:
                 continue
             if v in self.owned:
                 others = holders.get(v, set())
-                if complete and others and groups.owner(v, others | {self.me}) != self.me:
-                    self._post(lambda v=v: self._drop_duplicate(v))
+                if complete and others:
+                    # two holders (a split healed, or views of the membership that differed): the one whose outputs
+                    # went further keeps it (the other's state is stale: it was cut off from the input), else the rule
+                    behind = self._behind(v)
+                    if behind or (behind is None and groups.owner(v, others | {self.me}) != self.me):
+                        self.stats["duplicates_behind"] += bool(behind)
+                        self._post(lambda v=v: self._drop_duplicate(v))
+                        continue
+                r0 = self.paused.get(v)
+                if r0 is not None and complete and self.stats["rounds"] >= r0 + 2:
+                    self._post(lambda v=v: v in self.paused and self._end_pause(v))
                 continue
             if complete and v in holdings and v not in self.warming and v not in self.release:
                 # alarm state or drop counts restored from an earlier life of this instance, for a vehicle another
@@ -888,7 +969,8 @@ class GroupMember:
                     self._post(lambda v=v, h=holder: self._begin_warm(v, h))
             elif complete:
                 s = self._dead_since.get(self.last_holder.get(v, ""))
-                self._post(lambda v=v, s=s: self._failover(v, self._dead_state(v), s))
+                if self._hears(v, s, now):
+                    self._post(lambda v=v, s=s: self._failover(v, self._dead_state(v), s))
         # hand-overs done: each former holder told (again each round until it confirms), so it forgets the vehicle
         done: dict[str, list[str]] = {}
         for v, h in list(self.done_pending.items()):
@@ -901,6 +983,22 @@ class GroupMember:
                 for v in vs:
                     if self.done_pending.get(v) == h:
                         del self.done_pending[v]
+
+    def _hears(self, v: str, since: float | None, now: float) -> bool:
+        """Whether this member takes ``v`` over now that its holder went (seen at ``since``, when known): its input
+        has reached this member since (:attr:`heard_t`, :data:`HEARD_MARGIN_S`; within the last :data:`PAUSE_S` when
+        the holder's going was not seen), or one of its alarms is held raised (answered for at once, input or not)."""
+        t = self.heard_t.get(v)
+        if t is not None and t >= (since - HEARD_MARGIN_S if since is not None else now - PAUSE_S):
+            return True
+        if v in self._raised_checked and self._raised_checked[v] == since:
+            return False  # (sought once per going: the journals and the mesh are read no more each round)
+        self._raised_checked[v] = since
+        if len(self._raised_checked) > 100_000:
+            self._raised_checked.clear()
+        pre = f"{keys.ROOT}/{v}/"
+        return any(k.startswith(pre) and m.get("state") == "raised" for k, (_s, m) in list(self.seen_alarm.items())) \
+            or bool(self._dead_state(v)["raised"])
 
     def _dead_state(self, v: str, only: str | None = None) -> dict:
         """What the members of the group that are not live persisted about vehicle ``v``: seq journals (the

@@ -406,10 +406,16 @@ def test_a_member_whose_liveliness_token_lapsed_but_answers_stays_a_member(tmp_p
     assert "dmc-2" in g.live and g.stats["liveliness_lapses"] == 1
     _run(posted)
     assert not (set(theirs) & g.owned), "a member that answers was taken for dead"
-    answers.clear()  # now it does not answer either: gone, its vehicles taken
+    answers.clear()  # now it does not answer either: gone, its vehicles taken once their input reaches dmc-1
+    g.heard_t.clear()
     g._round()
     _run(posted)
-    assert "dmc-2" not in g.live and set(theirs) <= g.owned and g.stats["unrecovered"] == len(theirs)
+    assert "dmc-2" not in g.live and not (set(theirs) & g.owned), "taken before any of its input came"
+    for v in theirs[1:]:
+        assert g.skips(f"magmesh/{v}/clean/mag/1")
+    g._round()
+    _run(posted)
+    assert set(theirs[1:]) <= g.owned and theirs[0] not in g.owned and g.stats["unrecovered"] == len(theirs) - 1
 
 
 def test_a_hand_over_to_a_member_that_went_before_taking_the_vehicle_is_taken_back(tmp_path, monkeypatch):
@@ -701,3 +707,89 @@ def test_a_dead_member_whose_journal_is_elsewhere_is_taken_from_what_the_mesh_sh
     g.last_holder["car-1"] = "dmc-9"  # a holder never heard from: what the frames showed, no input estimate
     st = g._dead_state("car-2")
     assert not st["found"]
+
+
+def test_a_member_cut_off_from_the_vehicles_takes_none_of_a_gone_members_vehicles(tmp_path, monkeypatch):
+    """A link outage between hosts: each side sees the other go. The side that still hears the vehicles takes the
+    other's; the side cut off (it heard its last input a lease before it saw the other go) takes none (before, it took
+    them all and, on the link's return, published them from a state seconds old)."""
+    from magmesh import group_member, groups
+
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
+    cars = [f"car-{i}" for i in range(12)]
+    theirs = sorted(v for v in cars if groups.owner(v, ["dmc-1", "dmc-2"]) == "dmc-2")
+    answers = {"dmc-2": {"g_state": {"ok": True, "owned": theirs, "releasing": {}, "taking": []}}}
+    g, rt, posted = _member("dmc-1", ["dmc-1", "dmc-2"], answers)
+    g.seen.update(cars)
+    g.owned.update(v for v in cars if v not in theirs)
+    g._round()
+    _run(posted)
+    for v in theirs:  # its input last heard before the link went down
+        assert g.skips(f"magmesh/{v}/clean/mag/1")
+        g.heard_t[v] -= 1.0 + group_member.HEARD_MARGIN_S
+    answers.clear()
+    g._tokens_now = {"dmc-1"}
+    for _ in range(3):
+        g._round()
+        _run(posted)
+    assert not (set(theirs) & g.owned) and g.stats["failovers"] == 0, "took vehicles it does not hear"
+    assert g.skips(f"magmesh/{theirs[0]}/clean/mag/1")  # one of them heard again: taken
+    g._round()
+    _run(posted)
+    assert set(theirs) & g.owned == {theirs[0]}
+
+
+def test_of_two_holders_the_one_whose_outputs_went_further_keeps_the_vehicle(tmp_path, monkeypatch):
+    """After a split both members hold a vehicle. The one behind (its outputs' seqs below what the other published,
+    seen in the other's frames) drops it whatever the rule prefers; the one ahead keeps it; with nothing to tell
+    them apart the rule decides, as before."""
+    from magmesh import groups
+
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
+    cars = [f"car-{i}" for i in range(12)]
+    mine = sorted(v for v in cars if groups.owner(v, ["dmc-1", "dmc-2"]) == "dmc-1")
+    theirs = sorted(v for v in cars if v not in mine)
+    v_mine, v_theirs, v_tie = mine[0], theirs[0], theirs[1]
+    answers = {"dmc-2": {"g_state": {"ok": True, "owned": [v_mine, v_theirs, v_tie], "releasing": {}, "taking": []}}}
+    g, rt, posted = _member("dmc-1", ["dmc-1", "dmc-2"], answers)
+    g.seen.update(cars)
+    g.owned.update([v_mine, v_theirs, v_tie])
+    k = {v: f"magmesh/{v}/dmc" for v in cars}
+    rt.seq.update({k[v_mine]: 40, k[v_theirs]: 90, k[v_tie]: 10})
+    g.seen_out.update({v_mine: {k[v_mine]: (95, 9.5)}, v_theirs: {k[v_theirs]: (60, 6.0)}})
+    g._round()
+    _run(posted)
+    assert v_mine not in g.owned, "behind: dropped although the rule gives it to this member"
+    assert v_theirs in g.owned, "ahead: kept although the rule gives it to the other"
+    assert v_tie not in g.owned, "nothing to tell: the rule decides"
+    assert g.stats["duplicates_behind"] == 1 and g.stats["duplicates_dropped"] == 2
+
+
+def test_outputs_after_a_pause_are_held_until_a_round_shows_who_holds_the_vehicle(tmp_path, monkeypatch):
+    """A held vehicle whose outputs stopped for longer than PAUSE_S (its input cut off by a link outage) has its
+    next outputs held: published after two complete rounds when no other member holds it, dropped (counted
+    suppressed) when another member holds it with outputs ahead."""
+    from magmesh import group_member
+
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
+    answers = {"dmc-2": {"g_state": {"ok": True, "owned": [], "releasing": {}, "taking": []}}}
+    g, rt, posted = _member("dmc-1", ["dmc-1", "dmc-2"], answers)
+    g.seen.update(["car-1", "car-2"])
+    g.owned.update(["car-1", "car-2"])
+    for v in ("car-1", "car-2"):
+        assert g.gate(f"magmesh/{v}/dmc", "dmc", v, 1.0, {}) and g.plain(v)
+        g.last_out[v] -= group_member.PAUSE_S + 0.1  # no output for longer than a pause
+    assert not g.plain("car-1") and not g.gate("magmesh/car-1/dmc", "dmc", "car-1", 5.0, {"a": 1})
+    assert not g.gate("magmesh/car-2/dmc", "dmc", "car-2", 5.0, {"a": 2})
+    assert not g.gate("magmesh/car-2/dmc", "dmc", "car-2", 5.02, {"a": 3})
+    assert g.stats["held_after_pause"] == 2 and rt.released == []
+    # car-2: the other member holds it and went further meanwhile
+    answers["dmc-2"]["g_state"]["owned"] = ["car-2"]
+    g.seen_out["car-2"] = {"magmesh/car-2/dmc": (500, 9.0)}
+    g._round()
+    _run(posted)
+    assert "car-2" not in g.owned and "car-2" not in g.pause_buf and rt.released == []
+    g._round()
+    _run(posted)
+    assert [x[3] for x in rt.released] == [5.0], "car-1 released once two rounds showed nobody else holds it"
+    assert g.gate("magmesh/car-1/dmc", "dmc", "car-1", 5.04, {}) and g.plain("car-1")
