@@ -473,10 +473,11 @@ class GroupMember:
             mine = mine or s > sq
         return None if theirs == mine else theirs
 
-    def _drop_duplicate(self, v: str) -> None:
+    def _drop_duplicate(self, v: str, behind: bool = False) -> None:
         if v in self.owned:
             self._forget(v)
             self.stats["duplicates_dropped"] += 1
+            self.stats["duplicates_behind"] += behind
             log.warning("%s: %s is held by another member the rule prefers: dropped here", self.me, v)
 
     def _reclaim(self, v: str) -> None:
@@ -922,8 +923,7 @@ class GroupMember:
                     # went further keeps it (the other's state is stale: it was cut off from the input), else the rule
                     behind = self._behind(v)
                     if behind or (behind is None and groups.owner(v, others | {self.me}) != self.me):
-                        self.stats["duplicates_behind"] += bool(behind)
-                        self._post(lambda v=v: self._drop_duplicate(v))
+                        self._post(lambda v=v, b=bool(behind): self._drop_duplicate(v, b))
                         continue
                 r0 = self.paused.get(v)
                 if r0 is not None and complete and self.stats["rounds"] >= r0 + 2:
