@@ -478,7 +478,8 @@ class GroupMember:
             self._forget(v)
             self.stats["duplicates_dropped"] += 1
             self.stats["duplicates_behind"] += behind
-            log.warning("%s: %s is held by another member the rule prefers: dropped here", self.me, v)
+            log.warning("%s: %s is held by another member %s: dropped here", self.me, v,
+                        "whose outputs went further" if behind else "the rule prefers")
 
     def _reclaim(self, v: str) -> None:
         """A hand-over that did not happen (the new owner went, or dropped the vehicle, before taking it): this
