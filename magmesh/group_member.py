@@ -67,13 +67,11 @@ MAX_WARMING = 4
 #: feature windows take 0.7 s and its alarm clears after 3 s of valid epochs (raises after 0.3 s): with less, a
 #: new owner's latch could clear later than the holder's would have (seen with 3 s: a clear 3.6 s late)
 WARMUP_S = 5.0
-#: a held vehicle whose outputs paused this long (wall time) has its next outputs held until a complete round after
-#: them: when a link between hosts comes back, a member that was cut off from the vehicle's input (and taken for
-#: gone by the others, one of which took the vehicle over and went on) must not publish from its stale state first
+#: while this member may be cut off (it saw members go and does not hear their vehicles), a held vehicle whose
+#: outputs paused this long (wall time) has its next outputs held until a complete round after them: when a link
+#: between hosts comes back, a member that was cut off from the vehicle's input (and taken for gone by the others,
+#: one of which took the vehicle over and went on) must not publish from its stale state first
 PAUSE_S = 1.0
-#: input heard this long before a holder was seen gone still counts as heard since (the take is not put off by a
-#: round): a member cut off by a link outage heard its last input a lease (1 s or more) before it saw the others go
-HEARD_MARGIN_S = 0.5
 
 
 #: the drop counts a member's seq journal keeps per key, by the letter of their entries (magmesh/runtime.py)
@@ -162,6 +160,9 @@ class GroupMember:
         self._raised_checked: dict[str, float | None] = {}  # vehicle -> the going (since) its raised alarms were sought for
         self.last_out: dict[str, float] = {}  # vehicle -> when its last output passed the gate (monotonic s)
         self.paused: dict[str, int] = {}  # vehicle -> the round its outputs were held in after a pause (PAUSE_S)
+        #: since when vehicles of members seen gone are not heard here (this member may be the one cut off): the
+        #: pause rule applies only then
+        self.cut_off_since: float | None = None
         self.pause_buf: dict[str, deque] = {}
 
     # ---- reader threads ---------------------------------------------------------------------------
@@ -249,7 +250,7 @@ class GroupMember:
         now = time.monotonic()
         last = self.last_out.get(v)
         self.last_out[v] = now
-        if last is not None and now - last > PAUSE_S:
+        if last is not None and now - last > PAUSE_S and self.cut_off_since is not None:
             self.paused[v] = self.stats["rounds"]
             self.stats["held_after_pause"] += 1
             return False
@@ -888,6 +889,7 @@ class GroupMember:
             elif to in states and v not in states[to].get("taking", []) and v not in states[to].get("owned", []):
                 self._post(lambda v=v, to=to: self._release_lost(v, to, None))
         warm_slots = MAX_WARMING - len(self.warming) - len(self.arm)
+        unheard = 0
         # vehicles with alarm state or drop counts here (once a round, not a scan per vehicle)
         stated = {vehicle_of(k) for k in list(self.rt.alarm_published)} | {vehicle_of(k) for k in list(self.rt.drops)}
         for v in list(self.seen):
@@ -972,6 +974,15 @@ class GroupMember:
                 s = self._dead_since.get(self.last_holder.get(v, ""))
                 if self._hears(v, s, now):
                     self._post(lambda v=v, s=s: self._failover(v, self._dead_state(v), s))
+                else:
+                    unheard += 1
+        if unheard:
+            if self.cut_off_since is None:
+                self.cut_off_since = now
+                log.warning("%s: %d vehicles of members seen gone are not heard here: this member may be cut off "
+                            "(outputs after a pause held until a round shows who went further)", self.me, unheard)
+        elif not self.paused:
+            self.cut_off_since = None
         # hand-overs done: each former holder told (again each round until it confirms), so it forgets the vehicle
         done: dict[str, list[str]] = {}
         for v, h in list(self.done_pending.items()):
@@ -987,10 +998,13 @@ class GroupMember:
 
     def _hears(self, v: str, since: float | None, now: float) -> bool:
         """Whether this member takes ``v`` over now that its holder went (seen at ``since``, when known): its input
-        has reached this member since (:attr:`heard_t`, :data:`HEARD_MARGIN_S`; within the last :data:`PAUSE_S` when
-        the holder's going was not seen), or one of its alarms is held raised (answered for at once, input or not)."""
+        has reached this member since (:attr:`heard_t`; within the last :data:`PAUSE_S` when the holder's going was
+        not seen), or one of its alarms is held raised (answered for at once, input or not). So a take comes a round
+        after the holder was seen gone, not in that round: the holder's last frames (two routers away on another
+        host) are in by then, and the take starts from them. Taken in the same round (input heard up to 0.5 s
+        before counted), a two-host kill counted one epoch more than was missing."""
         t = self.heard_t.get(v)
-        if t is not None and t >= (since - HEARD_MARGIN_S if since is not None else now - PAUSE_S):
+        if t is not None and t >= (since if since is not None else now - PAUSE_S):
             return True
         if v in self._raised_checked and self._raised_checked[v] == since:
             return False  # (sought once per going: the journals and the mesh are read no more each round)

@@ -726,13 +726,14 @@ def test_a_member_cut_off_from_the_vehicles_takes_none_of_a_gone_members_vehicle
     _run(posted)
     for v in theirs:  # its input last heard before the link went down
         assert g.skips(f"magmesh/{v}/clean/mag/1")
-        g.heard_t[v] -= 1.0 + group_member.HEARD_MARGIN_S
+        g.heard_t[v] -= 1.0
     answers.clear()
     g._tokens_now = {"dmc-1"}
     for _ in range(3):
         g._round()
         _run(posted)
     assert not (set(theirs) & g.owned) and g.stats["failovers"] == 0, "took vehicles it does not hear"
+    assert g.cut_off_since is not None, "the pause rule applies while it may be the member cut off"
     assert g.skips(f"magmesh/{theirs[0]}/clean/mag/1")  # one of them heard again: taken
     g._round()
     _run(posted)
@@ -776,6 +777,9 @@ def test_outputs_after_a_pause_are_held_until_a_round_shows_who_holds_the_vehicl
     g, rt, posted = _member("dmc-1", ["dmc-1", "dmc-2"], answers)
     g.seen.update(["car-1", "car-2"])
     g.owned.update(["car-1", "car-2"])
+    g.last_out["car-1"] = 0.0
+    assert g.plain("car-1"), "no pause held while this member hears the vehicles of every member seen gone"
+    g.cut_off_since = 0.0  # it saw a member go and does not hear that member's vehicles (see _round)
     for v in ("car-1", "car-2"):
         assert g.gate(f"magmesh/{v}/dmc", "dmc", v, 1.0, {}) and g.plain(v)
         g.last_out[v] -= group_member.PAUSE_S + 0.1  # no output for longer than a pause
