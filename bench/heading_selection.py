@@ -214,12 +214,12 @@ class Candidate:
 
 
 def make_grid(factors=DEFAULT_FACTORS, names=SEARCH_SETTINGS) -> list[Candidate]:
-    """Every combination of the factors on the named settings; the profile itself first (factor 1 first)."""
+    """Every combination of the factors (1 always among them) on the named settings; the profile itself first."""
     base = profiles.values(PROFILE)
     unknown = [k for k in names if k not in base or not isinstance(base[k], float)]
     if unknown:
         raise ValueError(f"not a float setting of the {PROFILE} profile: {', '.join(unknown)}")
-    order = sorted({float(f) for f in factors}, key=lambda f: (f != 1.0, f))
+    order = sorted({float(f) for f in factors} | {1.0}, key=lambda f: (f != 1.0, f))
     out = []
     for combo in itertools.product(order, repeat=len(names)):
         vals = {k: base[k] * f for k, f in zip(names, combo, strict=True)}
