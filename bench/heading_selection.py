@@ -1,7 +1,8 @@
 """Choosing the ``imu_only`` heading profile's values without the truth, and judging the choice on trials it
 was not made on.
 
-``python -m bench.heading_selection [--json] [--trials DIR] [--factors a,b,c] [--settings a,b,...] [--max-s S]``
+``python -m bench.heading_selection [--json] [--trials DIR] [--factors a,b,c] [--settings a,b,...] [--horizon-s H]
+[--max-s S]``
 
 **The criterion** (:func:`criterion`, computed from the sensors and the filter's own output only): the
 magnetometer's heading predicted ``HORIZON_S`` (5 s) ahead. At a time ``t`` the filter's attitude
@@ -138,13 +139,13 @@ def gyro_attitude(gyro: np.ndarray, rate_hz: float, bias: np.ndarray) -> np.ndar
     return out
 
 
-def prepare(trial: hb.Trial) -> Prepared:
+def prepare(trial: hb.Trial, horizon_s: float = HORIZON_S) -> Prepared:
     """The criterion's view of ``trial`` (its truth stripped first)."""
     t = strip_truth(trial)
     bias = still_gyro_bias(t.gyro_rad_s, t.rate_hz)
     g = gyro_attitude(t.gyro_rad_s, t.rate_hz, bias)
     n = len(t.gyro_rad_s)
-    h = int(round(HORIZON_S * t.rate_hz))
+    h = max(1, int(round(horizon_s * t.rate_hz)))
     first = int(round(REF_S * t.rate_hz)) + 1
     i0 = np.arange(first, max(first, n - h), max(1, int(round(STEP_S * t.rate_hz))))
     i1 = i0 + h
@@ -193,9 +194,9 @@ def replay(trial: hb.Trial, settings: Settings) -> np.ndarray:
     return q
 
 
-def criterion(trial: hb.Trial, settings: Settings) -> float:
+def criterion(trial: hb.Trial, settings: Settings, horizon_s: float = HORIZON_S) -> float:
     """The truth-free criterion (deg) of ``settings`` on one recording; ``trial``'s truth is stripped first."""
-    prep = prepare(trial)
+    prep = prepare(trial, horizon_s)
     return criterion_of(prep, replay(prep.trial, settings))
 
 
@@ -234,14 +235,15 @@ class Table:
     """Each candidate's criterion on each trial, computed once (on the trial's truth-free copy); rows are
     keyed by the trial object itself, so a list without a trial cannot reach its row."""
 
-    def __init__(self, candidates: list[Candidate]):
+    def __init__(self, candidates: list[Candidate], horizon_s: float = HORIZON_S):
         self.candidates = candidates
+        self.horizon_s = horizon_s
         self._rows: dict[int, tuple[hb.Trial, np.ndarray, np.ndarray]] = {}
 
     def add(self, trial: hb.Trial, truth_of=None) -> None:
         """Replay every candidate on ``trial``'s truth-free copy; the criterion goes into the table.
         ``truth_of(q)``, if given, is called on each replay's attitude for the diagnostics (kept apart)."""
-        prep = prepare(trial)
+        prep = prepare(trial, self.horizon_s)
         crit = np.empty(len(self.candidates))
         truth = np.full(len(self.candidates), np.nan)
         for j, c in enumerate(self.candidates):
@@ -290,18 +292,18 @@ def _spearman(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.corrcoef(ra, rb)[0, 1]) if len(a) > 1 and ra.std() > 0 and rb.std() > 0 else float("nan")
 
 
-def run(trials: list[hb.Trial], candidates: list[Candidate], progress=None) -> dict:
+def run(trials: list[hb.Trial], candidates: list[Candidate], progress=None, horizon_s: float = HORIZON_S) -> dict:
     """The whole study: the table (criterion per candidate and trial), leave-one-out, all-trials choice,
     truth figures of the chosen ones, the profile and VQF."""
     t0 = time.perf_counter()
     if not candidates or not candidates[0].is_profile:
         raise ValueError("the grid's first candidate must be the profile itself")
-    table = Table(candidates)
+    table = Table(candidates, horizon_s)
     vqf, prep_s = {}, {}
     for t in trials:
         table.add(t, truth_of=lambda q, t=t: hb.heading_rms_deg(q, t))
         vqf[t.name] = hb.heading_rms_deg(hb.run_vqf(t), t)
-        prep_s[t.name] = prepare(t).frac_kept
+        prep_s[t.name] = prepare(t, horizon_s).frac_kept
         if progress:
             progress(f"{t.name}: {len(candidates)} candidates replayed ({time.perf_counter() - t0:.0f} s)")
     names = [k for k in candidates[0].values]
@@ -330,7 +332,7 @@ def run(trials: list[hb.Trial], candidates: list[Candidate], progress=None) -> d
         "search": {"settings": names, "factors": sorted({float(x) for c in candidates for x in c.factors}),
                    "profile_values": {k: float(profiles.values(PROFILE)[k]) for k in names},
                    "n_candidates": len(candidates)},
-        "criterion": {"horizon_s": HORIZON_S, "step_s": STEP_S, "cap_deg": CAP_DEG, "strength_tol": STRENGTH_TOL,
+        "criterion": {"horizon_s": horizon_s, "step_s": STEP_S, "cap_deg": CAP_DEG, "strength_tol": STRENGTH_TOL,
                       "frac_instants_kept": prep_s},
         "vqf": _summary(vqf, vqf), "profile_now": _summary(current, vqf),
         "leave_one_out": {"folds": folds, **_summary(held, vqf)},
@@ -406,12 +408,16 @@ def main(argv: list[str] | None = None) -> int:
                    "(default 1/√2, 1, √2); 1 is always included")
     p.add_argument("--settings", default=None, help="comma-separated profile settings to search "
                    f"(default {','.join(SEARCH_SETTINGS)})")
+    p.add_argument("--horizon-s", type=float, default=HORIZON_S,
+                   help=f"the criterion's prediction horizon, s (default {HORIZON_S:g})")
     p.add_argument("--max-s", type=float, default=None, help="only the first this many seconds of each trial")
     a = p.parse_args(argv)
     try:
         factors = DEFAULT_FACTORS if a.factors is None else tuple(float(x) for x in a.factors.split(",") if x.strip())
     except ValueError:
         p.error(f"--factors must be comma-separated numbers, got {a.factors!r}")
+    if not (np.isfinite(a.horizon_s) and a.horizon_s > 0):
+        p.error(f"--horizon-s must be a number > 0, got {a.horizon_s}")
     if any(not np.isfinite(f) or f <= 0 for f in factors):
         p.error(f"--factors must be finite numbers > 0, got {a.factors!r}")
     factors = tuple(sorted(set(factors) | {1.0}))
@@ -424,7 +430,8 @@ def main(argv: list[str] | None = None) -> int:
         p.error(str(e))
     if len(trials) < 2:
         p.error("leave-one-out needs at least two scorable trials")
-    r = run(trials, candidates, progress=None if a.json else (lambda m: print(m, file=sys.stderr, flush=True)))
+    r = run(trials, candidates, progress=None if a.json else (lambda m: print(m, file=sys.stderr, flush=True)),
+            horizon_s=a.horizon_s)
     r.update(skipped_trials=skipped, max_s=a.max_s)
     print(json.dumps(r, indent=1, default=lambda o: dataclasses.asdict(o)) if a.json else format_text(r))
     return 0
