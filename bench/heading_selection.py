@@ -27,7 +27,7 @@ error is nearly independent of the filter's error at ``t`` (the filter has only 
 ``t``), so the prediction error's mean square is the filter's own heading error's, plus the
 magnetometer's and the gyro's over ``H``, which are the same for every candidate: a filter that follows
 the wander, or one that lets the gyro drift, both pay. A user can compute it on any unlabelled
-recording. Horizons of 1, 2, 5 and 10 s ranked the one-at-a-time variants of the profile alike; 5 s
+recording. Horizons of 1, 2, 5 and 10 s ranked the one-at-a-time variants of the profile nearly alike; 5 s
 was taken. Those exploratory runs also showed each variant's truth figure: the choice of the criterion,
 though not of any value, was made having seen them (the README says so too).
 
