@@ -72,6 +72,11 @@ WARMUP_S = 5.0
 #: between hosts comes back, a member that was cut off from the vehicle's input (and taken for gone by the others,
 #: one of which took the vehicle over and went on) must not publish from its stale state first
 PAUSE_S = 1.0
+#: input heard this long before a holder was seen gone still counts as heard since, so the take is not put off by a
+#: round (under load a round takes up to seconds: taking a round later, take-overs of the 30-car eval went from
+#: 0.29-0.43 s to 0.2-3.7 s); a member cut off by a link outage heard its last input a lease (1 s or more) before
+#: it saw the others go
+HEARD_MARGIN_S = 0.5
 
 
 #: the drop counts a member's seq journal keeps per key, by the letter of their entries (magmesh/runtime.py)
@@ -974,8 +979,8 @@ class GroupMember:
                 s = self._dead_since.get(self.last_holder.get(v, ""))
                 if self._hears(v, s, now):
                     self._post(lambda v=v, s=s: self._failover(v, self._dead_state(v), s))
-                else:
-                    unheard += 1
+                elif s is None or now - s > PAUSE_S:
+                    unheard += 1  # (not heard for a while after its holder went: a round or two is normal)
         if unheard:
             if self.cut_off_since is None:
                 self.cut_off_since = now
@@ -998,13 +1003,10 @@ class GroupMember:
 
     def _hears(self, v: str, since: float | None, now: float) -> bool:
         """Whether this member takes ``v`` over now that its holder went (seen at ``since``, when known): its input
-        has reached this member since (:attr:`heard_t`; within the last :data:`PAUSE_S` when the holder's going was
-        not seen), or one of its alarms is held raised (answered for at once, input or not). So a take comes a round
-        after the holder was seen gone, not in that round: the holder's last frames (two routers away on another
-        host) are in by then, and the take starts from them. Taken in the same round (input heard up to 0.5 s
-        before counted), a two-host kill counted one epoch more than was missing."""
+        has reached this member since (:attr:`heard_t`, :data:`HEARD_MARGIN_S`; within the last :data:`PAUSE_S` when
+        the holder's going was not seen), or one of its alarms is held raised (answered for at once, input or not)."""
         t = self.heard_t.get(v)
-        if t is not None and t >= (since if since is not None else now - PAUSE_S):
+        if t is not None and t >= (since - HEARD_MARGIN_S if since is not None else now - PAUSE_S):
             return True
         if v in self._raised_checked and self._raised_checked[v] == since:
             return False  # (sought once per going: the journals and the mesh are read no more each round)

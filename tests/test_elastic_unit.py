@@ -726,10 +726,14 @@ def test_a_member_cut_off_from_the_vehicles_takes_none_of_a_gone_members_vehicle
     _run(posted)
     for v in theirs:  # its input last heard before the link went down
         assert g.skips(f"magmesh/{v}/clean/mag/1")
-        g.heard_t[v] -= 1.0
+        g.heard_t[v] -= 5.0  # (more than HEARD_MARGIN_S before it saw dmc-2 go)
     answers.clear()
     g._tokens_now = {"dmc-1"}
-    for _ in range(3):
+    g._round()
+    _run(posted)
+    assert g.cut_off_since is None, "a round without the vehicles' input is normal right after their holder went"
+    g._dead_since["dmc-2"] -= 2.0  # gone 2 s ago, its vehicles still not heard (last heard 5 s ago)
+    for _ in range(2):
         g._round()
         _run(posted)
     assert not (set(theirs) & g.owned) and g.stats["failovers"] == 0, "took vehicles it does not hear"
