@@ -979,7 +979,7 @@ class GroupMember:
                 s = self._dead_since.get(self.last_holder.get(v, ""))
                 if self._hears(v, s, now):
                     self._post(lambda v=v, s=s: self._failover(v, self._dead_state(v), s))
-                elif s is None or now - s > PAUSE_S:
+                elif s is not None and now - s > PAUSE_S:
                     unheard += 1  # (not heard for a while after its holder went: a round or two is normal)
         if unheard:
             if self.cut_off_since is None:
