@@ -425,7 +425,9 @@ def run_scenario(work: Path, n_vehicles: int, instances: int, steps: list[tuple]
                  end_after_steps_s: float | None = None, save_data: bool = False, frames: bool = False,
                  split_state: bool = False) -> dict:
     """Run the fleet and the group under ``magmesh up`` and play ``steps``: ``("kill",)`` (SIGKILL a member that
-    holds vehicles, chosen with ``seed``; the supervisor restarts it and it rejoins), ``("scale", n)``
+    holds vehicles, chosen with ``seed``; the supervisor restarts it and it rejoins; ``("kill", "spare")``: the
+    member holding the fewest vehicles no kill has touched yet, so that some are left whose alarm transitions can be
+    compared with one detector's), ``("scale", n)``
     (``magmesh scale dmc n``), ``("wait", s)``. The fleet publishes for ``duration_s``, or stops
     ``end_after_steps_s`` after the last step (``save_data``: what the subscribers saw also goes to
     ``work/seen.msgpack``). ``frames``: the fleet goes through ingest as fleet frames (see the module's
@@ -515,6 +517,9 @@ def run_scenario(work: Path, n_vehicles: int, instances: int, steps: list[tuple]
                     problems.append(f"no member answered holding a vehicle: no kill ({view})")
                     continue
                 inst = rng.choice(holding)
+                if len(step) > 1 and step[1] == "spare":
+                    touched = {v for e in events if e["step"] == "kill" for v in e["vehicles"]}
+                    inst = min(holding, key=lambda m: (len(set(view[m]) - touched), m != inst))
                 t_kill, held, m_kill = kill_member(client, inst)
                 taken = wait_taken(client, held, inst)
                 # outputs resuming for every vehicle it held, as subscribers saw them
