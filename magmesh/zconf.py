@@ -98,7 +98,7 @@ def build_config(mode=None, connect=None, listen=None, config_file=None, cfg=Non
         conf.insert_json5("transport/link/tx/lease", str(tx["lease"]))
         conf.insert_json5("transport/link/tx/keep_alive", str(tx["keep_alive"]))
         conf.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close",
-                          str(WAIT_BEFORE_CLOSE_US))
+                          str(tx["queue"]["congestion_control"]["block"]["wait_before_close"]))
     for item in cfg or []:
         k, _, v = item.partition(":")
         if not k or not v:

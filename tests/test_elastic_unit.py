@@ -388,19 +388,26 @@ def _run(posted: list) -> None:
         posted.pop(0)()
 
 
-def test_a_member_whose_liveliness_token_lapsed_but_answers_stays_a_member(tmp_path, monkeypatch):
-    """Seen in the 30-car kill run: a member's token went for a while (its session under load) although it kept
-    serving; another member took all its vehicles as a dead member's, and both published them for 6 s (2,463 dmc
-    outputs repeated, 24 alarm transitions repeated). A member is gone only when it does not answer either."""
+def _dmc1_beside_dmc2(n: int) -> tuple:
+    """dmc-1 in a group with dmc-2, which answers holding its share of ``n`` cars by the rule; dmc-1 holds the rest.
+    Returns (member, runtime, posted, cars, dmc-2's cars, answers)."""
     from magmesh import groups
 
-    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
-    cars = [f"car-{i}" for i in range(20)]
+    cars = [f"car-{i}" for i in range(n)]
     theirs = sorted(v for v in cars if groups.owner(v, ["dmc-1", "dmc-2"]) == "dmc-2")
     answers = {"dmc-2": {"g_state": {"ok": True, "owned": theirs, "releasing": {}, "taking": []}}}
     g, rt, posted = _member("dmc-1", ["dmc-1", "dmc-2"], answers)
     g.seen.update(cars)
     g.owned.update(v for v in cars if v not in theirs)
+    return g, rt, posted, cars, theirs, answers
+
+
+def test_a_member_whose_liveliness_token_lapsed_but_answers_stays_a_member(tmp_path, monkeypatch):
+    """Seen in the 30-car kill run: a member's token went for a while (its session under load) although it kept
+    serving; another member took all its vehicles as a dead member's, and both published them for 6 s (2,463 dmc
+    outputs repeated, 24 alarm transitions repeated). A member is gone only when it does not answer either."""
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
+    g, rt, posted, cars, theirs, answers = _dmc1_beside_dmc2(20)
     g._tokens_now = {"dmc-1"}  # dmc-2's token went
     g._round()
     assert "dmc-2" in g.live and g.stats["liveliness_lapses"] == 1
@@ -713,15 +720,8 @@ def test_a_member_cut_off_from_the_vehicles_takes_none_of_a_gone_members_vehicle
     """A link outage between hosts: each side sees the other go. The side that still hears the vehicles takes the
     other's; the side cut off (it heard its last input a lease before it saw the other go) takes none (before, it took
     them all and, on the link's return, published them from a state seconds old)."""
-    from magmesh import group_member, groups
-
     monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
-    cars = [f"car-{i}" for i in range(12)]
-    theirs = sorted(v for v in cars if groups.owner(v, ["dmc-1", "dmc-2"]) == "dmc-2")
-    answers = {"dmc-2": {"g_state": {"ok": True, "owned": theirs, "releasing": {}, "taking": []}}}
-    g, rt, posted = _member("dmc-1", ["dmc-1", "dmc-2"], answers)
-    g.seen.update(cars)
-    g.owned.update(v for v in cars if v not in theirs)
+    g, rt, posted, cars, theirs, answers = _dmc1_beside_dmc2(12)
     g._round()
     _run(posted)
     for v in theirs:  # its input last heard before the link went down
