@@ -77,6 +77,11 @@ PAUSE_S = 1.0
 #: 0.29-0.43 s to 0.2-3.7 s); a member cut off by a link outage heard its last input a lease (1 s or more) before
 #: it saw the others go
 HEARD_MARGIN_S = 0.5
+#: the last samples of each input key of another member's vehicles kept as received (one reference each, decoded
+#: only at a take-over): a member taking a vehicle from what the mesh showed reads from them the seq its holder had
+#: reached at its last output's sample time. 128 is 2.5 s of a 50 Hz compass (take-overs take 0.1-1.2 s here); an
+#: estimate from the key's rate was one sample off now and then, sample times being those of a real clock
+HEARD_KEEP = 128
 
 
 #: the drop counts a member's seq journal keeps per key, by the letter of their entries (magmesh/runtime.py)
@@ -162,6 +167,7 @@ class GroupMember:
         #: (or at once when one of its alarms is held raised), so a member cut off from the vehicles (a link outage
         #: between hosts) takes no more of the others' vehicles than it hears
         self.heard_t: dict[str, float] = {}
+        self.heard_buf: dict[str, deque] = {}  # input key -> its last HEARD_KEEP payloads skipped here (see skips)
         self._raised_checked: dict[str, float | None] = {}  # vehicle -> the going (since) its raised alarms were sought for
         self.last_out: dict[str, float] = {}  # vehicle -> when its last output passed the gate (monotonic s)
         self.paused: dict[str, int] = {}  # vehicle -> the round its outputs were held in after a pause (PAUSE_S)
@@ -171,11 +177,13 @@ class GroupMember:
         self.pause_buf: dict[str, deque] = {}
 
     # ---- reader threads ---------------------------------------------------------------------------
-    def skips(self, key: str) -> bool:
+    def skips(self, key: str, payload: Any = None) -> bool:
         """Whether an input is another member's (a vehicle seen before and neither held, warming nor being
         handed over here): dropped before it is queued, so this member's loop carries only its own vehicles
         (a take-over is not delayed behind the others' samples). Parameter sets always go on (kept for a take);
-        a sample skipped just before this member takes its vehicle over is counted by the take-over's seq gap."""
+        a sample skipped just before this member takes its vehicle over is counted by the take-over's seq gap.
+        ``payload`` (Zenoh's, of a skipped sample): the last :data:`HEARD_KEEP` of the key are kept undecoded
+        (:meth:`_heard_seq`)."""
         v = vehicle_of(key)
         # in the order a vehicle goes through them (warming, taking, held, releasing): each state change enters
         # the next before it leaves the last, so a check made while the loop moves it still finds it
@@ -184,6 +192,11 @@ class GroupMember:
             return False
         self.heard_t[v] = time.monotonic()
         self.skipped_early += 1
+        if payload is not None:
+            buf = self.heard_buf.get(key)
+            if buf is None:  # (one reader thread per subscription: a key is only ever appended to by one)
+                buf = self.heard_buf[key] = deque(maxlen=HEARD_KEEP)
+            buf.append(payload.to_bytes())
         return True
 
     def holds(self, vehicle: Any) -> bool:
@@ -1085,12 +1098,32 @@ class GroupMember:
             return self._mesh_state(v, out)
         return out
 
+    def _heard_seq(self, key: str, t_out: float) -> int | None:
+        """The seq of the last sample on ``key`` at or before sample time ``t_out`` among those this member
+        skipped (:meth:`skips`), or None when they do not reach back that far (or are not single samples)."""
+        import msgpack
+
+        best = None
+        for p in list(self.heard_buf.get(key, ())):  # (a copy: a reader thread appends meanwhile)
+            try:
+                m = msgpack.unpackb(p)
+            except Exception:  # noqa: BLE001 - garbage is the input path's to refuse
+                continue
+            if not isinstance(m, dict) or m.get("type") == "batch":
+                continue
+            s, t = m.get("seq"), m.get("t_s")
+            if type(s) is int and isinstance(t, float | int) and not isinstance(t, bool) and t <= t_out \
+                    and (best is None or s > best):
+                best = s
+        return best
+
     def _mesh_state(self, v: str, out: dict) -> dict:
         """What the mesh showed of vehicle ``v`` whose holder left nothing on this host (it ran on another host, or
         with another state directory): the last output seq and sample time of each of its keys as the holder's
         fleet frames carried them, the last alarm transitions it published, and from its last ``g_state`` answer
         (one round old at most) the input seqs it had handled and its drop counts. What it handled after that
-        answer is estimated from each input key's rate up to the last output's sample time (``t_out``): inputs
+        answer is read from the samples of each input key heard here up to the last output's sample time (``t_out``,
+        :meth:`_heard_seq`), or estimated from the key's rate when those do not reach back so far: inputs
         after it were not handled, or died in its joins, and count as ``lost_in_takeover``; outputs at or before it
         were published and are not published again (``t_out``, see :meth:`_failover`)."""
         pre = f"{keys.ROOT}/{v}/"
@@ -1110,10 +1143,13 @@ class GroupMember:
             for k, (sq, t_k) in snap.get("in", {}).items():
                 est = int(sq)
                 r = self.in_rate.get(k)
-                if t_out is not None and t_k is not None and t_out > t_k and r is not None and r[2] > r[0] \
-                        and not _is_params(k):
-                    # the key's samples from its last one answered up to the last output's sample time
-                    est += int(math.floor((t_out - t_k) * (r[3] - r[1]) / (r[2] - r[0]) + 0.5))
+                if t_out is not None and t_k is not None and t_out > t_k and not _is_params(k):
+                    heard = self._heard_seq(k, t_out)
+                    if heard is not None:  # the sample at the last output's time, as heard here
+                        est = max(est, heard)
+                    elif r is not None and r[2] > r[0]:
+                        # the key's samples from its last one answered up to the last output's sample time
+                        est += int(math.floor((t_out - t_k) * (r[3] - r[1]) / (r[2] - r[0]) + 0.5))
                 out["inputs"][k] = est
             for k, c in snap.get("drops", {}).items():
                 if not k.startswith(pre):

@@ -1525,7 +1525,7 @@ class Runner:
                 k = str(item.key_expr)
                 if k.startswith(_FLEET):  # a fleet frame: many vehicles, filtered in the main loop
                     batch.append((k, item.payload.to_bytes()))
-                elif self.group is not None and self.group.skips(k):
+                elif self.group is not None and self.group.skips(k, item.payload):
                     pass  # another group member's vehicle: never queued (magmesh/group_member.py)
                 else:
                     p = item.payload.to_bytes()

@@ -716,6 +716,45 @@ def test_a_dead_member_whose_journal_is_elsewhere_is_taken_from_what_the_mesh_sh
     assert not st["found"]
 
 
+def test_a_take_over_from_the_mesh_reads_the_holders_last_input_from_the_samples_heard(tmp_path, monkeypatch):
+    """What a dead holder handled after its last answer: the seq of its input at its last output's sample time, read
+    from the samples of that key this member heard and skipped. Sample times come from a real clock, so the key's
+    rate is one sample off here (the 30-car eval counted one epoch too many on 7 of 10 cars of a member killed
+    three times); samples that do not reach back that far leave the rate's estimate."""
+    import msgpack
+
+    from magmesh.group_member import GroupMember
+
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
+    m1 = "magmesh/car-1/clean/mag/1"
+
+    class _Payload:
+        def __init__(self, b):
+            self.b = b
+
+        def to_bytes(self):
+            return self.b
+
+    def member(first_heard: int) -> GroupMember:
+        g = GroupMember(_Rt(), "dmc")
+        g.live = {"dmc-1"}
+        g.last_holder["car-1"] = "dmc-2"
+        g.seen.add("car-1")
+        for t, s in ((9.6, 480), (10.0, 500)):  # its answers: 50 Hz
+            g._note_answers({"dmc-2": {"held": {"car-1": {"t": t, "in": {m1: [s, t]}}}}})
+        g.seen_out["car-1"] = {"magmesh/car-1/dmc": (515, 10.3)}  # its last output: sample time 10.3
+        for s in range(first_heard, 540):  # this clock ran 7 % fast: sample 516 is stamped 10.2992
+            p = msgpack.packb({"type": "mag", "vehicle": "car-1", "seq": s, "t_s": 10.0 + (s - 500) * 0.0187})
+            assert g.skips(m1, _Payload(p))
+        g.skips(m1, _Payload(b"\xc1 not msgpack"))  # (garbage heard is passed over)
+        return g
+
+    assert member(505)._dead_state("car-1")["inputs"] == {m1: 516}
+    assert len(member(300).heard_buf[m1]) == 128  # (the last HEARD_KEEP of a key only)
+    # heard only from sample 520 (10.374) on: the rate's estimate, 0.3 s at 50 Hz after the answer
+    assert member(520)._dead_state("car-1")["inputs"] == {m1: 515}
+
+
 def test_a_member_cut_off_from_the_vehicles_takes_none_of_a_gone_members_vehicles(tmp_path, monkeypatch):
     """A link outage between hosts: each side sees the other go. The side that still hears the vehicles takes the
     other's; the side cut off (it heard its last input a lease before it saw the other go) takes none (before, it took
