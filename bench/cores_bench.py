@@ -4,6 +4,8 @@
   reference (pure Python) validator beside the compiled one;
 - ingest wire: the ingest service in process (no Zenoh), CPU per sample for v1 single samples against v2
   batches (a batch per vehicle per 20 ms), each sample decoded, validated and republished;
+- ingest frames at 500 vehicles: the ingest service in process on v3 binary batches (one per vehicle per 60 ms, as
+  bench/fleet.py's fleet puts them), a clean fleet frame out every 10 ms, CPU µs per sample;
 - ingest rules, per sample: ingest's time and sequence rules (ranges, order, stream clocks, seq gaps) on a fleet
   window of 500 streams x 4 samples, the per-sample Python path against one compiled call per window;
 - DMC detector, per epoch: the per-vehicle reference detectors (threshold, fcm, single; one ``update`` per epoch)
@@ -126,6 +128,116 @@ def ingest_wire(vehicles: int = 50, windows: int = 100, repeats: int = 3) -> dic
     return {"v1_in_singles_out_us_per_sample": round(a, 2), "v1_in_batches_out_us_per_sample": round(b, 2),
             "v2_in_batches_out_us_per_sample": round(c, 2), "messages_per_sample_v1": 1.0,
             "messages_per_sample_v2": 0.25, "v2_over_v1_cpu_ratio": round(c / a, 2)}
+
+
+def ingest_frames(vehicles: int = 500, windows: int = 60, warmup_windows: int = 20, repeats: int = 3,
+                  window_s: float = 0.05, frame_s: float = 0.01) -> dict:
+    """CPU time per sample of the ingest service on fleet frames (``output = "frames"``), in process (no Zenoh; a
+    publisher that drops what it is given): ``vehicles`` vehicles each putting one binary batch (contract v3)
+    per ``window_s`` as bench/fleet.py's v3 fleet does (its window rounded to whole magnetometer epochs: 10 ms
+    IMU ticks, both magnetometers every second tick, GNSS every 20th; each vehicle replays the drive from its own
+    offset), their batches spread evenly over the window, and a ``clean`` frame flushed every ``frame_s`` (so a
+    frame holds the batches of one ``frame_s`` slice of the vehicles). CPU time of the batches' handling (fast
+    decode, the window's columns, the fleet rules, the frame out) after ``warmup_windows`` windows; µs per raw
+    sample, medians of ``repeats`` runs, and the share of one core that is at the fleet's sample rate."""
+    import os
+    import tempfile
+
+    import msgspec
+
+    from bench.fleet import load_drive, window_ticks
+    from magmesh.runtime import Runner
+    from schemas import keys
+    from services.ingest import fleet as ifleet
+    from services.ingest.batching import IngestServiceSettings
+    from services.ingest.service import Ingest
+
+    os.environ.setdefault("MAGMESH_STATE_DIR", tempfile.mkdtemp(prefix="magmesh-cores-"))
+    ifleet.warm()
+    W = window_ticks(window_s)
+    per_window = max(1, round(W * 0.01 / frame_s))  # frames flushed per vehicle window
+    n_win = warmup_windows + windows
+    d = load_drive(duration_s=30.0)
+    le = lambda x, dt="<f8": np.ascontiguousarray(x, dt).tobytes()  # noqa: E731
+    mag1, mag2, gyro, acc = (le(x) for x in (d.mag_b_nt["1"], d.mag_b_nt["2"], d.gyro_rad_s, d.accel_m_s2))
+    g = d.gnss
+    n_mag, n_imu, n_g = len(d.mag_b_nt["1"]), len(d.gyro_rad_s), len(g.t_s)
+    enc = msgspec.msgpack.Encoder().encode
+    ids = [f"bench-{v:04d}" for v in range(vehicles)]
+    bkeys = [keys.raw_batch(v) for v in ids]
+    t0 = 1000.0
+    payloads = []  # per window, per frame slice: [(key, payload)]
+    n_samples = []  # raw samples per window
+    for w in range(n_win):
+        tick0 = w * W
+        ticks = list(range(tick0, tick0 + W))
+        mticks = [k for k in ticks if k % 2 == 0]
+        gticks = [k for k in ticks if k % 20 == 0]
+        nm = len(mticks)
+        t_imu, t_mag = le([t0 + k * 0.01 for k in ticks]), le([t0 + k * 0.01 for k in mticks])
+        s_imu, s_mag = le(ticks, "<i8"), le([k // 2 for k in mticks], "<i8")
+        slices = [[] for _ in range(per_window)]
+        for vi in range(vehicles):
+            o_imu = (tick0 + vi * 74) % n_imu
+            o_mag = (tick0 // 2 + vi * 37) % n_mag
+            if o_imu + W > n_imu:
+                o_imu = 0
+            if o_mag + nm > n_mag:
+                o_mag = 0
+            st = {"mag/1": {"n": nm, "t_s": t_mag, "seq": s_mag,
+                            "cols": {"sensor": "1", "b_nt": mag1[o_mag * 24:(o_mag + nm) * 24]}},
+                  "mag/2": {"n": nm, "t_s": t_mag, "seq": s_mag,
+                            "cols": {"sensor": "2", "b_nt": mag2[o_mag * 24:(o_mag + nm) * 24]}},
+                  "imu": {"n": W, "t_s": t_imu, "seq": s_imu,
+                          "cols": {"gyro_rad_s": gyro[o_imu * 24:(o_imu + W) * 24],
+                                   "accel_m_s2": acc[o_imu * 24:(o_imu + W) * 24]}}}
+            if gticks:
+                js = [(k // 20 + vi) % n_g for k in gticks]
+                st["gnss"] = {"n": len(gticks), "t_s": le([t0 + k * 0.01 for k in gticks]),
+                              "seq": le([k // 20 for k in gticks], "<i8"), "cols": {
+                                  "lat_deg": le(g.lat_deg[js]), "lon_deg": le(g.lon_deg[js]), "alt_m": le(g.alt_m[js]),
+                                  "pos_enu_m": le(g.pos_enu_m[js]), "vel_enu_m_s": le(g.vel_enu_m_s[js]),
+                                  "course_rad": le(g.course_rad[js]), "speed_m_s": le(g.speed_m_s[js]),
+                                  "fix_type": [str(g.fix_type[j]) for j in js], "num_sats": le(g.num_sats[js], "<i8"),
+                                  "pdop": le(g.pdop[js])}}
+            slices[vi * per_window // vehicles].append((bkeys[vi], enc({
+                "type": "batch", "version": 3, "vehicle": ids[vi], "t_s": t0 + (tick0 + W - 1) * 0.01, "seq": w,
+                "streams": st})))
+        payloads.append(slices)
+        n_samples.append(vehicles * (W + 2 * nm + len(gticks)))
+    n = sum(n_samples[warmup_windows:])
+
+    class _Pub:
+        def put(self, payload, **kw):
+            pass
+
+    class _Session:
+        def declare_publisher(self, key, **kw):
+            return _Pub()
+
+    def run() -> tuple[float, int]:
+        r = Runner(Ingest(IngestServiceSettings(output="frames", batch_window_s=frame_s), instance="cores-ingest"),
+                   _Session())
+        r.svc.on_start()
+        spent = 0.0
+        for w, slices in enumerate(payloads):
+            t = time.process_time()
+            for sl in slices:
+                for k, p in sl:
+                    r.handle_sample(k, p)
+                r.svc.frame_flush(force=True)
+            if w >= warmup_windows:
+                spent += time.process_time() - t
+        assert not any(r.drops.values()) and not r.rejects_total, (dict(r.drops), r.last_error)
+        return spent, r.frames_out
+
+    runs = [run() for _ in range(repeats)]
+    total = statistics.median(x[0] for x in runs)
+    us = total / n * 1e6
+    rate = sum(n_samples) / len(n_samples) / (W * 0.01)
+    return {"vehicles": vehicles, "window_ticks": W, "frames_per_window": per_window, "windows": windows,
+            "frames_out": runs[0][1], "samples": n, "us_per_sample": round(us, 3), "samples_per_s": round(rate),
+            "cpu_share_of_one_core": round(us * rate / 1e6, 3)}
 
 
 def ingest_rules(slots: int = 500, per_slot: int = 4, calls: int = 50, repeats: int = 3) -> dict:
@@ -817,6 +929,7 @@ def run_all(progress=None) -> dict:
     say = progress or (lambda s: None)
     out = {}
     for name, fn in (("ingest_validation", ingest_validation), ("ingest_wire", ingest_wire),
+                     ("ingest_frames_500_vehicles", ingest_frames),
                      ("ingest_rules_per_sample", ingest_rules),
                      ("dmc_detector_per_epoch", dmc_detector),
                      ("calibration_fit", calibration_fit),

@@ -256,16 +256,46 @@ def _checked_vehicles(names: tuple) -> list:
     return list(names)
 
 
+class _Envelope(msgspec.Struct):
+    """A frame's map with its vehicle list left as msgpack bytes (every other value read as the untyped decoder
+    reads it; a field not there is None, as ``dict.get`` gives)."""
+
+    type: Any = None
+    version: Any = None
+    shard: Any = None
+    kind: Any = None
+    t_s: Any = None
+    seq: Any = None
+    vehicles: msgspec.Raw = msgspec.Raw(b"\xc0")  # (nil: not there)
+    streams: Any = None
+
+
+_env_dec = msgspec.msgpack.Decoder(_Envelope)
+#: a vehicle list's msgpack bytes -> its names, as a tuple of the strings first decoded from them: a shard's
+#: frames carry the same list frame after frame, so it is neither decoded into new strings nor hashed again
+_VEHICLE_BYTES: dict[bytes, tuple] = {}
+
+
 def decode(payload: bytes, where: str = "") -> Frame:
     """Decode a frame and check its structure; raise :class:`SchemaError` naming what is wrong."""
     if not isinstance(payload, (bytes, bytearray, memoryview)) or len(payload) == 0:
         raise _bad("<payload>", "is empty or not bytes", where)
     try:
-        m = _dec.decode(payload)
-    except Exception as e:
-        raise _bad("<payload>", f"is not valid msgpack ({type(e).__name__}: {str(e)[:80]})", where) from None
-    if type(m) is not dict:
-        raise _bad("<payload>", f"must be a msgpack map, got {type(m).__name__}", where)
+        env = _env_dec.decode(payload)
+    except Exception:  # not a map with string keys (or not msgpack): the untyped decoder says what it is
+        env = None
+    if env is not None:
+        m = {"type": env.type, "version": env.version, "shard": env.shard, "kind": env.kind, "t_s": env.t_s,
+             "seq": env.seq, "streams": env.streams}
+        raw_vehicles = bytes(env.vehicles)
+    else:
+        try:
+            m = _dec.decode(payload)
+        except Exception as e:
+            raise _bad("<payload>", f"is not valid msgpack ({type(e).__name__}: {str(e)[:80]})", where) from None
+        if type(m) is not dict:
+            raise _bad("<payload>", f"must be a msgpack map, got {type(m).__name__}", where)
+        raw_vehicles = None
     if m.get("type") != "frame":
         raise _bad("type", f"must be 'frame' on this key, got {str(m.get('type'))[:64]!r}", where)
     ver = m.get("version")
@@ -280,13 +310,20 @@ def decode(payload: bytes, where: str = "") -> Frame:
         raise _bad("t_s", "must be a finite number", where)
     if type(seq) is not int or seq < 0:
         raise _bad("seq", "must be an integer ≥ 0", where)
-    vehicles = m.get("vehicles")
-    if type(vehicles) is not list or len(vehicles) > MAX_VEHICLES or any(type(v) is not str for v in vehicles):
-        raise _bad("vehicles", f"must be a list of at most {MAX_VEHICLES} vehicle ids", where)
+    names = _VEHICLE_BYTES.get(raw_vehicles) if raw_vehicles is not None else None
+    if names is None:
+        vehicles = m.get("vehicles") if raw_vehicles is None else _dec.decode(raw_vehicles)
+        if type(vehicles) is not list or len(vehicles) > MAX_VEHICLES or any(type(v) is not str for v in vehicles):
+            raise _bad("vehicles", f"must be a list of at most {MAX_VEHICLES} vehicle ids", where)
+        names = tuple(vehicles)
     try:
-        vehicles = _checked_vehicles(tuple(vehicles))
+        vehicles = _checked_vehicles(names)
     except keys.KeyError_ as e:
         raise _bad("vehicles", str(e), where) from None
+    if raw_vehicles is not None and raw_vehicles not in _VEHICLE_BYTES:
+        if len(_VEHICLE_BYTES) >= 64:
+            _VEHICLE_BYTES.clear()
+        _VEHICLE_BYTES[raw_vehicles] = names
     body = m.get("streams")
     if type(body) is not dict or len(body) > MAX_STREAMS:
         raise _bad("streams", f"must be a map of at most {MAX_STREAMS} streams", where)
@@ -315,7 +352,7 @@ def decode(payload: bytes, where: str = "") -> Frame:
                 raise _bad(f"{sname}.vi", f"names a vehicle index beyond the {nv} vehicles", where)
             if (np.diff(vi_a.astype(np.int64)) < 0).any():
                 raise _bad(f"{sname}.vi", "must be sorted by vehicle", where)
-        fields = {f.name: f for f in MESSAGES[st].fields}
+        fields = _fields(st)
         out_cols = {}
         for k, v in cols.items():
             f = fields.get(k)

@@ -15,6 +15,7 @@ and window (the sentence of the first, with the count), and counted per sample; 
 from __future__ import annotations
 
 import math
+import operator
 import time
 from typing import Any
 
@@ -57,12 +58,12 @@ class _Acc:
         self.fields = {f.name: f for f in MESSAGES[msg_type].fields}
         self.shared: dict[str, str | None] = {}  # a str field's one value over every row so far (None: they differ)
 
-    def add_run(self, run: list[tuple], lay: tuple, rows: list[tuple]) -> int:
-        """Binary inputs of the fast layout (:func:`schemas.batch.fast_binary`), in their order of arrival:
-        ``(vehicle index, slot, rows, receive time, batch, stream struct)`` each, ``rows`` their columns as
-        :func:`_run_rows` checked them. Adds the rows :meth:`add` would add one by one, each column's bytes
-        joined at once. Returns the rows added."""
-        vis, slots, ns, nows, bids, ss = zip(*run, strict=True)
+    def add_run(self, vis: list, slots: list, ns: list, nows: list, bids: list, ss: list, lay: tuple,
+                rows: list[tuple]) -> int:
+        """Binary inputs of the fast layout (:func:`schemas.batch.fast_binary`), in their order of arrival: per
+        input its vehicle index, slot, rows, receive time, batch and stream struct (one list each), ``rows``
+        their columns as :func:`_run_rows` checked them. Adds the rows :meth:`add` would add one by one, each
+        column's bytes joined at once. Returns the rows added."""
         self.p_vi.extend(vis)
         self.p_slot.extend(slots)
         self.p_n.extend(ns)
@@ -72,8 +73,8 @@ class _Acc:
         total = sum(ns)
         self.n = n0 + total
         self.binary = True
-        self.t.append(b"".join([s.t_s for s in ss]))
-        self.seq.append(b"".join([s.seq for s in ss]))
+        self.t.append(b"".join(map(_T_S, ss)))
+        self.seq.append(b"".join(map(_SEQ, ss)))
         unset = msgspec.UNSET
         mine = self.cols
         shared = self.shared
@@ -197,15 +198,13 @@ class _Acc:
         return _flat(parts)
 
 
-def _run_rows(run: list[tuple], spec: tuple) -> list[tuple] | None:
-    """The columns of each input of a stream's run (``(…, rows, …, stream struct)`` each; ``spec``: the stream's
-    ``(name, message type, layout)`` in :func:`schemas.batch.fast_binary`), or None when some input's byte
-    lengths do not hold its ``n`` rows or a magnetometer's sensor is not its stream's — the checks
+def _run_rows(ss: list, ns: list, spec: tuple) -> list[tuple] | None:
+    """The columns of each input of a stream's run (``ss`` their stream structs, ``ns`` their rows; ``spec``: the
+    stream's ``(name, message type, layout)`` in :func:`schemas.batch.fast_binary`), or None when some input's
+    byte lengths do not hold its ``n`` rows or a magnetometer's sensor is not its stream's — the checks
     :func:`schemas.batch.decode` makes, on the whole run at once."""
-    ns = [x[2] for x in run]
-    ss = [x[5] for x in run]
     want = {8: [8 * n for n in ns]}
-    if [len(s.t_s) for s in ss] != want[8] or [len(s.seq) for s in ss] != want[8]:
+    if list(map(len, map(_T_S, ss))) != want[8] or list(map(len, map(_SEQ, ss))) != want[8]:
         return None
     astuple = msgspec.structs.astuple
     rows = [astuple(s.cols) for s in ss]
@@ -214,20 +213,28 @@ def _run_rows(run: list[tuple], spec: tuple) -> list[tuple] | None:
     for k, (name, rb) in enumerate(lay):
         vals = [r[k] for r in rows]
         if rb > 0:
+            absent = vals.count(unset)
+            if absent == len(vals):
+                continue  # an optional field no input has
             w = want.get(rb)
             if w is None:
                 w = want[rb] = [rb * n for n in ns]
-            if unset in vals:
+            if absent:
                 lens = [len(v) if v is not unset else m for v, m in zip(vals, w, strict=True)]
             else:
-                lens = [len(v) for v in vals]
+                lens = list(map(len, vals))
             if lens != w:
                 return None
-        elif any(type(v) is list and len(v) != n for v, n in zip(vals, ns, strict=True)):
-            return None
+        elif list in map(type, vals) and any(type(v) is list and len(v) != n for v, n in zip(vals, ns, strict=True)):
+            return None  # (the types looked at in C first: a string column is mostly one string per input)
         if name == "sensor" and sname.startswith("mag/") and vals.count(sname[4:]) != len(vals):
             return None
     return rows
+
+
+_VEHICLE, _STREAMS = operator.attrgetter("vehicle"), operator.attrgetter("streams")
+_T_S, _SEQ = operator.attrgetter("t_s"), operator.attrgetter("seq")
+_FIRST = operator.itemgetter(0, 1)
 
 
 def _extend(parts: list, v: list) -> None:
@@ -361,31 +368,88 @@ class FramingIngest:
         joined; False, with nothing changed, when one of them is not of that layout or does not hold."""
         dec, layout = batches.fast_binary()
         decode = dec.decode
+        try:
+            es = [decode(item[2]) for item in raw]
+        except (msgspec.ValidationError, msgspec.DecodeError):
+            return False
+        vehicles = [item[1].vehicle for item in raw]
+        if list(map(_VEHICLE, es)) != vehicles:
+            return False
+        # per stream (index into layout): each batch's struct of it, or UNSET (transposed in C, no step per batch)
+        by_col = list(zip(*map(msgspec.structs.astuple, map(_STREAMS, es))))
+        names = fr["names"]
+        pers = [names.get(v) for v in vehicles]
+        if None in pers:
+            return self._settle_batches(fr, raw, es, layout)
+        unset = msgspec.UNSET
+        streams: list[tuple] = []  # (first batch holding it, j, batches holding it or None for all, structs, rows)
+        for j, col in enumerate(by_col):
+            if unset not in col:
+                ns = [s.n for s in col]
+                if 0 not in ns:
+                    streams.append((0, j, None, list(col), ns))
+                    continue
+            elif col.count(unset) == len(col):
+                continue
+            idx = [i for i, s in enumerate(col) if s is not unset and s.n]
+            if idx:
+                streams.append((idx[0], j, idx, [col[i] for i in idx], [col[i].n for i in idx]))
+        slots_of = {}
+        for _, j, idx, _, _ in streams:
+            sl = [p[j] for p in pers] if idx is None else [pers[i][j] for i in idx]
+            if None in sl:  # a stream of a vehicle not seen before: slots made batch by batch, in arrival order
+                return self._settle_batches(fr, raw, es, layout)
+            slots_of[j] = sl
+        checked = {}
+        for _, j, _, ss, ns in streams:
+            rows = _run_rows(ss, ns, layout[j])
+            if rows is None:  # some batch's lengths are wrong
+                return False
+            checked[j] = rows
+        # every batch holds: in the window, in order (vehicle indices and slots as on arrival)
+        blist = fr["batches"]
+        bid0 = len(blist)
+        blist.extend([(item[0], item[1].vehicle, len(item[2]), e.t_s) for item, e in zip(raw, es, strict=True)])
+        nows = [item[3] for item in raw]
+        count_in = self._rt.count_in
+        window = fr["window"]
+        streams.sort(key=_FIRST)  # (the window's streams made in the order their first rows came, as batch by batch)
+        for _, j, idx, ss, ns in streams:
+            sl = slots_of[j]
+            for (key, _, _), n in zip(sl, ns, strict=True):
+                count_in[key].n += n
+            if idx is None:
+                t_now, bids = nows, list(range(bid0, bid0 + len(raw)))
+            else:
+                t_now, bids = [nows[i] for i in idx], [bid0 + i for i in idx]
+            name, mt, lay = layout[j]
+            acc = window.get(name)
+            if acc is None:
+                acc = window[name] = _Acc(mt)
+            fr["rows"] += acc.add_run([x[1] for x in sl], [x[2] for x in sl], ns, t_now, bids, ss, lay, checked[j])
+        return True
+
+    def _settle_batches(self, fr: dict, raw: list, es: list, layout: tuple) -> bool:
+        """:meth:`_settle_fast` batch by batch (decoded: ``es``), when some of them bring a vehicle or a stream
+        not seen before: its vehicle index and stream slots are made as the batches come."""
         astuple = msgspec.structs.astuple
         unset = msgspec.UNSET
         got: list[tuple] = []  # per batch: (key, vehicle, payload bytes, t_s, now, its streams [(index, struct)])
-        by_stream: dict[int, list] = {}  # stream (index into layout) -> (rows, struct) of each batch holding it
-        for key, info, payload, now in raw:
-            try:
-                e = decode(payload)
-            except (msgspec.ValidationError, msgspec.DecodeError):
-                return False
-            if e.vehicle != info.vehicle:
-                return False
+        by_stream: dict[int, list] = {}  # stream (index into layout) -> the struct of each batch holding it
+        for (key, info, payload, now), e in zip(raw, es, strict=True):
             present = [(j, s) for j, s in enumerate(astuple(e.streams)) if s is not unset and s.n]
             for j, s in present:
                 r = by_stream.get(j)
                 if r is None:
                     r = by_stream[j] = []
-                r.append((0, 0, s.n, 0, 0, s))
+                r.append(s)
             got.append((key, info.vehicle, len(payload), e.t_s, now, present))
         checked = {}
-        for j, run in by_stream.items():
-            rows = _run_rows(run, layout[j])
+        for j, ss in by_stream.items():
+            rows = _run_rows(ss, [s.n for s in ss], layout[j])
             if rows is None:  # some batch's lengths are wrong
                 return False
             checked[j] = rows
-        # every batch holds: in the window, in order (vehicle indices and slots as on arrival)
         blist = fr["batches"]
         count_in = self._rt.count_in
         names = fr["names"]
@@ -407,7 +471,8 @@ class FramingIngest:
             acc = window.get(name)
             if acc is None:
                 acc = window[name] = _Acc(mt)
-            fr["rows"] += acc.add_run(run, lay, checked[j])
+            vis, slots, ns, nows, bids, ss = (list(x) for x in zip(*run, strict=True))
+            fr["rows"] += acc.add_run(vis, slots, ns, nows, bids, ss, lay, checked[j])
         return True
 
     def _stream_slot(self, fr: dict, vehicle: str, j: int, layout: tuple) -> tuple[str, int, int]:
