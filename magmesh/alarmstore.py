@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from pathlib import Path
 
 from .paths import write_atomic
@@ -22,10 +23,10 @@ COMPACT_EVERY = 2000
 
 
 def _empty() -> dict:
-    return {"published": {}, "raised": {}, "seqs": {}}
+    return {"published": {}, "raised": {}, "seqs": {}, "last": {}}
 
 
-def _apply(state: dict, key: str, st: str, seq: int, msg: dict | None) -> None:
+def _apply(state: dict, key: str, st: str, seq: int, msg: dict | None, wall: float | None = None) -> None:
     known = state["seqs"].get(key)
     if known is not None and seq < known:
         return
@@ -35,11 +36,16 @@ def _apply(state: dict, key: str, st: str, seq: int, msg: dict | None) -> None:
         state["raised"][key] = msg
     else:
         state["raised"].pop(key, None)
+    if msg is not None and wall is not None:  # (from the log only: a snapshot keeps no cleared message)
+        state["last"][key] = {"m": msg, "w": wall}
+    else:
+        state["last"].pop(key, None)
 
 
 def load(path: Path) -> dict:
-    """``{"published": {key: state}, "raised": {key: message}, "seqs": {key: seq}}`` of a snapshot path
-    (``….json``) and its log (empty when neither exists)."""
+    """``{"published": {key: state}, "raised": {key: message}, "seqs": {key: seq}, "last": {key: {"m": message,
+    "w": wall time}}}`` of a snapshot path (``….json``) and its log (empty when neither exists). ``last``: the
+    message of each key's last transition and when it was written, for a transition still in the log."""
     path = Path(path)
     state = _empty()
     try:
@@ -60,7 +66,8 @@ def load(path: Path) -> dict:
             continue
         try:
             e = json.loads(line)
-            _apply(state, str(e["k"]), str(e["s"]), int(e["q"]), e.get("m"))
+            w = e.get("w")
+            _apply(state, str(e["k"]), str(e["s"]), int(e["q"]), e.get("m"), float(w) if w is not None else None)
         except (ValueError, KeyError, TypeError):
             continue  # a line torn by a kill in the middle of its write
     return state
@@ -78,7 +85,9 @@ class AlarmStore:
         if self._fd is None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._fd = os.open(self.log_path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-        line = json.dumps({"k": key, "s": state, "q": int(seq), "m": msg if state == "raised" else None},
+        # every transition's message and the wall time it was written (before its put): a group member taking the
+        # vehicle over after a kill -9 publishes it again if the mesh never showed it (magmesh/group_member.py)
+        line = json.dumps({"k": key, "s": state, "q": int(seq), "m": msg, "w": round(time.time(), 3)},
                           separators=(",", ":")).encode() + b"\n"
         os.write(self._fd, line)
         self.appended += 1

@@ -82,6 +82,10 @@ HEARD_MARGIN_S = 0.5
 #: reached at its last output's sample time. 128 is 2.5 s of a 50 Hz compass (take-overs take 0.1-1.2 s here); an
 #: estimate from the key's rate was one sample off now and then, sample times being those of a real clock
 HEARD_KEEP = 128
+#: a dead member's last alarm transition that the mesh never showed is published again by its successor only when it
+#: was written (wall time) at least this long after the successor's alarm watch was first read (one put before was
+#: not watched for)
+REPUBLISH_MARGIN_S = 0.5
 
 
 #: the drop counts a member's seq journal keeps per key, by the letter of their entries (magmesh/runtime.py)
@@ -143,7 +147,8 @@ class GroupMember:
         self.stats = {"not_owned": 0, "handovers_in": 0, "handovers_out": 0, "failovers": 0, "unrecovered": 0,
                       "duplicates_dropped": 0, "suppressed": 0, "takeover_s_max": 0.0, "last_takeover_s": None,
                       "rounds": 0, "rounds_incomplete": 0, "liveliness_lapses": 0, "reclaimed": 0,
-                      "failovers_from_mesh": 0, "held_after_pause": 0, "duplicates_behind": 0}
+                      "failovers_from_mesh": 0, "held_after_pause": 0, "duplicates_behind": 0,
+                      "alarms_sent_again": 0}
         # what the mesh showed of the vehicles other members hold, for a failover from a member whose journal is not
         # on this host (another host, or another state directory): see _mesh_state
         self.seen_out: dict[str, dict[str, tuple[int, float]]] = {}  # vehicle -> output key -> (seq, t_s) last seen
@@ -152,6 +157,7 @@ class GroupMember:
         self.in_rate: dict[str, tuple[float, int, float, int]] = {}  # input key -> (t0, seq0, t1, seq1) of two answers
         self._out_sub: Any = None
         self._alarm_sub: Any = None
+        self._alarm_watch_t: tuple[float, float] | None = None  # alarm watch: (first read, last read), wall s
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._dead_since: dict[str, float] = {}  # member -> when its liveliness was seen gone
@@ -656,6 +662,8 @@ class GroupMember:
                 rt.recovering[v] = "lost_during_restart"
         if dead["found"]:
             self._adopt(v, dead["seqs"], dead["alarms"], dead["raised"], counts)
+            if dead.get("last_alarm"):
+                self._republish_unseen(dead["last_alarm"])
             if dead.get("t_out") is not None:  # (taken from what the mesh showed: outputs up to there went out)
                 self.post_cut[v] = math.nextafter(float(dead["t_out"]), math.inf)
                 self.stats["failovers_from_mesh"] += 1
@@ -677,6 +685,36 @@ class GroupMember:
         self.owned.add(v)
         self._replay_params(v)
         self._took(since, v)
+
+    def _republish_unseen(self, last: dict) -> None:
+        """A dead member's last alarm transitions (from its alarm file: message and when it was written, before its
+        put) that the mesh never showed while this member watched: published again, seq and all. A kill -9 between
+        the write and the put leaving the process lost the transition for every subscriber (seen once in ten
+        kills of 30 cars: a clear never received, then "raised" twice); one that did go out and was seen here is
+        not sent again. The watch is read first: a transition put before the kill came over the same link as the
+        news of the member's going, so it is here unless the links were congested (then it is sent twice, with one
+        seq). One written before this member watched (:data:`REPUBLISH_MARGIN_S`) is left: nothing can tell."""
+        from schemas import messages
+
+        self._observe_alarms()  # (what arrived since the round's look)
+        watched = self._alarm_watch_t
+        for k, e in last.items():
+            m, w = e.get("m"), e.get("w")
+            seen = self.seen_alarm.get(k)
+            if not isinstance(m, dict) or not isinstance(w, float | int) or watched is None \
+                    or w < watched[0] + REPUBLISH_MARGIN_S \
+                    or (seen is not None and seen[0] >= int(m.get("seq", -1))):
+                continue
+            try:
+                payload = messages.encode(m)
+            except Exception as ex:  # noqa: BLE001 - a file another version wrote: logged, not sent
+                self.rt.last_error = f"could not publish {k} again: {ex}"[:500]
+                continue
+            self.rt._publisher(k).put(payload)
+            self.rt.count_out[k].n += 1
+            self.stats["alarms_sent_again"] += 1
+            log.warning("%s: %s %s (seq %s) of a member that is gone was never seen on the mesh: published again",
+                        self.me, k, m.get("state"), m.get("seq"))
 
     def _took(self, since: float | None, v: str) -> None:
         if since is not None:
@@ -766,6 +804,16 @@ class GroupMember:
                 old = d.get(k)
                 if old is None or sq >= old[0]:
                     d[k] = (sq, ts)
+        self._observe_alarms()
+
+    def _observe_alarms(self) -> None:
+        """The alarm watch's part of :meth:`_observe` (also called by a take-over on the main loop: a channel read
+        and dict updates, safe beside the group thread's)."""
+        from schemas import messages
+
+        if self._alarm_sub is None:
+            return
+        now = time.time()
         for smp in _pending(self._alarm_sub):
             try:
                 m = messages.decode(smp.payload.to_bytes(), expected_type="alarm")
@@ -777,6 +825,8 @@ class GroupMember:
             old = self.seen_alarm.get(k)
             if old is None or int(m["seq"]) >= old[0]:
                 self.seen_alarm[k] = (int(m["seq"]), m)
+        w = self._alarm_watch_t
+        self._alarm_watch_t = (now if w is None else w[0], now)  # (watched since, read up to)
 
     def _note_answers(self, states: dict[str, dict]) -> None:
         """Keep each member's latest ``held`` answer, and per input key two answers' (sample time, seq) apart: the
@@ -1093,6 +1143,11 @@ class GroupMember:
                         out["raised"][k] = data["raised"][k]
                     else:
                         out["raised"].pop(k, None)
+                    last = data.get("last", {}).get(k)
+                    if last is not None and isinstance(last.get("m"), dict) and last["m"].get("seq") == s:
+                        out.setdefault("last_alarm", {})[k] = last
+                    else:
+                        out.get("last_alarm", {}).pop(k, None)
                     out["found"] = True
         if not out["found"] and only is None:
             return self._mesh_state(v, out)
