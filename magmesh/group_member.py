@@ -82,6 +82,8 @@ HEARD_MARGIN_S = 0.5
 #: reached at its last output's sample time. 128 is 2.5 s of a 50 Hz compass (take-overs take 0.1-1.2 s here); an
 #: estimate from the key's rate was one sample off now and then, sample times being those of a real clock
 HEARD_KEEP = 128
+#: keys kept so at most (a bound on memory: about 25 MB of 200-byte samples; keys beyond it use the rate's estimate)
+HEARD_KEYS_MAX = 1024
 #: a dead member's last alarm transition that the mesh never showed is published again by its successor only when it
 #: was written (wall time) at least this long after the successor's alarm watch was first read (one put before was
 #: not watched for)
@@ -200,9 +202,11 @@ class GroupMember:
         self.skipped_early += 1
         if payload is not None:
             buf = self.heard_buf.get(key)
-            if buf is None:  # (one reader thread per subscription: a key is only ever appended to by one)
+            if buf is None and len(self.heard_buf) < HEARD_KEYS_MAX:
+                # (one reader thread per subscription: a key is only ever appended to by one)
                 buf = self.heard_buf[key] = deque(maxlen=HEARD_KEEP)
-            buf.append(payload.to_bytes())
+            if buf is not None:
+                buf.append(payload.to_bytes())
         return True
 
     def holds(self, vehicle: Any) -> bool:
