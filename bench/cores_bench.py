@@ -34,6 +34,17 @@ import time
 import numpy as np
 
 
+class _DroppingSession:
+    """What a service in process gets for a Zenoh session: publishers that drop what they are given."""
+
+    class _Pub:
+        def put(self, payload, **kw):
+            pass
+
+    def declare_publisher(self, key, **kw):
+        return self._Pub()
+
+
 def _median_time(fn, repeats: int) -> float:
     ts = []
     for _ in range(repeats):
@@ -91,13 +102,6 @@ def ingest_wire(vehicles: int = 50, windows: int = 100, repeats: int = 3) -> dic
 
     os.environ.setdefault("MAGMESH_STATE_DIR", tempfile.mkdtemp(prefix="magmesh-cores-"))
 
-    class _Pub:
-        def put(self, payload, **kw):
-            pass
-
-    class _Session:
-        def declare_publisher(self, key, **kw):
-            return _Pub()
 
     v1, v2 = [], []
     for w in range(windows):  # per vehicle and 20 ms: 2 magnetometer samples, 2 IMU samples
@@ -115,7 +119,7 @@ def ingest_wire(vehicles: int = 50, windows: int = 100, repeats: int = 3) -> dic
     n = vehicles * windows * 4
 
     def run(data, output):
-        r = Runner(Ingest(IngestServiceSettings(output=output), instance="cores-ingest"), _Session())
+        r = Runner(Ingest(IngestServiceSettings(output=output), instance="cores-ingest"), _DroppingSession())
         t0 = time.process_time()
         for k, payload in data:
             r.handle_sample(k, payload)
@@ -207,17 +211,10 @@ def ingest_frames(vehicles: int = 500, windows: int = 60, warmup_windows: int = 
         n_samples.append(vehicles * (W + 2 * nm + len(gticks)))
     n = sum(n_samples[warmup_windows:])
 
-    class _Pub:
-        def put(self, payload, **kw):
-            pass
-
-    class _Session:
-        def declare_publisher(self, key, **kw):
-            return _Pub()
 
     def run() -> tuple[float, int]:
         r = Runner(Ingest(IngestServiceSettings(output="frames", batch_window_s=frame_s), instance="cores-ingest"),
-                   _Session())
+                   _DroppingSession())
         r.svc.on_start()
         spent = 0.0
         for w, slices in enumerate(payloads):
@@ -534,13 +531,6 @@ def calibration_service(vehicles: int = 500, warm_s: float = 12.0, frames: int =
     os.environ.setdefault("MAGMESH_STATE_DIR", tempfile.mkdtemp(prefix="magmesh-cores-"))
     first = cfleet.warm()
 
-    class _Pub:
-        def put(self, payload, **kw):
-            pass
-
-    class _Session:
-        def declare_publisher(self, key, **kw):
-            return _Pub()
 
     rng = np.random.default_rng(11)
     V = vehicles
@@ -605,7 +595,7 @@ def calibration_service(vehicles: int = 500, warm_s: float = 12.0, frames: int =
                                                   "observable": [True, True, False]}
                                             for j, sid in enumerate(("1", "2"))}}
         svc = Calibration(Settings(persist=False), instance="cores-cal", vehicles_config=cfg)
-        r = Runner(svc, _Session())
+        r = Runner(svc, _DroppingSession())
         r._sub_exprs = [zenoh.KeyExpr(x) for x in svc.subscriptions()]  # what Runner.run declares
         svc.on_start()
         return svc, r
@@ -860,18 +850,11 @@ def heading_service(vehicles: int = 500, windows: int = 250, warmup_windows: int
                          (keys.fleet_frame("dmc-1", "dmc"), frame.encode("dmc-1", "dmc", w, names, dmc))])
     n_in = windows * vehicles * (2 + 1 + 1 + 1)  # what it takes: imu, clean mag/1, cal mag/1, dmc
 
-    class _Pub:
-        def put(self, payload, **kw):
-            pass
-
-    class _Session:
-        def declare_publisher(self, key, **kw):
-            return _Pub()
 
     def run() -> tuple[float, float, int]:
         svc = HeadingFuser(Settings(), instance="cores-heading",
                            vehicles_config={v: car for v in names})
-        r = Runner(svc, _Session())
+        r = Runner(svc, _DroppingSession())
         import zenoh
 
         r._sub_exprs = [zenoh.KeyExpr(k) for k in svc.subscriptions()]
