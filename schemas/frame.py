@@ -284,10 +284,18 @@ def decode(payload: bytes, where: str = "") -> Frame:
         env = _env_dec.decode(payload)
     except Exception:  # not a map with string keys (or not msgpack): the untyped decoder says what it is
         env = None
+    names = vehicles = raw_vehicles = None
+    if env is not None:
+        raw_vehicles = bytes(env.vehicles)
+        names = _VEHICLE_BYTES.get(raw_vehicles)
+        if names is None:
+            try:
+                vehicles = _dec.decode(raw_vehicles)
+            except Exception:  # (the envelope leaves the list unread: bad msgpack there is the whole payload's)
+                env = raw_vehicles = None
     if env is not None:
         m = {"type": env.type, "version": env.version, "shard": env.shard, "kind": env.kind, "t_s": env.t_s,
              "seq": env.seq, "streams": env.streams}
-        raw_vehicles = bytes(env.vehicles)
     else:
         try:
             m = _dec.decode(payload)
@@ -295,7 +303,7 @@ def decode(payload: bytes, where: str = "") -> Frame:
             raise _bad("<payload>", f"is not valid msgpack ({type(e).__name__}: {str(e)[:80]})", where) from None
         if type(m) is not dict:
             raise _bad("<payload>", f"must be a msgpack map, got {type(m).__name__}", where)
-        raw_vehicles = None
+        vehicles = m.get("vehicles")
     if m.get("type") != "frame":
         raise _bad("type", f"must be 'frame' on this key, got {str(m.get('type'))[:64]!r}", where)
     ver = m.get("version")
@@ -310,9 +318,7 @@ def decode(payload: bytes, where: str = "") -> Frame:
         raise _bad("t_s", "must be a finite number", where)
     if type(seq) is not int or seq < 0:
         raise _bad("seq", "must be an integer ≥ 0", where)
-    names = _VEHICLE_BYTES.get(raw_vehicles) if raw_vehicles is not None else None
     if names is None:
-        vehicles = m.get("vehicles") if raw_vehicles is None else _dec.decode(raw_vehicles)
         if type(vehicles) is not list or len(vehicles) > MAX_VEHICLES or any(type(v) is not str for v in vehicles):
             raise _bad("vehicles", f"must be a list of at most {MAX_VEHICLES} vehicle ids", where)
         names = tuple(vehicles)

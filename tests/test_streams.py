@@ -349,3 +349,25 @@ def test_a_frames_last_rows_are_read_without_its_columns(rows):
     assert {v: (name, q, tt) for v, name, q, tt in got} == want and len(got) == len(want)
     with pytest.raises(ValueError):
         frame.last_rows(b"\x81\xa4type\xa5batch")
+
+
+def test_a_frames_vehicle_list_is_read_once_and_bad_bytes_in_it_refuse_the_frame():
+    """The decoder reads a shard's vehicle list once per distinct list (the same names object frame after frame);
+    bad msgpack inside the list (invalid UTF-8 here) refuses the frame as bad msgpack anywhere does, never a
+    decoder's own error (the fuzz suite once found that)."""
+    import numpy as np
+
+    from schemas import frame
+    from schemas.messages import SchemaError
+
+    z = np.zeros(1)
+    st = frame.Stream("dmc", "dmc", np.array([0], np.uint32), np.array([1.0]), np.array([1], np.int64), {
+        "dm_nt": np.zeros((1, 2)), "ddm_nt_s": np.zeros((1, 2)), "dh_rad": z, "ddh_rad_s": z, "heading_rad": z,
+        "stage1_pass": np.ones(1, bool), "credibility": z + 1, "valid": np.ones(1, bool), "impl": "threshold",
+        "param_source": "manifest"})
+    payload = frame.encode("dmc-1", "dmc", 0, ["car-1"], {"dmc": st})
+    a, b = frame.decode(payload), frame.decode(payload)
+    assert a.vehicles == b.vehicles == ["car-1"]
+    i = payload.find(b"car-1")
+    with pytest.raises(SchemaError, match="not valid msgpack"):
+        frame.decode(payload[:i] + b"\xff" + payload[i + 1:])
