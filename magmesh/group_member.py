@@ -1094,7 +1094,7 @@ class GroupMember:
 
         pre = f"{keys.ROOT}/{v}/"
         out: dict = {"seqs": {}, "inputs": {}, "lost": {}, "counts": {}, "alarms": {}, "raised": {}, "found": False,
-                     "passed": set()}
+                     "passed": set(), "last_alarm": {}}
         alarm_seq: dict[str, int] = {}
         first_rx: dict[str, int] = {}
         d = state_dir()
@@ -1149,9 +1149,9 @@ class GroupMember:
                         out["raised"].pop(k, None)
                     last = data.get("last", {}).get(k)
                     if last is not None and isinstance(last.get("m"), dict) and last["m"].get("seq") == s:
-                        out.setdefault("last_alarm", {})[k] = last
+                        out["last_alarm"][k] = last
                     else:
-                        out.get("last_alarm", {}).pop(k, None)
+                        out["last_alarm"].pop(k, None)
                     out["found"] = True
         if not out["found"] and only is None:
             return self._mesh_state(v, out)

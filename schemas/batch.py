@@ -160,6 +160,19 @@ def _bad(fld: str, problem: str, where: str) -> SchemaError:
     return SchemaError(fld, problem, where, "batch")
 
 
+def decode_map(payload: bytes, where: str, kind: str) -> dict:
+    """``payload`` as an untyped msgpack map, or the :class:`SchemaError` of a ``kind`` message (batch, frame)
+    saying why it is not one."""
+    try:
+        m = _dec.decode(payload)
+    except Exception as e:
+        raise SchemaError("<payload>", f"is not valid msgpack ({type(e).__name__}: {str(e)[:80]})", where,
+                          kind) from None
+    if type(m) is not dict:
+        raise SchemaError("<payload>", f"must be a msgpack map, got {type(m).__name__}", where, kind)
+    return m
+
+
 def _where_in(e: Exception, sname: str) -> str:
     text = str(e)
     if "`$." not in text:
@@ -498,12 +511,7 @@ def decode(payload: bytes, where: str = "", check: bool = True, arrays: bool = F
         raise _bad("<payload>", "is empty or not bytes", where)
     if len(payload) > 64 * 1024 * 1024:
         raise _bad("<payload>", f"is {len(payload)} bytes (max 64 MiB)", where)
-    try:
-        m = _dec.decode(payload)
-    except Exception as e:
-        raise _bad("<payload>", f"is not valid msgpack ({type(e).__name__}: {str(e)[:80]})", where) from None
-    if type(m) is not dict:
-        raise _bad("<payload>", f"must be a msgpack map, got {type(m).__name__}", where)
+    m = decode_map(payload, where, "batch")
     if m.get("type") != "batch":
         raise _bad("type", f"must be 'batch' on this key, got {str(m.get('type'))[:64]!r}", where)
     ver = m.get("version")

@@ -38,6 +38,7 @@ import msgspec
 import numpy as np
 
 from . import keys
+from .batch import decode_map
 from .batch import stream_type as batch_stream_type
 from .messages import MAX_STR, MESSAGES, SchemaError
 
@@ -297,12 +298,7 @@ def decode(payload: bytes, where: str = "") -> Frame:
         m = {"type": env.type, "version": env.version, "shard": env.shard, "kind": env.kind, "t_s": env.t_s,
              "seq": env.seq, "streams": env.streams}
     else:
-        try:
-            m = _dec.decode(payload)
-        except Exception as e:
-            raise _bad("<payload>", f"is not valid msgpack ({type(e).__name__}: {str(e)[:80]})", where) from None
-        if type(m) is not dict:
-            raise _bad("<payload>", f"must be a msgpack map, got {type(m).__name__}", where)
+        m = decode_map(payload, where, "frame")
         vehicles = m.get("vehicles")
     if m.get("type") != "frame":
         raise _bad("type", f"must be 'frame' on this key, got {str(m.get('type'))[:64]!r}", where)
