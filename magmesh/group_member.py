@@ -802,7 +802,10 @@ class GroupMember:
             if shard == self.me:
                 continue
             for v, name, sq, ts in rows:
-                k = stream_key(kind, v, name)
+                try:
+                    k = stream_key(kind, v, name)
+                except keys.KeyError_:  # a name no key carries (not a member's frame): nothing learnt from it
+                    continue
                 d = self.seen_out.get(v)
                 if d is None:
                     d = self.seen_out[v] = {}

@@ -879,3 +879,44 @@ def test_outputs_after_a_pause_are_held_until_a_round_shows_who_holds_the_vehicl
     _run(posted)
     assert [x[3] for x in rt.released] == [5.0], "car-1 released once two rounds showed nobody else holds it"
     assert g.gate("magmesh/car-1/dmc", "dmc", "car-1", 5.04, {}) and g.plain("car-1")
+
+
+def test_the_output_watch_learns_each_vehicles_last_output_and_passes_over_names_no_key_carries():
+    """``_observe`` reads the other members' output frames (their headers): per vehicle and key the newest seq and
+    sample time. A frame naming a vehicle no key may carry (a put on the fleet key by anyone) costs that row only,
+    not the round (before, it raised out of the round)."""
+    import msgpack
+    import numpy as np
+
+    from magmesh.group_member import GroupMember
+
+    def payload(shard, vehicles, rows):  # rows: (vehicle index, seq, t_s), sorted by vehicle
+        vi, sq, ts = (np.array([r[i] for r in rows], dt) for i, dt in ((0, "<u4"), (1, "<i8"), (2, "<f8")))
+        return msgpack.packb({"type": "frame", "version": 3, "shard": shard, "kind": "dmc", "t_s": 1.0, "seq": 0,
+                              "vehicles": vehicles, "streams": {"dmc": {"n": len(rows), "vi": vi.tobytes(),
+                                                                         "t_s": ts.tobytes(), "seq": sq.tobytes(),
+                                                                         "cols": {}}}})
+
+    class _Smp:
+        def __init__(self, b):
+            self.payload = self
+            self.b = b
+
+        def to_bytes(self):
+            return self.b
+
+    class _Sub:
+        def __init__(self, items):
+            self.items = list(items)
+
+        def try_recv(self):
+            return self.items.pop(0) if self.items else None
+
+    g = GroupMember(_Rt(), "dmc")
+    g._out_sub = _Sub([_Smp(payload("dmc-2", ["car-1", "bad/name", "car-2"], [(0, 7, 0.7), (0, 8, 0.8),
+                                                                                  (1, 3, 0.3), (2, 5, 0.5)])),
+                       _Smp(payload("dmc-2", ["car-1"], [(0, 6, 0.6)])),  # (older: not taken)
+                       _Smp(payload("dmc-1", ["car-3"], [(0, 1, 0.1)])),  # (its own)
+                       _Smp(b"\xc1")])
+    g._observe()
+    assert g.seen_out == {"car-1": {"magmesh/car-1/dmc": (8, 0.8)}, "car-2": {"magmesh/car-2/dmc": (5, 0.5)}}
