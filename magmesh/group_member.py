@@ -794,9 +794,12 @@ class GroupMember:
 
         from .frames import stream_key
 
-        for smp in _pending(self._out_sub):
+        # newest first: a vehicle's row per stream is taken from the newest frame that has one (last_rows' taken)
+        payloads = [smp.payload.to_bytes() for smp in _pending(self._out_sub)]
+        taken: dict = {}
+        for p in reversed(payloads):
             try:
-                shard, kind, rows = frame.last_rows(smp.payload.to_bytes())
+                shard, kind, rows = frame.last_rows(p, taken)
             except ValueError:  # not a frame of this contract: nothing learnt from it
                 continue
             if shard == self.me:
