@@ -54,9 +54,13 @@ def _call(f, row):
     return False
 
 
+_FLAG_NAMES = tuple(x.name for x in dataclasses.fields(core.Flags))  # every field a bool
+
+
 def _snapshot(f, ret):
     st = f.internal_states
-    return (f.heading_rad(), f.mode, dataclasses.astuple(f.flags), bool(ret), st.mag_innovation_rad,
+    fl = f.flags  # a flat dataclass of bools: its fields' values as a tuple (what dataclasses.astuple gives)
+    return (f.heading_rad(), f.mode, tuple(getattr(fl, n) for n in _FLAG_NAMES), bool(ret), st.mag_innovation_rad,
             st.heading_std_rad, f.euler(), f.attitude_std())
 
 
