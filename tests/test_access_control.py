@@ -94,13 +94,20 @@ def alarm_payload(vehicle: str, tag: str) -> bytes:
         threshold=0.5, service=tag))
 
 
-def proven_denied(observe, allowed, denied, wait_s: float = 15.0, settle_s: float = 1.0) -> None:
-    """``denied()`` then ``allowed()`` on the same mesh; ``observe(tag)`` sees the allowed tag and never the denied."""
-    denied()
-    allowed()
-    assert wait_until(lambda: observe("allowed"), wait_s), "the allowed twin never arrived: the proof would be empty"
-    time.sleep(settle_s)  # the denied action was sent first: had it passed it would be here by now
-    assert not observe("denied"), "the denied action went through"
+def proven_denied(cases, wait_s: float = 15.0, settle_s: float = 1.0) -> None:
+    """Independent ``(observe, allowed, denied)`` cases (tags of their own) on the same mesh, proven together: each
+    case's ``denied()`` then its ``allowed()``, case after case; ``observe(tag)`` sees every allowed tag and,
+    ``settle_s`` after the last of them arrived, none of the denied."""
+    for _observe, allowed, denied in cases:
+        denied()
+        allowed()
+    deadline = time.monotonic() + wait_s
+    for i, (observe, _allowed, _denied) in enumerate(cases):
+        assert wait_until(lambda observe=observe: observe("allowed"), max(0.0, deadline - time.monotonic())), (
+            f"case {i}: the allowed twin never arrived: the proof would be empty")
+    time.sleep(settle_s)  # each denied action was sent before its twin: had it passed it would be here by now
+    for i, (observe, _allowed, _denied) in enumerate(cases):
+        assert not observe("denied"), f"case {i}: the denied action went through"
 
 
 @pytest.fixture(scope="module")
@@ -185,21 +192,22 @@ def test_roles_are_enforced_with_positive_proofs(secured, capsys):
     time.sleep(1.0)  # declarations reach the router
 
     # a vehicle's certificate publishes its own raw keys only
-    proven_denied(lambda t: watch.has(f"raw-{t}".encode()),
-                  lambda: survey1.put(keys.raw_imu("survey-1"), raw_imu("survey-1", 1.0, "raw-allowed")),
-                  lambda: car1.put(keys.raw_imu("survey-1"), raw_imu("survey-1", 1.0, "raw-denied")))
+    cases = [(lambda t: watch.has(f"raw-{t}".encode()),
+              lambda: survey1.put(keys.raw_imu("survey-1"), raw_imu("survey-1", 1.0, "raw-allowed")),
+              lambda: car1.put(keys.raw_imu("survey-1"), raw_imu("survey-1", 1.0, "raw-denied")))]
     proofs.append("car-1's certificate publishing survey-1's raw keys (survey-1's own certificate: delivered)")
 
-    # only services publish alarms, cal/params and clean
+    # only services publish alarms, cal/params and clean (ten cases in all, each with tags of its own)
     for what, key, payload in (("an alarm", keys.alarm("survey-1", "dmc"), lambda t: alarm_payload("survey-1", t)),
                                ("cal/params", keys.cal_params("survey-1", "1"), lambda t: f"cal-{t}".encode()),
                                ("clean/", keys.clean_imu("survey-1"), lambda t: raw_imu("survey-1", 2.0, t))):
         for who, sess in (("a vehicle", survey1), ("an operator", op), ("a certificate of no role", intruder)):
             tag = f"{what}-{who}"
-            proven_denied(lambda t, tag=tag: watch.has(f"{tag}-{t}".encode()),
+            cases.append((lambda t, tag=tag: watch.has(f"{tag}-{t}".encode()),
                           lambda key=key, payload=payload, tag=tag: service.put(key, payload(f"{tag}-allowed")),
-                          lambda key=key, payload=payload, tag=tag, sess=sess: sess.put(key, payload(f"{tag}-denied")))
+                          lambda key=key, payload=payload, tag=tag, sess=sess: sess.put(key, payload(f"{tag}-denied"))))
             proofs.append(f"{who} publishing {what} (a service: delivered)")
+    proven_denied(cases)
 
     # only services (and the simulators, under magmesh/svc/sim/) answer status queries
     def answerer(key, tag):

@@ -54,9 +54,13 @@ def _call(f, row):
     return False
 
 
+_FLAG_NAMES = tuple(x.name for x in dataclasses.fields(core.Flags))  # every field a bool
+
+
 def _snapshot(f, ret):
     st = f.internal_states
-    return (f.heading_rad(), f.mode, dataclasses.astuple(f.flags), bool(ret), st.mag_innovation_rad,
+    fl = f.flags  # a flat dataclass of bools: its fields' values as a tuple (what dataclasses.astuple gives)
+    return (f.heading_rad(), f.mode, tuple(getattr(fl, n) for n in _FLAG_NAMES), bool(ret), st.mag_innovation_rad,
             st.heading_std_rad, f.euler(), f.attitude_std())
 
 
@@ -65,8 +69,10 @@ def run_both(settings, rows, every: int = 1) -> dict:
     (every ``every``-th for the slower attributes). Returns what the reference went through."""
     ref, cmp_ = core.HeadingFilter(settings), compiled.CompiledHeadingFilter(settings)
     seen = {"modes": set(), "rejected": 0, "at_rest": 0, "uncertain": 0, "fused": 0, "max_diff": 0.0}
+    trace = []  # the reference after each row: (mode, mag_fused, return value, heading)
     for i, row in enumerate(rows):
         r1, r2 = _call(ref, row), _call(cmp_, row)
+        trace.append((ref.mode, ref.flags.mag_fused, bool(r1), ref.heading_rad()))
         assert ref.mode == cmp_.mode, (i, row, ref.mode, cmp_.mode, ref.transitions[-3:], cmp_.transitions[-3:])
         assert bool(r1) == bool(r2), (i, row)
         d = _hd(ref.heading_rad(), cmp_.heading_rad())
@@ -95,6 +101,7 @@ def run_both(settings, rows, every: int = 1) -> dict:
     seen["mag_delay_s"] = ref.mag_delay_s
     seen["n_rebases"] = ref.n_rebases
     seen["reference"] = ref
+    seen["trace"] = trace
     return seen
 
 
@@ -134,19 +141,33 @@ def run_fleet_rows(fleet, slot, rows):
     return out
 
 
-def check_fleet_matches_reference(settings, rows):
+def reference_trace(settings, rows):
+    """The reference filter after each row: (mode, mag_fused, return value, heading)."""
     ref = core.HeadingFilter(settings)
+    trace = []
+    for row in rows:
+        ret = _call(ref, row)
+        trace.append((ref.mode, ref.flags.mag_fused, bool(ret), ref.heading_rad()))
+    return trace
+
+
+def check_fleet_matches_reference(settings, rows, trace=None):
+    """The rows through a fleet slot against the reference after each row (``trace``: the reference's from
+    :func:`run_both` on the same settings and rows — the reference is deterministic — or run here)."""
+    if trace is None:
+        trace = reference_trace(settings, rows)
+    assert len(trace) == len(rows)
     fleet = compiled.FleetHeading(2)
     slot = fleet.add(settings)
     res = run_fleet_rows(fleet, slot, rows)
-    for i, row in enumerate(rows):
-        ret = _call(ref, row)
+    for i in range(len(rows)):
+        ref_mode, ref_fused, ret, ref_heading = trace[i]
         if res[i] is None:
             continue
         h, mode, fused, r = res[i]
-        assert compiled.MODES[mode] == ref.mode, (i, ref.mode, compiled.MODES[mode])
-        assert bool(fused) == ref.flags.mag_fused and bool(r) == bool(ret), i
-        assert _hd(h, ref.heading_rad()) <= TOL_RAD, i
+        assert compiled.MODES[mode] == ref_mode, (i, ref_mode, compiled.MODES[mode])
+        assert bool(fused) == ref_fused and bool(r) == ret, i
+        assert _hd(h, ref_heading) <= TOL_RAD, i
 
 
 # ---- data ---------------------------------------------------------------------------------------------------
@@ -285,7 +306,7 @@ def test_simulated_drives_agree_with_the_reference(case):
     seen = run_both(s, rows, every=9)
     assert len(seen["transitions"]) >= (1 if case == "imu_only" else 2), seen["transitions"]
     if case in ("road_vehicle_rebase_gap", "everything"):
-        check_fleet_matches_reference(s, rows)
+        check_fleet_matches_reference(s, rows, seen["trace"])  # the reference's run above, not a second one
 
 
 # ---- many slots in one call ---------------------------------------------------------------------------------
