@@ -794,12 +794,9 @@ class GroupMember:
 
         from .frames import stream_key
 
-        # newest first: a vehicle's row per stream is taken from the newest frame that has one (last_rows' taken)
-        payloads = [smp.payload.to_bytes() for smp in _pending(self._out_sub)]
-        taken: dict = {}
-        for p in reversed(payloads):
+        for smp in _pending(self._out_sub):
             try:
-                shard, kind, rows = frame.last_rows(p, taken)
+                shard, kind, rows = frame.last_rows(smp.payload.to_bytes())
             except ValueError:  # not a frame of this contract: nothing learnt from it
                 continue
             if shard == self.me:

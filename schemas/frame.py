@@ -406,51 +406,39 @@ class _Head(msgspec.Struct):
 class _Heads(msgspec.Struct):
     shard: str
     kind: str
-    vehicles: msgspec.Raw
+    vehicles: list[str]
     streams: dict[str, _Head]
 
 
 _heads_dec = msgspec.msgpack.Decoder(_Heads)
-_names_dec = msgspec.msgpack.Decoder(list[str])
-#: a vehicle list's msgpack bytes -> its names, for :func:`last_rows` (unchecked: a reader builds keys with checks)
-_HEAD_VEHICLES: dict[bytes, list[str]] = {}
 
 
-def last_rows(payload: bytes, taken: dict | None = None) -> tuple[str, str, list[tuple[str, str, int, float]]]:
+def last_rows(payload: bytes) -> tuple[str, str, list[tuple[str, str, int, float]]]:
     """(shard, kind, [(vehicle, stream, seq, t_s)]) of each vehicle's last row per stream of a frame, read without
     its columns or checks (a few µs: what a group member watches the others' outputs with); raises ValueError on
-    a payload that is not a frame. ``taken`` (a dict the caller keeps for a run of frames read newest first):
-    rows of a vehicle and stream a frame read before gave are left out."""
+    a payload that is not a frame."""
     try:
         h = _heads_dec.decode(payload)
-        raw = bytes(h.vehicles)
-        vehicles = _HEAD_VEHICLES.get(raw)
-        if vehicles is None:
-            vehicles = _names_dec.decode(raw)
-            if len(_HEAD_VEHICLES) >= 64:
-                _HEAD_VEHICLES.clear()
-            _HEAD_VEHICLES[raw] = vehicles
     except (msgspec.DecodeError, msgspec.ValidationError) as e:
         raise ValueError(f"not a frame: {e}") from None
     out = []
-    nv = len(vehicles)
+    nv = len(h.vehicles)
     for name, st in h.streams.items():
         n = st.n
         if n <= 0 or len(st.vi) != 4 * n or len(st.seq) != 8 * n or len(st.t_s) != 8 * n:
             continue
+        if n == 1:
+            i = int.from_bytes(st.vi, "little")
+            if i < nv:
+                out.append((h.vehicles[i], name, int.from_bytes(st.seq, "little", signed=True),
+                            float(np.frombuffer(st.t_s, "<f8")[0])))
+            continue
         vi = np.frombuffer(st.vi, "<u4")
         sq, ts = np.frombuffer(st.seq, "<i8"), np.frombuffer(st.t_s, "<f8")
         last = np.flatnonzero(np.r_[vi[1:] != vi[:-1], True])  # rows are sorted by vehicle, then time
-        last = last[vi[last] < nv]
-        if taken is not None:
-            done = taken.get((h.shard, h.kind, name, raw))
-            if done is None:
-                done = taken[(h.shard, h.kind, name, raw)] = np.zeros(nv, bool)
-            v_last = vi[last]
-            last = last[~done[v_last]]
-            done[v_last] = True
         for i, q, t in zip(vi[last].tolist(), sq[last].tolist(), ts[last].tolist(), strict=True):
-            out.append((vehicles[i], name, q, t))
+            if i < nv:
+                out.append((h.vehicles[i], name, q, t))
     return h.shard, h.kind, out
 
 

@@ -920,10 +920,3 @@ def test_the_output_watch_learns_each_vehicles_last_output_and_passes_over_names
                        _Smp(b"\xc1")])
     g._observe()
     assert g.seen_out == {"car-1": {"magmesh/car-1/dmc": (8, 0.8)}, "car-2": {"magmesh/car-2/dmc": (5, 0.5)}}
-    # a round's frames of one list are read newest first: each vehicle's row from the newest frame that has one
-    two = ["car-1", "car-2"]
-    g._out_sub = _Sub([_Smp(payload("dmc-2", two, [(0, 10, 1.0), (1, 6, 0.6)])),
-                       _Smp(payload("dmc-2", two, [(0, 11, 1.1)])),
-                       _Smp(payload("dmc-2", two, [(1, 7, 0.7)]))])
-    g._observe()
-    assert g.seen_out == {"car-1": {"magmesh/car-1/dmc": (11, 1.1)}, "car-2": {"magmesh/car-2/dmc": (7, 0.7)}}
