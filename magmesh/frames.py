@@ -9,7 +9,6 @@ keys handled one sample at a time, arrays for the keys frames carry, one mapping
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Iterator, MutableMapping
 
 import numpy as np
@@ -20,12 +19,9 @@ from schemas import keys
 NONE = np.iinfo(np.int64).min
 
 
-@functools.lru_cache(maxsize=1 << 14)
 def stream_key(kind: str, vehicle: str, name: str) -> str:
     """The per-vehicle key of a frame stream's rows: (clean, car-1, mag/1) → magmesh/car-1/clean/mag/1;
-    (cal, car-1, mag/1) → magmesh/car-1/cal/mag/1; (dmc, car-1, dmc) → magmesh/car-1/dmc. Raises
-    ``keys.KeyError_`` for a name no key may carry. (The last 16,384 keys kept: a group member builds one for
-    each row it watches.)"""
+    (cal, car-1, mag/1) → magmesh/car-1/cal/mag/1; (dmc, car-1, dmc) → magmesh/car-1/dmc."""
     if kind == "dmc":
         return keys.dmc(vehicle)
     head, _, sensor = name.partition("/")

@@ -802,10 +802,7 @@ class GroupMember:
             if shard == self.me:
                 continue
             for v, name, sq, ts in rows:
-                try:
-                    k = stream_key(kind, v, name)
-                except keys.KeyError_:  # a name no key carries (not a member's frame): nothing learnt from it
-                    continue
+                k = stream_key(kind, v, name)
                 d = self.seen_out.get(v)
                 if d is None:
                     d = self.seen_out[v] = {}
