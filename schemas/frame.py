@@ -365,37 +365,6 @@ def decode(payload: bytes, where: str = "") -> Frame:
     return out
 
 
-class _Peek(msgspec.Struct):
-    type: Any = None
-    version: Any = None
-    shard: Any = None
-    kind: Any = None
-    seq: Any = None
-    vehicles: msgspec.Raw = msgspec.Raw(b"\xc0")
-    streams: dict[str, msgspec.Raw] | None = None
-
-
-_peek_dec = msgspec.msgpack.Decoder(_Peek)
-
-
-def peek(payload: bytes) -> tuple[str, str, int, list[str], list[str]] | None:
-    """(shard, kind, seq, vehicles, stream names) of a frame whose vehicle list :func:`decode` has read (and
-    checked) before, read without its rows: what a group member needs to see that a frame holds none of its
-    vehicles (a few µs where decoding it takes tens to hundreds). None for any other payload: :func:`decode`
-    then reads it and says what is wrong."""
-    try:
-        p = _peek_dec.decode(payload)
-    except (msgspec.DecodeError, msgspec.ValidationError):
-        return None
-    if p.type != "frame" or type(p.version) is not int or p.version != VERSION or p.kind not in KINDS \
-            or not isinstance(p.shard, str) or type(p.seq) is not int or p.seq < 0 or p.streams is None:
-        return None
-    names = _VEHICLE_BYTES.get(bytes(p.vehicles))
-    if names is None:
-        return None
-    return p.shard, p.kind, p.seq, _checked_vehicles(names), list(p.streams)
-
-
 class _Head(msgspec.Struct):
     n: int
     vi: bytes

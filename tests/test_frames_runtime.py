@@ -312,41 +312,6 @@ def test_publish_rows_in_a_group_gates_only_vehicles_in_a_hand_over(tmp_path, mo
     assert sorted(st.seq.tolist()) == [0, 0, 1] and st.n == 3
 
 
-class _Admit:
-    """A group member holding only the vehicles in ``held``; records which frames' vehicle lists it was asked."""
-
-    def __init__(self, held):
-        self.held, self.asked = set(held), []
-
-    def admitted(self, vehicles, key_of):
-        self.asked.append(tuple(vehicles))
-        return np.array([v in self.held for v in vehicles])
-
-
-def test_a_group_member_passes_over_a_frame_of_none_of_its_vehicles_from_its_header(tmp_path, monkeypatch):
-    """In a group, a frame whose vehicles are all another member's is seen from its header (peek), not decoded:
-    not handed on, frames and frame gaps still counted, the group asked once per frame; a frame with one held
-    vehicle is decoded and cut to it."""
-    svc = _FrameSvc(instance="f-1")
-    r, _ = _runner(svc, tmp_path, monkeypatch)
-    r.group = _Admit(held=["car-2"])
-    r.handle_sample(FKEY, _clean_frame(0, {"mag/1": _mag_rows([(0, 1.0, 0), (1, 1.0, 0)])}))  # (list learnt)
-    assert [f.streams["mag/1"].vi.tolist() for f in svc.got] == [[1]]
-    decoded = []
-    real = frame.decode
-    monkeypatch.setattr(frame, "decode", lambda *a, **k: decoded.append(1) or real(*a, **k))
-    r.group.held = set()
-    r.handle_sample(FKEY, _clean_frame(2, {"mag/1": _mag_rows([(0, 1.02, 1), (1, 1.02, 1)])}))
-    assert decoded == [] and len(svc.got) == 1  # not decoded, not handed on
-    assert r.frames_in == 2 and r.frames_missed == 1  # frame 1 never came
-    assert len(r.group.asked) == 2
-    r.group.held = {"car-1"}
-    r.handle_sample(FKEY, _clean_frame(3, {"mag/1": _mag_rows([(0, 1.04, 2), (1, 1.04, 2)])}))
-    assert decoded == [1] and svc.got[-1].streams["mag/1"].vi.tolist() == [0]
-    assert r.frames_in == 3 and r.frames_missed == 1 and len(r.group.asked) == 3  # (asked once for that frame too)
-    assert frame.peek(b"\x81\xa4type\xa5frame") is None and frame.peek(b"\xc1") is None
-
-
 def test_one_stalls_backlog_is_worked_off_not_shed(tmp_path, monkeypatch):
     """A loop that stalled once (a slow first sample) finds frames queued longer than shed_after_s: it has not
     been behind for that long, so it handles them, and the next fresh input ends the spell."""
