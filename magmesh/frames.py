@@ -100,15 +100,6 @@ class SeqTable(MutableMapping):
         v = self.td.get(k) if s is None else float(self.tarr[s])
         return None if v is None or v != v else v
 
-    def items_t(self) -> list[tuple[str, int, float | None]]:
-        """(key, seq, sample time or None) of every key with a seq: ``get`` and ``get_t`` of each key at once."""
-        td = self.td
-        out = [(k, v, td.get(k)) for k, v in list(self.d.items())]
-        n = len(self.names)
-        out += [(k, v, t) for k, v, t in zip(list(self.names), self.arr[:n].tolist(), self.tarr[:n].tolist(),
-                                              strict=False) if k is not None and v != NONE]
-        return [(k, v, None if t is None or t != t else t) for k, v, t in out]
-
     # ---- the mapping ----------------------------------------------------------------------------
     def __getitem__(self, k: str) -> int:
         s = self.slot.get(k)

@@ -145,22 +145,6 @@ def test_seq_table_reads_as_one_dict():
     assert t.slots_for(["d"]).tolist() == [2] and t.generation == 1
 
 
-def test_seq_table_items_t_is_get_and_get_t_of_every_key():
-    """items_t (what a group member's every answer reads) gives what get and get_t give, key by key: keys in the
-    dict and in slots, freed slots, times never set (None) and set."""
-    t = SeqTable(capacity=2)
-    t["d1"] = 4
-    t.set_t("d1", 2.5)
-    t["d2"] = 7  # (no time)
-    s = t.slots_for(["s1", "s2", "s3", "gone"])
-    t.arr[s[0]], t.arr[s[1]], t.arr[s[3]] = 10, 11, 12
-    t.set_t("s1", 1.25)
-    t.free_slot("gone")
-    want = sorted((k, t.get(k), t.get_t(k)) for k in t)
-    assert sorted(t.items_t()) == want
-    assert want == [("d1", 4, 2.5), ("d2", 7, None), ("s1", 10, 1.25), ("s2", 11, None)]
-
-
 def test_frame_cut_to_subscribed_vehicles_and_streams(tmp_path, monkeypatch):
     svc = _FrameSvc(instance="f-1")
     r, _ = _runner(svc, tmp_path, monkeypatch)
