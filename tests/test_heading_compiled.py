@@ -57,6 +57,11 @@ def _call(f, row):
 _FLAG_NAMES = tuple(x.name for x in dataclasses.fields(core.Flags))  # every field a bool
 
 
+def _trace_row(ref, ret):
+    """The reference after a row, as a fleet slot is checked against it: (mode, mag_fused, return value, heading)."""
+    return ref.mode, ref.flags.mag_fused, bool(ret), ref.heading_rad()
+
+
 def _snapshot(f, ret):
     st = f.internal_states
     fl = f.flags  # a flat dataclass of bools: its fields' values as a tuple (what dataclasses.astuple gives)
@@ -69,10 +74,10 @@ def run_both(settings, rows, every: int = 1) -> dict:
     (every ``every``-th for the slower attributes). Returns what the reference went through."""
     ref, cmp_ = core.HeadingFilter(settings), compiled.CompiledHeadingFilter(settings)
     seen = {"modes": set(), "rejected": 0, "at_rest": 0, "uncertain": 0, "fused": 0, "max_diff": 0.0}
-    trace = []  # the reference after each row: (mode, mag_fused, return value, heading)
+    trace = []  # the reference after each row (_trace_row)
     for i, row in enumerate(rows):
         r1, r2 = _call(ref, row), _call(cmp_, row)
-        trace.append((ref.mode, ref.flags.mag_fused, bool(r1), ref.heading_rad()))
+        trace.append(_trace_row(ref, r1))
         assert ref.mode == cmp_.mode, (i, row, ref.mode, cmp_.mode, ref.transitions[-3:], cmp_.transitions[-3:])
         assert bool(r1) == bool(r2), (i, row)
         d = _hd(ref.heading_rad(), cmp_.heading_rad())
@@ -146,8 +151,7 @@ def reference_trace(settings, rows):
     ref = core.HeadingFilter(settings)
     trace = []
     for row in rows:
-        ret = _call(ref, row)
-        trace.append((ref.mode, ref.flags.mag_fused, bool(ret), ref.heading_rad()))
+        trace.append(_trace_row(ref, _call(ref, row)))
     return trace
 
 
