@@ -801,7 +801,10 @@ class GroupMember:
             if shard == self.me:
                 continue
             for v, name, sq, ts in rows:
-                k = stream_key(kind, v, name)
+                try:
+                    k = stream_key(kind, v, name)
+                except keys.KeyError_:  # a vehicle no key may name: no output of a member (ingest refuses it)
+                    continue
                 d = self.seen_out.get(v)
                 if d is None:
                     d = self.seen_out[v] = {}

@@ -755,6 +755,37 @@ def test_a_dead_member_whose_journal_is_elsewhere_is_taken_from_what_the_mesh_sh
     assert not st["found"]
 
 
+def test_another_members_frame_naming_a_vehicle_no_key_may_carry_costs_nothing_but_its_row(tmp_path, monkeypatch):
+    """The output watch reads whatever is put on the role's fleet frame keys: a frame whose vehicle no key may
+    name (anyone can put one on the open mesh) is passed over row by row, and the round goes on to the next one."""
+    import numpy as np
+
+    from magmesh.group_member import GroupMember
+    from schemas import frame
+
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
+    g = GroupMember(_Rt(), "dmc")
+
+    class _Smp:
+        def __init__(self, payload):
+            self.payload = type("P", (), {"to_bytes": lambda _s: payload})()
+
+    def dmc_frame(vehicles, seq, t):
+        n = len(vehicles)
+        one = np.zeros(n)
+        st = frame.Stream("dmc", "dmc", np.arange(n, dtype=np.uint32), np.full(n, t), np.full(n, seq, np.int64),
+                          {"dm_nt": np.zeros((n, 2)), "ddm_nt_s": np.zeros((n, 2)), "dh_rad": one,
+                           "ddh_rad_s": one, "heading_rad": one, "stage1_pass": np.ones(n, bool),
+                           "credibility": one + 1.0, "valid": np.ones(n, bool), "impl": "threshold",
+                           "param_source": "manifest"})
+        return frame.encode("dmc-2", "dmc", 0, list(vehicles), {"dmc": st})
+
+    items = [_Smp(dmc_frame(["car/1", "car-2"], 7, 1.5)), _Smp(dmc_frame(["car-3"], 9, 2.0))]
+    g._out_sub = type("S", (), {"try_recv": lambda _s: items.pop(0) if items else None})()
+    g._observe()
+    assert g.seen_out == {"car-2": {"magmesh/car-2/dmc": (7, 1.5)}, "car-3": {"magmesh/car-3/dmc": (9, 2.0)}}
+
+
 def test_a_take_over_from_the_mesh_reads_the_holders_last_input_from_the_samples_heard(tmp_path, monkeypatch):
     """What a dead holder handled after its last answer: the seq of its input at its last output's sample time, read
     from the samples of that key this member heard and skipped. Sample times come from a real clock, so the key's
