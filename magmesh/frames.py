@@ -9,6 +9,7 @@ keys handled one sample at a time, arrays for the keys frames carry, one mapping
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterator, MutableMapping
 
 import numpy as np
@@ -19,9 +20,12 @@ from schemas import keys
 NONE = np.iinfo(np.int64).min
 
 
+@functools.lru_cache(maxsize=1 << 14)
 def stream_key(kind: str, vehicle: str, name: str) -> str:
     """The per-vehicle key of a frame stream's rows: (clean, car-1, mag/1) → magmesh/car-1/clean/mag/1;
-    (cal, car-1, mag/1) → magmesh/car-1/cal/mag/1; (dmc, car-1, dmc) → magmesh/car-1/dmc."""
+    (cal, car-1, mag/1) → magmesh/car-1/cal/mag/1; (dmc, car-1, dmc) → magmesh/car-1/dmc. Raises
+    ``keys.KeyError_`` for a name no key may carry. (The last 16,384 keys kept: a group member builds one for
+    each row it watches.)"""
     if kind == "dmc":
         return keys.dmc(vehicle)
     head, _, sensor = name.partition("/")
@@ -99,6 +103,15 @@ class SeqTable(MutableMapping):
         s = self.slot.get(k)
         v = self.td.get(k) if s is None else float(self.tarr[s])
         return None if v is None or v != v else v
+
+    def items_t(self) -> list[tuple[str, int, float | None]]:
+        """(key, seq, sample time or None) of every key with a seq: ``get`` and ``get_t`` of each key at once."""
+        td = self.td
+        out = [(k, v, td.get(k)) for k, v in list(self.d.items())]
+        n = len(self.names)
+        out += [(k, v, t) for k, v, t in zip(list(self.names), self.arr[:n].tolist(), self.tarr[:n].tolist(),
+                                              strict=False) if k is not None and v != NONE]
+        return [(k, v, None if t is None or t != t else t) for k, v, t in out]
 
     # ---- the mapping ----------------------------------------------------------------------------
     def __getitem__(self, k: str) -> int:

@@ -39,6 +39,7 @@ coordination thread only queries.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import threading
@@ -94,8 +95,10 @@ REPUBLISH_MARGIN_S = 0.5
 _JOURNALLED = {"upstream_gap": "u", "lost_during_restart": "l", "lost_in_takeover": "t"}
 
 
+@functools.lru_cache(maxsize=1 << 14)
 def vehicle_of(key: str) -> str | None:
-    """The vehicle a data key names (None for a key that names none)."""
+    """The vehicle a data key names (None for a key that names none; the last 16,384 keys' answers kept: every
+    round reads it for each key a member handles)."""
     parts = key.split("/", 3)
     return parts[1] if len(parts) >= 3 and parts[0] == keys.ROOT and parts[1] != keys.SVC else None
 
@@ -394,15 +397,13 @@ class GroupMember:
         owned = self.owned
         out: dict[str, dict] = {}
         in_seq, last_in_t = getattr(rt, "in_seq", {}), getattr(rt, "last_in_t", {})
-        get_t = getattr(in_seq, "get_t", lambda k: None)
-        for k in list(in_seq):
+        items = getattr(in_seq, "items_t", None)
+        for k, sq, t in (items() if items is not None else [(k, s, None) for k, s in list(in_seq.items())]):
             v = vehicle_of(k)
-            sq = in_seq.get(k) if v in owned else None
-            if sq is not None:
+            if v in owned and sq is not None:
                 h = out.get(v)
                 if h is None:
                     h = out[v] = {"t": last_in_t.get(v), "in": {}, "drops": {}}
-                t = get_t(k)
                 h["in"][k] = [int(sq), h["t"] if t is None else t]
         for k, d in list(getattr(rt, "drops", {}).items()):
             v = vehicle_of(k)
@@ -793,9 +794,12 @@ class GroupMember:
 
         from .frames import stream_key
 
-        for smp in _pending(self._out_sub):
+        # newest first: a vehicle's row per stream is taken from the newest frame that has one (last_rows' taken)
+        payloads = [smp.payload.to_bytes() for smp in _pending(self._out_sub)]
+        taken: dict = {}
+        for p in reversed(payloads):
             try:
-                shard, kind, rows = frame.last_rows(smp.payload.to_bytes())
+                shard, kind, rows = frame.last_rows(p, taken)
             except ValueError:  # not a frame of this contract: nothing learnt from it
                 continue
             if shard == self.me:

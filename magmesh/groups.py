@@ -16,6 +16,7 @@ handles one upstream member's frames, not a part of every one's (co-partitioned 
 
 from __future__ import annotations
 
+import functools
 import hashlib
 from collections.abc import Iterable
 
@@ -26,8 +27,10 @@ def slot(member: str) -> str:
     return tail if sep and head and tail.isdigit() else member
 
 
+@functools.lru_cache(maxsize=1 << 16)
 def weight(vehicle: str, member: str) -> int:
-    """The rendezvous weight of ``member`` for ``vehicle`` (64 bits, the same everywhere): of its slot."""
+    """The rendezvous weight of ``member`` for ``vehicle`` (64 bits, the same everywhere): of its slot. (Every
+    round of every member asks for each vehicle's owner: the last 65,536 weights are kept, ~15 MB at most.)"""
     h = hashlib.blake2b(f"{vehicle}\x00{slot(member)}".encode(), digest_size=8)
     return int.from_bytes(h.digest(), "big")
 

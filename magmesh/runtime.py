@@ -1793,6 +1793,16 @@ class Runner:
         kind = info.rest[1]
         now = time.monotonic()
         self.key_seen[key] = now
+        admitted = None
+        if self.group is not None:
+            pk = fleetframe.peek(payload)
+            if pk is not None and pk[0] == info.rest[0] and pk[1] == kind:
+                # in a group, a frame of none of this member's vehicles (co-partitioned stages: another member's
+                # upstream shard) is seen from its header alone; its owner decodes and checks the rest
+                admitted = self._group_admitted(pk[3], kind, pk[4])
+                if not admitted.any():
+                    self._frame_seen(key, pk[2])
+                    return
         try:
             fr = fleetframe.decode(payload, where=key)
         except SchemaError as e:
@@ -1808,12 +1818,9 @@ class Runner:
             self.log_limited("frame-refused", "refused a frame on %s: it says shard %r, kind %r", key[:200],
                              fr.shard[:64], fr.kind)
             return
-        self.frames_in += 1
-        last = self.frame_seq_in.get(key)
-        if last is not None and fr.seq > last + 1:
-            self.frames_missed += fr.seq - last - 1
-        self.frame_seq_in[key] = fr.seq
-        admitted = self._group_admitted(fr, kind) if self.group is not None else None
+        self._frame_seen(key, fr.seq)
+        if self.group is not None and admitted is None:
+            admitted = self._group_admitted(fr.vehicles, kind, list(fr.streams))
         if admitted is not None and not admitted.any():
             return  # another group member's vehicles only (co-partitioned stages: another member's upstream shard)
         taken: dict[str, fleetframe.Stream] = {}
@@ -1862,12 +1869,20 @@ class Runner:
             self._fkeys[(key, name)] = sk
         return sk
 
-    def _group_admitted(self, fr: Any, kind: str) -> np.ndarray:
+    def _frame_seen(self, key: str, seq: int) -> None:
+        """A frame taken in on ``key``: counted, and the frames missed before it (a gap in its seq)."""
+        self.frames_in += 1
+        last = self.frame_seq_in.get(key)
+        if last is not None and seq > last + 1:
+            self.frames_missed += seq - last - 1
+        self.frame_seq_in[key] = seq
+
+    def _group_admitted(self, vehicles: list[str], kind: str, stream_names: list[str]) -> np.ndarray:
         """Which of a frame's vehicles this group member handles now (held, warming or being handed over)."""
-        name = next(iter(fr.streams), "imu")
+        name = stream_names[0] if stream_names else "imu"
         from .frames import stream_key
 
-        return self.group.admitted(fr.vehicles, lambda v: stream_key(kind, v, name))
+        return self.group.admitted(vehicles, lambda v: stream_key(kind, v, name))
 
     def _frame_seqs(self, sk: StreamKeys, st: Any, g_vi: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> None:
         """Seq tracking of each vehicle's rows of one stream, as :meth:`_accepted` does sample by sample."""

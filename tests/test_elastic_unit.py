@@ -755,37 +755,6 @@ def test_a_dead_member_whose_journal_is_elsewhere_is_taken_from_what_the_mesh_sh
     assert not st["found"]
 
 
-def test_another_members_frame_naming_a_vehicle_no_key_may_carry_costs_nothing_but_its_row(tmp_path, monkeypatch):
-    """The output watch reads whatever is put on the role's fleet frame keys: a frame whose vehicle no key may
-    name (anyone can put one on the open mesh) is passed over row by row, and the round goes on to the next one."""
-    import numpy as np
-
-    from magmesh.group_member import GroupMember
-    from schemas import frame
-
-    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
-    g = GroupMember(_Rt(), "dmc")
-
-    class _Smp:
-        def __init__(self, payload):
-            self.payload = type("P", (), {"to_bytes": lambda _s: payload})()
-
-    def dmc_frame(vehicles, seq, t):
-        n = len(vehicles)
-        one = np.zeros(n)
-        st = frame.Stream("dmc", "dmc", np.arange(n, dtype=np.uint32), np.full(n, t), np.full(n, seq, np.int64),
-                          {"dm_nt": np.zeros((n, 2)), "ddm_nt_s": np.zeros((n, 2)), "dh_rad": one,
-                           "ddh_rad_s": one, "heading_rad": one, "stage1_pass": np.ones(n, bool),
-                           "credibility": one + 1.0, "valid": np.ones(n, bool), "impl": "threshold",
-                           "param_source": "manifest"})
-        return frame.encode("dmc-2", "dmc", 0, list(vehicles), {"dmc": st})
-
-    items = [_Smp(dmc_frame(["car/1", "car-2"], 7, 1.5)), _Smp(dmc_frame(["car-3"], 9, 2.0))]
-    g._out_sub = type("S", (), {"try_recv": lambda _s: items.pop(0) if items else None})()
-    g._observe()
-    assert g.seen_out == {"car-2": {"magmesh/car-2/dmc": (7, 1.5)}, "car-3": {"magmesh/car-3/dmc": (9, 2.0)}}
-
-
 def test_a_take_over_from_the_mesh_reads_the_holders_last_input_from_the_samples_heard(tmp_path, monkeypatch):
     """What a dead holder handled after its last answer: the seq of its input at its last output's sample time, read
     from the samples of that key this member heard and skipped. Sample times come from a real clock, so the key's
@@ -910,3 +879,51 @@ def test_outputs_after_a_pause_are_held_until_a_round_shows_who_holds_the_vehicl
     _run(posted)
     assert [x[3] for x in rt.released] == [5.0], "car-1 released once two rounds showed nobody else holds it"
     assert g.gate("magmesh/car-1/dmc", "dmc", "car-1", 5.04, {}) and g.plain("car-1")
+
+
+def test_the_output_watch_learns_each_vehicles_last_output_and_passes_over_names_no_key_carries():
+    """``_observe`` reads the other members' output frames (their headers): per vehicle and key the newest seq and
+    sample time. A frame naming a vehicle no key may carry (a put on the fleet key by anyone) costs that row only,
+    not the round (before, it raised out of the round)."""
+    import msgpack
+    import numpy as np
+
+    from magmesh.group_member import GroupMember
+
+    def payload(shard, vehicles, rows):  # rows: (vehicle index, seq, t_s), sorted by vehicle
+        vi, sq, ts = (np.array([r[i] for r in rows], dt) for i, dt in ((0, "<u4"), (1, "<i8"), (2, "<f8")))
+        return msgpack.packb({"type": "frame", "version": 3, "shard": shard, "kind": "dmc", "t_s": 1.0, "seq": 0,
+                              "vehicles": vehicles, "streams": {"dmc": {"n": len(rows), "vi": vi.tobytes(),
+                                                                         "t_s": ts.tobytes(), "seq": sq.tobytes(),
+                                                                         "cols": {}}}})
+
+    class _Smp:
+        def __init__(self, b):
+            self.payload = self
+            self.b = b
+
+        def to_bytes(self):
+            return self.b
+
+    class _Sub:
+        def __init__(self, items):
+            self.items = list(items)
+
+        def try_recv(self):
+            return self.items.pop(0) if self.items else None
+
+    g = GroupMember(_Rt(), "dmc")
+    g._out_sub = _Sub([_Smp(payload("dmc-2", ["car-1", "bad/name", "car-2"], [(0, 7, 0.7), (0, 8, 0.8),
+                                                                                  (1, 3, 0.3), (2, 5, 0.5)])),
+                       _Smp(payload("dmc-2", ["car-1"], [(0, 6, 0.6)])),  # (older: not taken)
+                       _Smp(payload("dmc-1", ["car-3"], [(0, 1, 0.1)])),  # (its own)
+                       _Smp(b"\xc1")])
+    g._observe()
+    assert g.seen_out == {"car-1": {"magmesh/car-1/dmc": (8, 0.8)}, "car-2": {"magmesh/car-2/dmc": (5, 0.5)}}
+    # a round's frames of one list are read newest first: each vehicle's row from the newest frame that has one
+    two = ["car-1", "car-2"]
+    g._out_sub = _Sub([_Smp(payload("dmc-2", two, [(0, 10, 1.0), (1, 6, 0.6)])),
+                       _Smp(payload("dmc-2", two, [(0, 11, 1.1)])),
+                       _Smp(payload("dmc-2", two, [(1, 7, 0.7)]))])
+    g._observe()
+    assert g.seen_out == {"car-1": {"magmesh/car-1/dmc": (11, 1.1)}, "car-2": {"magmesh/car-2/dmc": (7, 0.7)}}

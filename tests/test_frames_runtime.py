@@ -145,6 +145,22 @@ def test_seq_table_reads_as_one_dict():
     assert t.slots_for(["d"]).tolist() == [2] and t.generation == 1
 
 
+def test_seq_table_items_t_is_get_and_get_t_of_every_key():
+    """items_t (what a group member's every answer reads) gives what get and get_t give, key by key: keys in the
+    dict and in slots, freed slots, times never set (None) and set."""
+    t = SeqTable(capacity=2)
+    t["d1"] = 4
+    t.set_t("d1", 2.5)
+    t["d2"] = 7  # (no time)
+    s = t.slots_for(["s1", "s2", "s3", "gone"])
+    t.arr[s[0]], t.arr[s[1]], t.arr[s[3]] = 10, 11, 12
+    t.set_t("s1", 1.25)
+    t.free_slot("gone")
+    want = sorted((k, t.get(k), t.get_t(k)) for k in t)
+    assert sorted(t.items_t()) == want
+    assert want == [("d1", 4, 2.5), ("d2", 7, None), ("s1", 10, 1.25), ("s2", 11, None)]
+
+
 def test_frame_cut_to_subscribed_vehicles_and_streams(tmp_path, monkeypatch):
     svc = _FrameSvc(instance="f-1")
     r, _ = _runner(svc, tmp_path, monkeypatch)
@@ -294,6 +310,41 @@ def test_publish_rows_in_a_group_gates_only_vehicles_in_a_hand_over(tmp_path, mo
     (fp,) = [p for k, p in sess.out if k.startswith("magmesh/fleet/")]
     st = frame.decode(fp).streams["dmc"]
     assert sorted(st.seq.tolist()) == [0, 0, 1] and st.n == 3
+
+
+class _Admit:
+    """A group member holding only the vehicles in ``held``; records which frames' vehicle lists it was asked."""
+
+    def __init__(self, held):
+        self.held, self.asked = set(held), []
+
+    def admitted(self, vehicles, key_of):
+        self.asked.append(tuple(vehicles))
+        return np.array([v in self.held for v in vehicles])
+
+
+def test_a_group_member_passes_over_a_frame_of_none_of_its_vehicles_from_its_header(tmp_path, monkeypatch):
+    """In a group, a frame whose vehicles are all another member's is seen from its header (peek), not decoded:
+    not handed on, frames and frame gaps still counted, the group asked once per frame; a frame with one held
+    vehicle is decoded and cut to it."""
+    svc = _FrameSvc(instance="f-1")
+    r, _ = _runner(svc, tmp_path, monkeypatch)
+    r.group = _Admit(held=["car-2"])
+    r.handle_sample(FKEY, _clean_frame(0, {"mag/1": _mag_rows([(0, 1.0, 0), (1, 1.0, 0)])}))  # (list learnt)
+    assert [f.streams["mag/1"].vi.tolist() for f in svc.got] == [[1]]
+    decoded = []
+    real = frame.decode
+    monkeypatch.setattr(frame, "decode", lambda *a, **k: decoded.append(1) or real(*a, **k))
+    r.group.held = set()
+    r.handle_sample(FKEY, _clean_frame(2, {"mag/1": _mag_rows([(0, 1.02, 1), (1, 1.02, 1)])}))
+    assert decoded == [] and len(svc.got) == 1  # not decoded, not handed on
+    assert r.frames_in == 2 and r.frames_missed == 1  # frame 1 never came
+    assert len(r.group.asked) == 2
+    r.group.held = {"car-1"}
+    r.handle_sample(FKEY, _clean_frame(3, {"mag/1": _mag_rows([(0, 1.04, 2), (1, 1.04, 2)])}))
+    assert decoded == [1] and svc.got[-1].streams["mag/1"].vi.tolist() == [0]
+    assert r.frames_in == 3 and r.frames_missed == 1 and len(r.group.asked) == 3  # (asked once for that frame too)
+    assert frame.peek(b"\x81\xa4type\xa5frame") is None and frame.peek(b"\xc1") is None
 
 
 def test_one_stalls_backlog_is_worked_off_not_shed(tmp_path, monkeypatch):
