@@ -311,6 +311,7 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
     router = zenoh.open(zconf.build_config(mode="router", listen=[f"tcp/127.0.0.1:{port}"]))
     man = _manifest(n + extra, tmp)
     procs: dict[str, subprocess.Popen] = {}
+    fleets: dict[str, subprocess.Popen] = {}  # the load generators (stopped with the stages if the run is cut short)
     tokens: list[str] = []
     members: dict[str, list[str]] = {}  # stage -> its instances
     batch_stream = None
@@ -359,6 +360,7 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         fleet = subprocess.Popen([sys.executable, *fleet_args, *put_args, "--connect", f"tcp/127.0.0.1:{port}"],
                                  cwd=paths.REPO,
                                  stdout=subprocess.PIPE, stderr=open(tmp / "fleet.log", "ab"), text=True)
+        fleets["fleet"] = fleet
         fleet2 = None
         if extra:
             a2 = list(fleet_args)
@@ -368,6 +370,7 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
             fleet2 = subprocess.Popen([sys.executable, *a2, "--first", str(n), "--connect",
                                        f"tcp/127.0.0.1:{port}"], cwd=paths.REPO, stdout=subprocess.PIPE,
                                       stderr=open(tmp / "fleet2.log", "ab"), text=True)
+            fleets["fleet2"] = fleet2
         while time.time() < start_at + warmup_s:
             time.sleep(0.01)
         cpu0 = {k: _cpu_s(p.pid) for k, p in procs.items()}
@@ -474,8 +477,12 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
             **({"extra_vehicles": extra, "extra_s": extra_s, "phases": phases} if extra else {}),
         }
     finally:
+        _stop(fleets)
         _stop(procs)
-        router.close()
+        try:
+            router.close()
+        except Exception:  # noqa: BLE001 - (a close that timed out must not hide why the run ended)
+            pass
 
 
 def _put_log(paths_: list[Path], n: int, extra: int) -> np.ndarray | None:

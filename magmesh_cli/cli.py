@@ -10,7 +10,9 @@ import math
 import os
 import pkgutil
 import re
+import signal
 import sys
+import threading
 
 from magmesh import __version__
 from magmesh.errors import UserError
@@ -62,6 +64,10 @@ def check_common_args(args: argparse.Namespace) -> str | None:
     return None
 
 
+def _terminated(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
 def main(argv: list[str] | None = None) -> int:
     argv_ = sys.argv[1:] if argv is None else argv
     first = next((a for a in argv_ if not a.startswith("-")), None)
@@ -79,6 +85,11 @@ def main(argv: list[str] | None = None) -> int:
     if problem is not None:
         print(f"magmesh {args.command}: {problem}", file=sys.stderr, flush=True)
         return 2
+    if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL and threading.current_thread() is threading.main_thread():
+        # SIGTERM (kill, a job's timeout) ends a command as Ctrl-C does: what it started is stopped on the way out
+        # (a benchmark's or an evaluation's services run in sessions of their own, which no signal to this
+        # process reaches; killed outright they were left running). Commands with their own handler replace it.
+        signal.signal(signal.SIGTERM, _terminated)
     try:
         rc = args.func(args)
     except UserError as e:

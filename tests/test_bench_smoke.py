@@ -65,3 +65,46 @@ def test_latency_counts_from_each_batch_s_real_put():
     assert np.allclose(put_lag(ts, vn, start, win, log), [0.001, 0.002, 0.030, 0.030, 0.0])
     assert np.allclose(put_lag(ts, np.array([0, 5, -1, 0, 0]), start, win, log), [0.001, 0, 0, 0.030, 0.030])
     assert not put_lag(ts, vn, start, win, None).any()
+
+
+def test_a_terminated_bench_stops_every_process_it_started():
+    """SIGTERM (kill, a job's timeout) ends ``magmesh bench mesh`` as Ctrl-C does: its stages run in sessions of
+    their own and the load generator beside them, and none may be left running (they were, killed outright)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    from meshutil import REPO
+
+    p = subprocess.Popen([sys.executable, "-m", "magmesh", "bench", "mesh", "--vehicles", "2", "--duration", "60",
+                          "--stages", "ingest,dmc_detector", "--no-overload", "--no-v1-ingest"], cwd=REPO,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+
+    def children() -> set[int]:
+        out = set()
+        for t in Path(f"/proc/{p.pid}/task").glob("*/children"):
+            out |= {int(x) for x in t.read_text().split()}
+        return out
+
+    try:
+        started: set[int] = set()
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and len(started) < 3 and p.poll() is None:  # both stages and the fleet
+            started |= children()
+            time.sleep(0.2)
+        assert len(started) >= 3, f"the bench started {len(started)} processes (rc {p.poll()})"
+        os.kill(p.pid, signal.SIGTERM)
+        _, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    assert p.returncode == 130 and "interrupted" in err and "Traceback" not in err, (p.returncode, err[-2000:])
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and any(Path(f"/proc/{c}").exists() for c in started):
+        time.sleep(0.2)
+    left = [c for c in started if Path(f"/proc/{c}").exists()
+            and Path(f"/proc/{c}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace").strip()]
+    assert not left, f"left running: {left}"
