@@ -103,6 +103,26 @@ class _Svc:
     instance = "dmc-1"
 
 
+class _Smp:
+    """A received sample: its payload's bytes and its key."""
+
+    def __init__(self, payload: bytes, key: str = ""):
+        self.payload, self.b, self.key_expr = self, payload, key
+
+    def to_bytes(self) -> bytes:
+        return self.b
+
+
+class _Sub:
+    """A watch channel holding ``items`` (``try_recv`` as Zenoh's handlers)."""
+
+    def __init__(self, items):
+        self.items = list(items)
+
+    def try_recv(self):
+        return self.items.pop(0) if self.items else None
+
+
 class _Rt:
     svc, session = _Svc(), None
 
@@ -716,18 +736,6 @@ def test_a_dead_member_whose_journal_is_elsewhere_is_taken_from_what_the_mesh_sh
         g._note_answers({"dmc-2": {"held": {"car-1": {"t": t, "in": {m1: [s, t], m2: [s - 1, t - 0.02]},
                                                       "drops": {m1: {"upstream_gap": 3, "lost_in_takeover": 2}}}}}})
     # then its fleet frames: outputs up to t = 10.3 (seq 515), from another shard (its own frames are skipped)
-    class _Sub:
-        def __init__(self, items):
-            self.items = list(items)
-
-        def try_recv(self):
-            return self.items.pop(0) if self.items else None
-
-    class _Smp:
-        def __init__(self, payload, key=""):
-            self.payload = type("P", (), {"to_bytes": lambda _s: payload})()
-            self.key_expr = key
-
     def dmc_frame(shard, seq, t):
         one = np.array([0.0])
         st = frame.Stream("dmc", "dmc", np.array([0], np.uint32), np.array([t]), np.array([seq], np.int64),
@@ -896,21 +904,6 @@ def test_the_output_watch_learns_each_vehicles_last_output_and_passes_over_names
                               "vehicles": vehicles, "streams": {"dmc": {"n": len(rows), "vi": vi.tobytes(),
                                                                          "t_s": ts.tobytes(), "seq": sq.tobytes(),
                                                                          "cols": {}}}})
-
-    class _Smp:
-        def __init__(self, b):
-            self.payload = self
-            self.b = b
-
-        def to_bytes(self):
-            return self.b
-
-    class _Sub:
-        def __init__(self, items):
-            self.items = list(items)
-
-        def try_recv(self):
-            return self.items.pop(0) if self.items else None
 
     g = GroupMember(_Rt(), "dmc")
     g._out_sub = _Sub([_Smp(payload("dmc-2", ["car-1", "bad/name", "car-2"], [(0, 7, 0.7), (0, 8, 0.8),

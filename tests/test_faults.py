@@ -93,17 +93,20 @@ def run_faults(tmp_path, schedule: list[str], speed: float, duration_s: float, s
                 status=status, data=list(data.items), killed_while_raised=killed_while_raised)
 
 
+def _losses(st: dict, key: str) -> dict:
+    """The instance's loss counts of ``key`` by reason (its status's drops, skips by design left out)."""
+    return {r: int(v) for r, v in ((st or {}).get("drops", {}).get(key) or {}).items() if r in LOST_REASONS}
+
+
 def lost(st: dict, key: str, reasons=LOST_REASONS) -> int:
     """Every sample of ``key`` the instance counted as lost, whatever the reason: the restart's own gap
     (``lost_during_restart``) and what a loaded machine adds beside it (an input queue that overflowed, samples
     Zenoh dropped on the way in: ``queue_overflow``, ``upstream_gap``, ...). Silent is only what none counts."""
-    d = (st or {}).get("drops", {}).get(key) or {}
-    return sum(int(v) for r, v in d.items() if r in reasons)
+    return sum(v for r, v in _losses(st, key).items() if r in reasons)
 
 
 def by_reason(st: dict, key: str) -> str:
-    d = (st or {}).get("drops", {}).get(key) or {}
-    return ", ".join(f"{r} {v}" for r, v in sorted(d.items()) if r in LOST_REASONS and v) or "none"
+    return ", ".join(f"{r} {v}" for r, v in sorted(_losses(st, key).items()) if v) or "none"
 
 
 def _seq_gaps(msgs: list[dict]) -> int:
