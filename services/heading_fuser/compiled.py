@@ -114,7 +114,8 @@ AGREEMENT_FROM_CLEAR = 60
 REJECTION_TIMEOUT_S = 61
 HEADING_ALARM_STD_RAD = 62
 GRAVITY_LPF_LOOP_GAIN = 63
-N_SETTINGS = 64
+HEADING_TEST_GYRO_FRAME = 64
+N_SETTINGS = 65
 
 SETTING_NAMES = tuple(f.name for f in fields(core.Settings))
 assert len(SETTING_NAMES) == N_SETTINGS and all(globals()[n.upper()] == i for i, n in enumerate(SETTING_NAMES)), (
@@ -214,6 +215,7 @@ I_HRN = 30
 N_I = 32
 
 # ---- layout of the per-slot buffers (offsets into the float state row) -------------------------------------
+W_STRIDE = 7  # a window item: t, strength, dip, mag − gyro yaw, the field in the gyro-only frame (3)
 L_WCAP = 0
 L_MCAP = 1
 L_GMAX = 2
@@ -323,6 +325,14 @@ def _qmat(w, x, y, z, R):
     R[2, 0] = 2 * (x * z - w * y)
     R[2, 1] = 2 * (y * z + w * x)
     R[2, 2] = 1 - 2 * (x * x + y * y)
+
+
+@njit(cache=True, error_model="numpy")
+def _qrot(w, x, y, z, v0, v1, v2):
+    """The vector (v0, v1, v2) turned by the unit quaternion (w, x, y, z): _qmat's matrix times it."""
+    return ((1 - 2 * (y * y + z * z)) * v0 + 2 * (x * y - w * z) * v1 + 2 * (x * z + w * y) * v2,
+            2 * (x * y + w * z) * v0 + (1 - 2 * (x * x + z * z)) * v1 + 2 * (y * z - w * x) * v2,
+            2 * (x * z - w * y) * v0 + 2 * (y * z + w * x) * v1 + (1 - 2 * (x * x + y * y)) * v2)
 
 
 @njit(cache=True, error_model="numpy")
@@ -1106,7 +1116,7 @@ def _imu(s, x, iv, L, g0, g1, g2, a0, a1, a2, dt, t_in, W):
 @njit(cache=True, error_model="numpy")
 def _window_full(x, iv, L, t, length_s):
     n = iv[I_WN]
-    return n >= 3 and t - x[L[L_WIN] + 4 * iv[I_WH]] >= 0.8 * length_s
+    return n >= 3 and t - x[L[L_WIN] + W_STRIDE * iv[I_WH]] >= 0.8 * length_s
 
 
 @njit(cache=True, error_model="numpy")
@@ -1239,18 +1249,26 @@ def _mag(s, x, iv, L, m0, m1, m2, dmc, t_in, W):
     ow = L[L_WIN]
     wcap = L[L_WCAP]
     j = (iv[I_WH] + iv[I_WN]) % wcap
-    x[ow + 4 * j] = t
-    x[ow + 4 * j + 1] = strength
-    x[ow + 4 * j + 2] = dip
-    x[ow + 4 * j + 3] = _remainder_2pi(mag_yaw - gyaw_m)
+    x[ow + W_STRIDE * j] = t
+    x[ow + W_STRIDE * j + 1] = strength
+    x[ow + W_STRIDE * j + 2] = dip
+    x[ow + W_STRIDE * j + 3] = _remainder_2pi(mag_yaw - gyaw_m)
+    gframe = s[HEADING_TEST_GYRO_FRAME] != 0.0
+    if gframe:  # the field in the gyro-only frame
+        f0, f1, f2 = _qrot(g0, g1, g2, g3, m0, m1, m2)
+    else:
+        f0 = f1 = f2 = 0.0
+    x[ow + W_STRIDE * j + 4] = f0
+    x[ow + W_STRIDE * j + 5] = f1
+    x[ow + W_STRIDE * j + 6] = f2
     iv[I_WN] += 1
     x[X_WS] += strength
     x[X_WS + 1] += strength * strength
     x[X_WS + 2] += dip
     x[X_WS + 3] += dip * dip
-    while iv[I_WN] > 0 and t - x[ow + 4 * iv[I_WH]] > wl:
+    while iv[I_WN] > 0 and t - x[ow + W_STRIDE * iv[I_WH]] > wl:
         h = iv[I_WH]
-        bb, dd = x[ow + 4 * h + 1], x[ow + 4 * h + 2]
+        bb, dd = x[ow + W_STRIDE * h + 1], x[ow + W_STRIDE * h + 2]
         x[X_WS] -= bb
         x[X_WS + 1] -= bb * bb
         x[X_WS + 2] -= dd
@@ -1269,7 +1287,16 @@ def _mag(s, x, iv, L, m0, m1, m2, dmc, t_in, W):
         var_b = max(0.0, x[X_WS + 1] / n - mb * mb)
         var_d = max(0.0, x[X_WS + 3] / n - md * md)
         last = (iv[I_WH] + iv[I_WN] - 1) % wcap
-        dpsi = abs(_remainder_2pi(x[ow + 4 * last + 3] - x[ow + 4 * iv[I_WH] + 3]))
+        fi, la = ow + W_STRIDE * iv[I_WH], ow + W_STRIDE * last
+        if gframe:
+            # the window's first and last field, carried into the nav frame through the gyro-only attitude now
+            u0, u1, u2 = _qrot(x[X_QG], -x[X_QG + 1], -x[X_QG + 2], -x[X_QG + 3], x[fi + 4], x[fi + 5], x[fi + 6])
+            v0, v1, v2 = _qrot(x[X_QG], -x[X_QG + 1], -x[X_QG + 2], -x[X_QG + 3], x[la + 4], x[la + 5], x[la + 6])
+            az_a = math.atan2(R[0, 0] * u0 + R[0, 1] * u1 + R[0, 2] * u2, R[1, 0] * u0 + R[1, 1] * u1 + R[1, 2] * u2)
+            az_b = math.atan2(R[0, 0] * v0 + R[0, 1] * v1 + R[0, 2] * v2, R[1, 0] * v0 + R[1, 1] * v1 + R[1, 2] * v2)
+            dpsi = abs(_remainder_2pi(az_b - az_a))
+        else:
+            dpsi = abs(_remainder_2pi(x[la + 3] - x[fi + 3]))
         window_bad = use_check and (abs(mb - ref_b) > s[FIELD_STRENGTH_TOL_FRAC] * ref_b
                                     or abs(md - ref_dip) > s[FIELD_DIP_TOL_RAD])
         var_fail = var_b > s[QUASI_STATIC_VAR_NT2] or var_d > s[QUASI_STATIC_DIP_VAR_RAD2]
@@ -1645,7 +1672,7 @@ def _layout(wcap: int, mcap: int, gmax: int) -> np.ndarray:
     L = np.zeros(N_L, np.int64)
     L[L_WCAP], L[L_MCAP], L[L_GMAX] = wcap, mcap, gmax
     o = N_X
-    for key, size in ((L_P, 36), (L_HIST, 6 * HIST_LEN), (L_WIN, 4 * wcap), (L_GT, LAG_NBUF), (L_GQ, 4 * LAG_NBUF),
+    for key, size in ((L_P, 36), (L_HIST, 6 * HIST_LEN), (L_WIN, W_STRIDE * wcap), (L_GT, LAG_NBUF), (L_GQ, 4 * LAG_NBUF),
                       (L_GRID, gmax), (L_A, 9 * gmax), (L_B, 3 * gmax), (L_C, gmax), (L_COST, gmax),
                       (L_MAGS, 4 * mcap), (L_HIR, 8 * HIR_LEN)):
         L[key] = o
@@ -1780,12 +1807,13 @@ class FleetHeading:
         IS = np.zeros((cap, N_I), np.int64)
         IS[:n] = self.IS
         # the rings are unrolled: oldest item first
-        for key, ih, inn, ocap in ((L_WIN, I_WH, I_WN, int(oL[L_WCAP])), (L_MAGS, I_MH, I_MN, int(oL[L_MCAP]))):
+        for key, ih, inn, ocap, w in ((L_WIN, I_WH, I_WN, int(oL[L_WCAP]), W_STRIDE),
+                                      (L_MAGS, I_MH, I_MN, int(oL[L_MCAP]), 4)):
             for k in range(n):
                 cnt, head = int(IS[k, inn]), int(IS[k, ih])
                 idx = (head + np.arange(cnt)) % ocap
-                old = self.X[k, oL[key]:oL[key] + 4 * ocap].reshape(ocap, 4)
-                X[k, nL[key]:nL[key] + 4 * cnt] = old[idx].ravel()
+                old = self.X[k, oL[key]:oL[key] + w * ocap].reshape(ocap, w)
+                X[k, nL[key]:nL[key] + w * cnt] = old[idx].ravel()
                 IS[k, ih] = 0
         S = np.zeros((cap, N_SETTINGS))
         S[:n] = self.S

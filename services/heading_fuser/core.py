@@ -161,6 +161,10 @@ class Settings:
     # 1 − exp(−T k_max) with k_max = gravity_lpf_loop_gain / τ (T: the time since the last accelerometer update);
     # 0: no limit
     gravity_lpf_loop_gain: float = 0.0
+    # the quasi-static heading test (quasi_static_heading_rad) on the field as the gyro-only attitude carries it: its
+    # turn about the vertical over the window. False: the change of (magnetometer Euler yaw − integrated nav-frame yaw
+    # rate), which a rotation that is not about the vertical alone moves too (that integral depends on the path)
+    heading_test_gyro_frame: bool = False
 
     def __post_init__(self):
         for f in fields(self):
@@ -329,24 +333,33 @@ class _Window:
         self.items: deque = deque()
         self.s = np.zeros(4)  # strength, strength², dip, dip²
 
-    def add(self, t: float, strength: float, dip: float, mag_minus_gyro: float) -> None:
-        self.items.append((t, strength, dip, mag_minus_gyro))
+    def add(self, t: float, strength: float, dip: float, mag_minus_gyro: float, field_g=(0.0, 0.0, 0.0)) -> None:
+        self.items.append((t, strength, dip, mag_minus_gyro, field_g))
         self.s += (strength, strength * strength, dip, dip * dip)
         while self.items and t - self.items[0][0] > self.length_s:
-            _, b, d, _ = self.items.popleft()
+            _, b, d, _, _ = self.items.popleft()
             self.s -= (b, b * b, d, d * d)
 
     def full(self, t: float) -> bool:
         return len(self.items) >= 3 and t - self.items[0][0] >= 0.8 * self.length_s
 
-    def stats(self) -> tuple[float, float, float, float, float]:
-        """(mean strength nT, strength variance nT², mean dip rad, dip variance rad², |Δψ_m − Δψ_g| rad)."""
+    def stats(self, nav_from_gyro: np.ndarray | None = None) -> tuple[float, float, float, float, float]:
+        """(mean strength nT, strength variance nT², mean dip rad, dip variance rad², |Δψ_m − Δψ_g| rad).
+
+        ``nav_from_gyro`` (the estimate's rotation times the gyro-only one's inverse, now): Δψ is the turn about
+        the vertical, over the window, of the field as the gyro alone carries it (stored in the gyro-only frame);
+        without it, the change of (magnetometer Euler yaw − integrated nav-frame yaw rate), which a rotation
+        that is not about the vertical alone moves too (the integral of the vertical rate is path-dependent)."""
         n = len(self.items)
         mb, md = self.s[0] / n, self.s[2] / n
         var_b = max(0.0, self.s[1] / n - mb * mb)
         var_d = max(0.0, self.s[3] / n - md * md)
-        # Δψ_m − Δψ_g = change over the window of (magnetometer yaw − integrated gyro yaw)
-        return mb, var_b, md, var_d, abs(math.remainder(self.items[-1][3] - self.items[0][3], 2 * math.pi))
+        if nav_from_gyro is None:
+            # Δψ_m − Δψ_g = change over the window of (magnetometer yaw − integrated gyro yaw)
+            return mb, var_b, md, var_d, abs(math.remainder(self.items[-1][3] - self.items[0][3], 2 * math.pi))
+        a = nav_from_gyro[:2] @ np.asarray(self.items[0][4])
+        b = nav_from_gyro[:2] @ np.asarray(self.items[-1][4])
+        return mb, var_b, md, var_d, abs(math.remainder(math.atan2(b[0], b[1]) - math.atan2(a[0], a[1]), 2 * math.pi))
 
     def clear(self) -> None:
         self.items.clear()
@@ -752,13 +765,14 @@ class HeadingFilter:
         # magnetometer yaw = estimated yaw + azimuth error of the field (the innovation below)
         nu = math.remainder(azimuth - s.declination_rad, 2 * math.pi)
         mag_yaw = math.atan2(R_m[1, 0], R_m[0, 0]) + nu
-        self._window.add(t, strength, dip, math.remainder(mag_yaw - gyro_yaw_m, 2 * math.pi))
+        field_g = _qmat(qg_m) @ m if s.heading_test_gyro_frame else (0.0, 0.0, 0.0)
+        self._window.add(t, strength, dip, math.remainder(mag_yaw - gyro_yaw_m, 2 * math.pi), field_g)
         gain = 1.0
         fl.quasi_static = True
         window_bad = False
         mb = self.ref_field_nt  # the window's mean strength (the reference until the window is full)
         if self._window.full(t):
-            mb, var_b, md, var_d, dpsi = self._window.stats()
+            mb, var_b, md, var_d, dpsi = self._window.stats(R @ _qmat(self._qg).T if s.heading_test_gyro_frame else None)
             window_bad = s.use_field_check and (
                 abs(mb - self.ref_field_nt) > s.field_strength_tol_frac * self.ref_field_nt
                 or abs(md - self.ref_dip_rad) > s.field_dip_tol_rad
