@@ -287,3 +287,27 @@ def test_the_heading_test_in_the_gyro_frame_passes_a_clean_field_however_the_bod
     assert _quasi_static_frac(True, 0.0) == 1.0
     # a field that turns 4°/s about the vertical against the gyro (beyond the test's 2° per 1 s window) fails it
     assert _quasi_static_frac(True, math.radians(4.0)) < 0.05
+
+
+def _recovering_s(exit_mean: bool) -> tuple[float, float]:
+    """A magnetometer whose heading scatters by ~0.18 rad per sample (5 µT per axis), a 1 s DMC outage at 20 s:
+    (seconds from the outage's end to magnetic mode, or the rest of the run if never; the largest heading error
+    after it, degrees)."""
+    t, g, a, m, truth = synth(40.0, 0.1, seed=8)
+    m = m + np.random.default_rng(9).normal(0.0, 5000.0, m.shape)
+    dmc = ~((t >= 20.0) & (t < 21.0))
+    s = Settings(declination_rad=DECL, mag_noise_nt=5000.0, use_field_check=False, adaptive_noise=False,
+                 recovery_exit_rad=0.1, recovery_exit_mean=exit_mean)
+    h, modes, _ = run(HeadingFilter(s), g, a, m, dmc)
+    back = np.flatnonzero((t >= 21.0) & (modes == "magnetic"))
+    return (float(t[back[0]] - 21.0) if back.size else float(t[-1] - 21.0)), float(np.nanmax(err_deg(h, truth)[t > 21]))
+
+
+def test_recovering_judges_a_noisy_magnetometer_on_its_mean_innovation():
+    # every sample inside 0.1 rad for 2 s: a magnetometer this noisy (per-sample σ ≈ 0.15 rad) almost never passes
+    per_sample, _ = _recovering_s(False)
+    assert per_sample > 10.0, per_sample
+    # the mean over the hold inside 0.1 rad: back after the clear hold and one agreement hold
+    mean, err = _recovering_s(True)
+    assert mean <= Settings().recovery_hold_s + 0.5, mean
+    assert err < 5.0, err

@@ -115,7 +115,8 @@ REJECTION_TIMEOUT_S = 61
 HEADING_ALARM_STD_RAD = 62
 GRAVITY_LPF_LOOP_GAIN = 63
 HEADING_TEST_GYRO_FRAME = 64
-N_SETTINGS = 65
+RECOVERY_EXIT_MEAN = 65
+N_SETTINGS = 66
 
 SETTING_NAMES = tuple(f.name for f in fields(core.Settings))
 assert len(SETTING_NAMES) == N_SETTINGS and all(globals()[n.upper()] == i for i, n in enumerate(SETTING_NAMES)), (
@@ -178,6 +179,8 @@ X_LP_S0 = 97  # 3: the second-order gravity low-pass's states
 X_LP_S1 = 100  # 3
 X_LP_DT = 103  # the step its coefficients below are for (NaN: none yet)
 X_LP_C = 104  # 5: b0, b1, b2, a1, a2
+X_INSIDE_SUM = 109  # the innovations' sum and count since X_INSIDE_SINCE (recovery_exit_mean)
+X_INSIDE_N = 110
 N_X = 112
 
 # ---- int state columns per slot ----------------------------------------------------------------------------
@@ -1387,10 +1390,15 @@ def _mag(s, x, iv, L, m0, m1, m2, dmc, t_in, W):
                 x[X_OUTAGE_S] = t - since if scaled else NAN
             if s[AGREEMENT_FROM_CLEAR] != 0.0:
                 # recovering's agreement test runs from here, on the estimate the gyro alone has carried
-                if not usable or abs(nu) > s[RECOVERY_EXIT_RAD]:
+                if not usable or (s[RECOVERY_EXIT_MEAN] == 0.0 and abs(nu) > s[RECOVERY_EXIT_RAD]):
                     x[X_INSIDE_SINCE] = NAN
                 elif math.isnan(x[X_INSIDE_SINCE]):
                     x[X_INSIDE_SINCE] = t
+                    x[X_INSIDE_SUM] = nu
+                    x[X_INSIDE_N] = 1.0
+                else:
+                    x[X_INSIDE_SUM] += nu
+                    x[X_INSIDE_N] += 1.0
             if t - x[X_CLEAR_SINCE] >= _hold(s, x, s[CLEAR_HOLD_S]):
                 inside_since = x[X_INSIDE_SINCE]
                 _set_mode(x, iv, M_REC, 5)
@@ -1407,12 +1415,22 @@ def _mag(s, x, iv, L, m0, m1, m2, dmc, t_in, W):
             consistent = not math.isnan(x[X_CONS_SINCE]) and t - x[X_CONS_SINCE] >= s[RECOVERY_HOLD_S]
             if usable:
                 fused = True
-                if abs(nu) > s[RECOVERY_EXIT_RAD]:
+                if s[RECOVERY_EXIT_MEAN] == 0.0 and abs(nu) > s[RECOVERY_EXIT_RAD]:
                     x[X_INSIDE_SINCE] = NAN
                 elif math.isnan(x[X_INSIDE_SINCE]):
                     x[X_INSIDE_SINCE] = t
-                elif t - x[X_INSIDE_SINCE] >= _hold(s, x, s[RECOVERY_HOLD_S]):
-                    _set_mode(x, iv, M_MAG, 7)
+                    x[X_INSIDE_SUM] = nu
+                    x[X_INSIDE_N] = 1.0
+                else:
+                    x[X_INSIDE_SUM] += nu
+                    x[X_INSIDE_N] += 1.0
+                    if t - x[X_INSIDE_SINCE] >= _hold(s, x, s[RECOVERY_HOLD_S]):
+                        if s[RECOVERY_EXIT_MEAN] == 0.0 or abs(x[X_INSIDE_SUM] / x[X_INSIDE_N]) <= s[RECOVERY_EXIT_RAD]:
+                            _set_mode(x, iv, M_MAG, 7)
+                        else:  # the mean over the hold is off: judge the next hold afresh
+                            x[X_INSIDE_SINCE] = t
+                            x[X_INSIDE_SUM] = nu
+                            x[X_INSIDE_N] = 1.0
             else:
                 x[X_INSIDE_SINCE] = NAN
                 if consistent and not sample_bad and quasi_static:

@@ -165,6 +165,10 @@ class Settings:
     # turn about the vertical over the window. False: the change of (magnetometer Euler yaw − integrated nav-frame yaw
     # rate), which a rotation that is not about the vertical alone moves too (that integral depends on the path)
     heading_test_gyro_frame: bool = False
+    # recovering's (and the clear hold's) agreement test on the mean innovation over the hold (|mean| ≤
+    # recovery_exit_rad after recovery_hold_s of usable samples), not on every sample staying inside: a magnetometer
+    # whose heading noise in motion exceeds recovery_exit_rad otherwise never agrees until the sensor rests
+    recovery_exit_mean: bool = False
 
     def __post_init__(self):
         for f in fields(self):
@@ -406,6 +410,7 @@ class HeadingFilter:
         self._clear_since_t: float | None = None
         self._consistent_since_t: float | None = None
         self._inside_gate_since_t: float | None = None
+        self._inside_sum, self._inside_n = 0.0, 0  # the innovations since then (recovery_exit_mean)
         self._rejected_since_t: float | None = None
         self._gyro_only_since_t: float | None = None
         self._left_magnetic_t: float | None = None  # when the filter last left magnetic mode
@@ -859,10 +864,13 @@ class HeadingFilter:
                 if s.agreement_from_clear:
                     # recovering's agreement test runs from here, on the estimate the gyro alone has carried (the
                     # magnetometer is watched, not fused); recovering then needs only the rest of its hold
-                    if not usable or abs(nu) > s.recovery_exit_rad:
+                    if not usable or (not s.recovery_exit_mean and abs(nu) > s.recovery_exit_rad):
                         self._inside_gate_since_t = None
                     elif self._inside_gate_since_t is None:
-                        self._inside_gate_since_t = t
+                        self._inside_gate_since_t, self._inside_sum, self._inside_n = t, nu, 1
+                    else:
+                        self._inside_sum += nu
+                        self._inside_n += 1
                 if t - self._clear_since_t >= self._hold(s.clear_hold_s):
                     inside_since = self._inside_gate_since_t
                     self._set_mode("recovering", "disturbance cleared")
@@ -879,12 +887,18 @@ class HeadingFilter:
                 consistent = self._consistent_since_t is not None and t - self._consistent_since_t >= s.recovery_hold_s
                 if usable:
                     fused = True
-                    if abs(nu) > s.recovery_exit_rad:
+                    if not s.recovery_exit_mean and abs(nu) > s.recovery_exit_rad:
                         self._inside_gate_since_t = None
                     elif self._inside_gate_since_t is None:
-                        self._inside_gate_since_t = t
-                    elif t - self._inside_gate_since_t >= self._hold(s.recovery_hold_s):
-                        self._set_mode("magnetic", "magnetometer consistent and its heading agrees")
+                        self._inside_gate_since_t, self._inside_sum, self._inside_n = t, nu, 1
+                    else:
+                        self._inside_sum += nu
+                        self._inside_n += 1
+                        if t - self._inside_gate_since_t >= self._hold(s.recovery_hold_s):
+                            if not s.recovery_exit_mean or abs(self._inside_sum / self._inside_n) <= s.recovery_exit_rad:
+                                self._set_mode("magnetic", "magnetometer consistent and its heading agrees")
+                            else:  # the mean over the hold is off: judge the next hold afresh
+                                self._inside_gate_since_t, self._inside_sum, self._inside_n = t, nu, 1
                 else:
                     self._inside_gate_since_t = None
                     if consistent and not sample_bad and fl.quasi_static:

@@ -56,6 +56,10 @@ _IMU_ONLY = dict(
     recovery_slew_rad_s=0.035,
     rejection_timeout_s=20.0,
     recovery_exit_rad=0.1,
+    # ... judged on the mean innovation over the hold: the board's magnetometer heading in motion scatters by more
+    # than 0.1 rad sample to sample (2.7–11° RMS per trial against the optical attitude), so a per-sample test only
+    # passes once it rests
+    recovery_exit_mean=True,
     disturbed_noise_gain=30.0,
     hard_iron_tracking=True,
     hard_iron_noise_gain=2.0,
