@@ -311,3 +311,22 @@ def test_recovering_judges_a_noisy_magnetometer_on_its_mean_innovation():
     mean, err = _recovering_s(True)
     assert mean <= Settings().recovery_hold_s + 0.5, mean
     assert err < 5.0, err
+
+
+@pytest.mark.parametrize("impl", ["reference", "compiled"])
+def test_attitude_covariance_stays_bounded_in_fast_turns_sampled_slowly(impl):
+    """I − [ω T]× grows P by 1 + |ω T|² per step across ω: 15 rad/s at 48 Hz with nothing fused would reach
+    ~1e20 rad² in 10 s (BROAD's fast rotation replayed at 48 Hz ended in a singular update). Held at 1 rad²."""
+    from services.heading_fuser import compiled
+
+    f = HeadingFilter(Settings(init_duration_s=0.0)) if impl == "reference" else compiled.CompiledHeadingFilter(
+        Settings(init_duration_s=0.0))
+    f.update_imu([0.0, 0.0, 0.0], [0.0, 0.0, maths.G0], 0.0)
+    f.update_mag(maths.body_to_enu(0.3).T @ FIELD_ENU_NT)
+    for _ in range(480):  # the accelerometer far off g: rejected, nothing fused
+        f.update_imu([15.0, -5.0, 3.0], [0.0, 0.0, 30.0], 1.0 / 48.0)
+    P = np.asarray(f.P)
+    assert np.all(np.isfinite(P))
+    assert max(np.diag(P)[:3]) <= 1.0 + 1e-12
+    assert np.min(np.linalg.eigvalsh(0.5 * (P + P.T))) > -1e-9
+    f.update_mag(maths.body_to_enu(0.3).T @ FIELD_ENU_NT)  # an update after it solves

@@ -118,6 +118,8 @@ HEADING_TEST_GYRO_FRAME = 64
 RECOVERY_EXIT_MEAN = 65
 N_SETTINGS = 66
 
+ATTITUDE_VAR_MAX_RAD2 = core.ATTITUDE_VAR_MAX_RAD2
+
 SETTING_NAMES = tuple(f.name for f in fields(core.Settings))
 assert len(SETTING_NAMES) == N_SETTINGS and all(globals()[n.upper()] == i for i, n in enumerate(SETTING_NAMES)), (
     "core.Settings changed: update the settings columns of services/heading_fuser/compiled.py")
@@ -539,6 +541,15 @@ def _predict(s, x, P, g0, g1, g2, dt, W6):
     P[3, 3] += qb
     P[4, 4] += qb
     P[5, 5] += qb
+    m = max(P[0, 0], P[1, 1], P[2, 2])
+    if m > ATTITUDE_VAR_MAX_RAD2:  # core.HeadingFilter._predict: the attitude block scaled back (a congruence)
+        k = math.sqrt(ATTITUDE_VAR_MAX_RAD2 / m)
+        for i in range(3):
+            for j in range(6):
+                P[i, j] *= k
+        for i in range(6):
+            for j in range(3):
+                P[i, j] *= k
 
 
 @njit(cache=True, error_model="numpy")

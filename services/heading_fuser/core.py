@@ -187,6 +187,9 @@ class Settings:
             raise ValueError(f"setting gravity_lpf_order must be 1 or 2, got {self.gravity_lpf_order!r}")
 
 
+ATTITUDE_VAR_MAX_RAD2 = 1.0  # the attitude error's variance never grows beyond (1 rad)² per axis
+
+
 @dataclass
 class InternalStates:
     """Continuous diagnostics of the last update (read-only outputs, x-io Fusion style)."""
@@ -592,6 +595,15 @@ class HeadingFilter:
         P[3, 3] += qb
         P[4, 4] += qb
         P[5, 5] += qb
+        # I − [ω T]× is no rotation: it grows P by 1 + |ω T|² per step across ω, which the updates do not hold
+        # back in fast turns sampled slowly (15 rad/s at 48 Hz: ×100 per second, 1e15 rad² in a minute, then a
+        # singular update); the attitude block is scaled back to ATTITUDE_VAR_MAX_RAD2 (a congruence: P stays
+        # positive semi-definite)
+        m = max(P[0, 0], P[1, 1], P[2, 2])
+        if m > ATTITUDE_VAR_MAX_RAD2:
+            k = math.sqrt(ATTITUDE_VAR_MAX_RAD2 / m)
+            P[:3, :] *= k
+            P[:, :3] *= k
         self.P = P
 
     def _inject(self, dx: np.ndarray) -> None:
