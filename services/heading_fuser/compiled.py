@@ -432,6 +432,20 @@ def _set_mode(x, iv, mode, reason):
 
 
 @njit(cache=True, error_model="numpy")
+def _agreement_add(x, t, nu):
+    """One usable innovation into the agreement hold: it starts the hold when none runs (returns False), else it is
+    added to the hold's sum and count (returns True)."""
+    if math.isnan(x[X_INSIDE_SINCE]):
+        x[X_INSIDE_SINCE] = t
+        x[X_INSIDE_SUM] = nu
+        x[X_INSIDE_N] = 1.0
+        return False
+    x[X_INSIDE_SUM] += nu
+    x[X_INSIDE_N] += 1.0
+    return True
+
+
+@njit(cache=True, error_model="numpy")
 def _hold(s, x, full_s):
     o = x[X_OUTAGE_S]
     if math.isnan(o):
@@ -1403,13 +1417,8 @@ def _mag(s, x, iv, L, m0, m1, m2, dmc, t_in, W):
                 # recovering's agreement test runs from here, on the estimate the gyro alone has carried
                 if not usable or (s[RECOVERY_EXIT_MEAN] == 0.0 and abs(nu) > s[RECOVERY_EXIT_RAD]):
                     x[X_INSIDE_SINCE] = NAN
-                elif math.isnan(x[X_INSIDE_SINCE]):
-                    x[X_INSIDE_SINCE] = t
-                    x[X_INSIDE_SUM] = nu
-                    x[X_INSIDE_N] = 1.0
                 else:
-                    x[X_INSIDE_SUM] += nu
-                    x[X_INSIDE_N] += 1.0
+                    _agreement_add(x, t, nu)
             if t - x[X_CLEAR_SINCE] >= _hold(s, x, s[CLEAR_HOLD_S]):
                 inside_since = x[X_INSIDE_SINCE]
                 _set_mode(x, iv, M_REC, 5)
@@ -1428,20 +1437,12 @@ def _mag(s, x, iv, L, m0, m1, m2, dmc, t_in, W):
                 fused = True
                 if s[RECOVERY_EXIT_MEAN] == 0.0 and abs(nu) > s[RECOVERY_EXIT_RAD]:
                     x[X_INSIDE_SINCE] = NAN
-                elif math.isnan(x[X_INSIDE_SINCE]):
-                    x[X_INSIDE_SINCE] = t
-                    x[X_INSIDE_SUM] = nu
-                    x[X_INSIDE_N] = 1.0
-                else:
-                    x[X_INSIDE_SUM] += nu
-                    x[X_INSIDE_N] += 1.0
-                    if t - x[X_INSIDE_SINCE] >= _hold(s, x, s[RECOVERY_HOLD_S]):
-                        if s[RECOVERY_EXIT_MEAN] == 0.0 or abs(x[X_INSIDE_SUM] / x[X_INSIDE_N]) <= s[RECOVERY_EXIT_RAD]:
-                            _set_mode(x, iv, M_MAG, 7)
-                        else:  # the mean over the hold is off: judge the next hold afresh
-                            x[X_INSIDE_SINCE] = t
-                            x[X_INSIDE_SUM] = nu
-                            x[X_INSIDE_N] = 1.0
+                elif _agreement_add(x, t, nu) and t - x[X_INSIDE_SINCE] >= _hold(s, x, s[RECOVERY_HOLD_S]):
+                    if s[RECOVERY_EXIT_MEAN] == 0.0 or abs(x[X_INSIDE_SUM] / x[X_INSIDE_N]) <= s[RECOVERY_EXIT_RAD]:
+                        _set_mode(x, iv, M_MAG, 7)
+                    else:  # the mean over the hold is off: judge the next hold afresh
+                        x[X_INSIDE_SINCE] = NAN
+                        _agreement_add(x, t, nu)
             else:
                 x[X_INSIDE_SINCE] = NAN
                 if consistent and not sample_bad and quasi_static:

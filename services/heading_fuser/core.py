@@ -465,6 +465,16 @@ class HeadingFilter:
         right = np.array([fwd[1], -fwd[0], 0.0])
         return h, math.sqrt(max(right @ Pn @ right, 0.0)), math.sqrt(max(fwd @ Pn @ fwd, 0.0))
 
+    def _agreement_add(self, t: float, nu: float) -> bool:
+        """One usable innovation into the agreement hold: it starts the hold when none runs (returns False), else it
+        is added to the hold's sum and count (returns True)."""
+        if self._inside_gate_since_t is None:
+            self._inside_gate_since_t, self._inside_sum, self._inside_n = t, nu, 1
+            return False
+        self._inside_sum += nu
+        self._inside_n += 1
+        return True
+
     def _hold(self, full_s: float) -> float:
         """A hold after gyro_only: ``full_s``, or, when only the DMC's verdict kept the magnetometer out, the
         time since the filter left magnetic mode (at least ``min_hold_s``)."""
@@ -878,11 +888,8 @@ class HeadingFilter:
                     # magnetometer is watched, not fused); recovering then needs only the rest of its hold
                     if not usable or (not s.recovery_exit_mean and abs(nu) > s.recovery_exit_rad):
                         self._inside_gate_since_t = None
-                    elif self._inside_gate_since_t is None:
-                        self._inside_gate_since_t, self._inside_sum, self._inside_n = t, nu, 1
                     else:
-                        self._inside_sum += nu
-                        self._inside_n += 1
+                        self._agreement_add(t, nu)
                 if t - self._clear_since_t >= self._hold(s.clear_hold_s):
                     inside_since = self._inside_gate_since_t
                     self._set_mode("recovering", "disturbance cleared")
@@ -901,16 +908,12 @@ class HeadingFilter:
                     fused = True
                     if not s.recovery_exit_mean and abs(nu) > s.recovery_exit_rad:
                         self._inside_gate_since_t = None
-                    elif self._inside_gate_since_t is None:
-                        self._inside_gate_since_t, self._inside_sum, self._inside_n = t, nu, 1
-                    else:
-                        self._inside_sum += nu
-                        self._inside_n += 1
-                        if t - self._inside_gate_since_t >= self._hold(s.recovery_hold_s):
-                            if not s.recovery_exit_mean or abs(self._inside_sum / self._inside_n) <= s.recovery_exit_rad:
-                                self._set_mode("magnetic", "magnetometer consistent and its heading agrees")
-                            else:  # the mean over the hold is off: judge the next hold afresh
-                                self._inside_gate_since_t, self._inside_sum, self._inside_n = t, nu, 1
+                    elif self._agreement_add(t, nu) and t - self._inside_gate_since_t >= self._hold(s.recovery_hold_s):
+                        if not s.recovery_exit_mean or abs(self._inside_sum / self._inside_n) <= s.recovery_exit_rad:
+                            self._set_mode("magnetic", "magnetometer consistent and its heading agrees")
+                        else:  # the mean over the hold is off: judge the next hold afresh
+                            self._inside_gate_since_t = None
+                            self._agreement_add(t, nu)
                 else:
                     self._inside_gate_since_t = None
                     if consistent and not sample_bad and fl.quasi_static:
