@@ -251,22 +251,14 @@ def _tumble(duration_s: float, field_turn_rad_s: float = 0.0):
     about the vertical at ``field_turn_rad_s``: (gyro, accel, mag), noise-free."""
     n = int(duration_s * RATE_HZ)
     w = np.array([1.5, -1.0, 0.8])
+    dq = maths.quat_from_rotvec(w / RATE_HZ)
     q = np.array([1.0, 0.0, 0.0, 0.0])
-    dq_ang = np.linalg.norm(w) / RATE_HZ
-    ax = w / np.linalg.norm(w)
-    dq = np.r_[math.cos(dq_ang / 2), ax * math.sin(dq_ang / 2)]
     gyro, accel, mag = np.tile(w, (n, 1)), np.empty((n, 3)), np.empty((n, 3))
     for i in range(n):
-        qw, qx, qy, qz = q
-        R = np.array([[1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)],
-                      [2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)],
-                      [2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)]])
-        c, s = math.cos(field_turn_rad_s * i / RATE_HZ), math.sin(field_turn_rad_s * i / RATE_HZ)
-        b = np.array([c * FIELD_ENU_NT[0] - s * FIELD_ENU_NT[1], s * FIELD_ENU_NT[0] + c * FIELD_ENU_NT[1], FIELD_ENU_NT[2]])
+        R = maths.quat_to_matrix(q)
         accel[i] = R.T @ np.array([0.0, 0.0, maths.G0])
-        mag[i] = R.T @ b
-        q = np.array([qw * dq[0] - qx * dq[1] - qy * dq[2] - qz * dq[3], qw * dq[1] + qx * dq[0] + qy * dq[3] - qz * dq[2],
-                      qw * dq[2] - qx * dq[3] + qy * dq[0] + qz * dq[1], qw * dq[3] + qx * dq[2] - qy * dq[1] + qz * dq[0]])
+        mag[i] = R.T @ (maths.rot_z(field_turn_rad_s * i / RATE_HZ) @ FIELD_ENU_NT)
+        q = maths.quat_mul(q, dq)
     return gyro, accel, mag
 
 
