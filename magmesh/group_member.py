@@ -91,6 +91,13 @@ HEARD_KEYS_MAX = 1024
 REPUBLISH_MARGIN_S = 0.5
 
 
+#: how often (wall s) a round asks the others for their ``held`` table (every input key's seq and sample time of every
+#: vehicle they hold, the part of an answer that grows with the fleet); the other rounds ask for membership and
+#: hand-overs only. Asked every round (0.2 s), building, encoding and reading it took about 30 % of a core across the
+#: four stages' members at 600 vehicles, two per stage (``magmesh bench mesh``); a failover from the mesh estimates
+#: what its holder handled after the last table from the key's rate (:meth:`GroupMember._mesh_state`)
+HELD_PERIOD_S = 1.0
+
 #: the drop counts a member's seq journal keeps per key, by the letter of their entries (magmesh/runtime.py)
 _JOURNALLED = {"upstream_gap": "u", "lost_during_restart": "l", "lost_in_takeover": "t"}
 
@@ -168,6 +175,7 @@ class GroupMember:
         self._dead_since: dict[str, float] = {}  # member -> when its liveliness was seen gone
         self._leaving_seen: set[str] = set()
         self._lapsed: set[str] = set()  # members whose token went but that still answer (kept as live)
+        self._held_asked = float("-inf")  # when a round last asked the others for their held tables (monotonic s)
         self.last_holder: dict[str, str] = {}  # vehicle -> the other member last seen holding it
         self._tokens: set[str] = set()  # live instances of the role (liveliness tokens)
         self._token_sub: Any = None
@@ -368,9 +376,9 @@ class GroupMember:
             self.members = [m for m in self.members if m != self.me]
         else:
             return {"ok": False, "error": f"unknown group op {op!r} (known: g_state, g_release, g_done, g_leave)"}
-        return {"ok": True, **self.state()}
+        return {"ok": True, **self.state(held=op != "g_state" or bool(req.get("held", True)))}
 
-    def state(self) -> dict:
+    def state(self, held: bool = True) -> dict:
         rt = self.rt
         hand = {}
         for v, cut in list(self.release.items()):
@@ -386,8 +394,11 @@ class GroupMember:
                        "alarms": {k: s for k, s in list(rt.alarm_published.items()) if k.startswith(pre)},
                        "raised": raised, "last_in_t": last_in_t, "passed": passed, "cut": cut,
                        "to": self.release_to.get(v)}
-        return {"group": self.name, "instance": self.me, "leaving": self.leaving, "owned": sorted(list(self.owned)),
-                "taking": sorted(set(self.warming) | set(self.arm)), "releasing": hand, "held": self._held()}
+        out = {"group": self.name, "instance": self.me, "leaving": self.leaving, "owned": sorted(list(self.owned)),
+               "taking": sorted(set(self.warming) | set(self.arm)), "releasing": hand}
+        if held:
+            out["held"] = self._held()
+        return out
 
     def _held(self) -> dict:
         """Per vehicle held here: the last input seq handled per key, the sample time of the last input and the
@@ -790,7 +801,7 @@ class GroupMember:
     def _observe(self) -> None:
         """Take in what the watch channels hold: per vehicle of another member, the last seq and sample time of each
         output key; per alarm key, its last transition."""
-        from schemas import frame, messages
+        from schemas import frame
 
         from .frames import stream_key
 
@@ -926,8 +937,11 @@ class GroupMember:
         for m in live:
             self._dead_since.pop(m, None)
         self.live = live
+        ask_held = now - self._held_asked >= HELD_PERIOD_S
+        if ask_held:
+            self._held_asked = now
         for inst in sorted(live - {self.me} - set(states)):
-            st = self._query(inst, {"op": "g_state"})
+            st = self._query(inst, {"op": "g_state", "held": ask_held or inst not in self.snap})
             if st is not None:
                 states[inst] = st
         self._note_answers(states)
@@ -1187,8 +1201,8 @@ class GroupMember:
         """What the mesh showed of vehicle ``v`` whose holder left nothing on this host (it ran on another host, or
         with another state directory): the last output seq and sample time of each of its keys as the holder's
         fleet frames carried them, the last alarm transitions it published, and from its last ``g_state`` answer
-        (one round old at most) the input seqs it had handled and its drop counts. What it handled after that
-        answer is read from the samples of each input key heard here up to the last output's sample time (``t_out``,
+        with a held table (:data:`HELD_PERIOD_S` and a round old at most) the input seqs it had handled and its drop
+        counts. What it handled after that answer is read from the samples of each input key heard here up to the last output's sample time (``t_out``,
         :meth:`_heard_seq`), or estimated from the key's rate when those do not reach back so far: inputs
         after it were not handled, or died in its joins, and count as ``lost_in_takeover``; outputs at or before it
         were published and are not published again (``t_out``, see :meth:`_failover`)."""

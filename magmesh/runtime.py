@@ -432,6 +432,14 @@ class Service:
         return self._runtime.vehicle_state
 
     @property
+    def group_share(self) -> float:
+        """This instance's share of its role's fleet: 1 alone, 1/N as one of N live members of a group (what a
+        budget set for the role, such as calibration's ``fit_budget_frac``, gives each member)."""
+        g = getattr(self._rt, "group", None)
+        n = len(g.members) if g is not None else 1
+        return 1.0 / max(1, n)
+
+    @property
     def _runtime(self) -> Runner:
         if self._rt is None:
             raise RuntimeError("service is not running: start it with magmesh.runtime.main or Runner")

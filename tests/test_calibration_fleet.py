@@ -614,3 +614,23 @@ def test_param_id_codes_stay_bounded_and_right():
     assert st.param_ids(0) == ["1-ls-2998", "1-ls-2999"] and st.param_id_column(0) == ["1-ls-2998", "1-ls-2999"]
     st = fc.step([F.MagIn("1", one, np.array(s[:1]), np.array([2.0]), np.ones((1, 3)))])
     assert st.param_id_column(0) == "1-ls-2998"
+
+
+def test_a_new_fit_budget_share_takes_effect_and_no_limit_stays_no_limit():
+    """A group member's share of the role's budget (calibration service: fit_budget_frac / members): the token
+    bucket refills at the new rate from the change on, keeps no more banked than the new burst, and a budget of 0
+    (no limit) is not turned into one."""
+    clock = {"wall": 0.0}
+    fc = F.FleetCalibration(fit_budget_frac=0.04, wall=lambda: clock["wall"], cpu=lambda: 0.0)
+    clock["wall"] = 10.0
+    fc._refill()
+    assert fc.tokens == pytest.approx(0.04)  # (at most the 1 s bank)
+    fc.set_fit_budget(0.02)
+    assert fc.fit_budget_frac == 0.02 and fc.tokens == pytest.approx(0.02)
+    fc.tokens = 0.0
+    clock["wall"] = 10.5
+    fc._refill()
+    assert fc.tokens == pytest.approx(0.01)
+    free = F.FleetCalibration(fit_budget_frac=0.0)
+    free.set_fit_budget(0.02)
+    assert free.unlimited and free._allow_now()

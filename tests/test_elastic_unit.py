@@ -920,3 +920,35 @@ def test_the_output_watch_learns_each_vehicles_last_output_and_passes_over_names
                        _Smp(payload("dmc-2", two, [(1, 7, 0.7)]))])
     g._observe()
     assert g.seen_out == {"car-1": {"magmesh/car-1/dmc": (11, 1.1)}, "car-2": {"magmesh/car-2/dmc": (7, 0.7)}}
+
+
+def test_rounds_ask_for_the_held_tables_once_a_held_period_and_a_member_answers_without_one_when_not_asked(
+        tmp_path, monkeypatch):
+    """The held table (every input key's seq of every vehicle a member holds) is the part of an answer that grows
+    with the fleet: a round asks for it only once per HELD_PERIOD_S (and from a member it has none of), the other
+    rounds ask for membership and hand-overs alone; a g_state not asking for it is answered without it."""
+    from magmesh import group_member as gm
+
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
+    answers = {"dmc-2": {"g_state": {"ok": True, "owned": [], "releasing": {}, "taking": [],
+                                     "held": {"car-9": {"t": 1.0, "in": {}, "drops": {}}}}}}
+    g, rt, posted = _member("dmc-1", ["dmc-1", "dmc-2"], answers)
+    asked: list[bool] = []
+    query = g._query
+
+    def spy(inst, req, timeout=1.0):
+        asked.append(bool(req.get("held", True)))
+        return query(inst, req, timeout)
+
+    g._query = spy
+    clock = {"t": 1000.0}
+    monkeypatch.setattr(gm.time, "monotonic", lambda: clock["t"])
+    for _ in range(11):  # 2 s of rounds, 0.2 s apart
+        g._round()
+        _run(posted)
+        clock["t"] += 0.2
+    assert asked == [True, False, False, False, False, True, False, False, False, False, True]
+    g.owned.add("car-1")
+    assert "held" not in g.control({"op": "g_state", "held": False})
+    assert "held" in g.control({"op": "g_state", "held": True})
+    assert "held" in g.control({"op": "g_state"})  # a member that does not say gets it (as before)

@@ -1015,6 +1015,15 @@ class FleetCalibration:
         self._events: list[Event] = []
         self._pids: dict[tuple[int, int], str] = {}
 
+    def set_fit_budget(self, frac: float) -> None:
+        """A new ``fit_budget_frac`` (a group member's share of its role's budget, as the membership changes); a
+        limit set to 0 stays no limit, and what is banked is kept up to the new burst."""
+        if self.unlimited or not 0 < frac < math.inf or frac == self.fit_budget_frac:
+            return
+        self._refill()
+        self.fit_budget_frac = float(frac)
+        self.tokens = min(self.tokens, self._burst)
+
     # ---- slots ------------------------------------------------------------------------------------------------
     @property
     def _burst(self) -> float:

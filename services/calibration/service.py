@@ -43,8 +43,8 @@ class Settings:
     window_s: float = setting(600.0, "fit window: samples older than this (sample time) leave it", gt=0)
     sample_interval_s: float = setting(0.05, "decimation of the fit window: at most one sample per interval", lo=0)
     refit_interval_s: float = setting(5.0, "fit attempt period, sample time", gt=0)
-    fit_budget_frac: float = setting(0.04, "share of one core fits may take (CPU time); 0: no limit (fit when due)",
-                                     lo=0)
+    fit_budget_frac: float = setting(0.04, "share of one core fits may take (CPU time), split evenly among a "
+                                     "group's members; 0: no limit (fit when due)", lo=0)
     window_max_samples: int = setting(0, "fit window bound; 0: what window_s / sample_interval_s allows", lo=0)
     field_radius_nt: float = setting(0.0, "> 0: scale the compensated field to this strength; 0: the fitted radius",
                                      lo=0)
@@ -332,6 +332,8 @@ class Calibration(Service):
         return [(k, m) for k, m in list(self.last_msgs.items()) if qke.intersects(zenoh.KeyExpr(k))]
 
     def on_tick(self) -> None:
+        # in a group of N the role's budget is split: N members fit no more in all than one process would
+        self.fleet.set_fit_budget(self.settings.fit_budget_frac * self.group_share)
         self._handle(self.fleet.run_queued())  # fits that waited for the budget
         self._flush_unusable()
         self._free_dropped()
