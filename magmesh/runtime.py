@@ -49,6 +49,9 @@ from .frames import SeqTable, StreamKeys
 
 #: samples a reader thread hands to the main loop at once (what has arrived, up to this many)
 READ_BATCH = 64
+#: a mirrored frame kind's vehicle list is started anew once it would name more than twice the vehicles this
+#: instance holds, and this many (``_mirror_rows``)
+MIRROR_LIST_MIN = 64
 QUEUE_CAPACITY = 65536 // READ_BATCH  # queue entries (each a batch of at most READ_BATCH samples, or a query)
 ALARM_HISTORY = 64  # alarm / cal-params samples each publisher keeps for late joiners and miss recovery
 _HEADER_NAMES = frozenset(("type", "version", "vehicle", "t_s", "seq"))
@@ -724,6 +727,7 @@ class Runner:
         self._unsettled: deque = deque()  # (when, _Watch) of new publishers whose matching status is not known yet
         self._raw_batch_keys: dict[str, KeyInfo] = {}  # raw/batch keys already checked (a service taking them)
         self.mirrors: dict[str, str] = {}  # message type -> frame kind its rows are mirrored in (publish_rows)
+        self._mirror_lists: dict[str, tuple[list[str], dict[str, int]]] = {}  # kind -> its frames' vehicle list
         service._rt = self
 
     # ---- output ---------------------------------------------------------------------------
@@ -1099,8 +1103,22 @@ class Runner:
         if not sent.any():
             return
         idx = np.flatnonzero(sent).tolist()
-        names: dict[str, int] = {}
-        vi = np.fromiter((names.setdefault(vehicles[i], len(names)) for i in idx), np.uint32, len(idx))
+        # the frame's vehicle list: one list object kept per kind, grown as vehicles come (a new object then), so
+        # frame after frame carries the same list and its readers keep their per-list state (schemas/frame.py
+        # _checked_vehicles, _stream_keys, _frame_times) instead of reading a new list of names each frame
+        vl = self._mirror_lists.get(kind)
+        if vl is None:
+            vl = self._mirror_lists[kind] = ([], {})
+        names, index = vl
+        fresh = [v for v in dict.fromkeys(vehicles[i] for i in idx) if v not in index]
+        if fresh:
+            if len(names) + len(fresh) > max(MIRROR_LIST_MIN, 2 * len(self.vehicle_state)):
+                names, index = [], {}  # (vehicles gone for good are left out: started anew)
+                fresh = list(dict.fromkeys(vehicles[i] for i in idx))
+            names = [*names, *fresh]
+            index = {**index, **{v: len(index) + j for j, v in enumerate(fresh)}}
+            self._mirror_lists[kind] = (names, index)
+        vi = np.fromiter((index[vehicles[i]] for i in idx), np.uint32, len(idx))
         order = np.argsort(vi, kind="stable")
         idx_a = np.asarray(idx)[order]
         fcols = {}
@@ -1113,7 +1131,7 @@ class Runner:
                 vals = [c[i] for i in idx_a.tolist()]
                 fcols[f] = vals[0] if vals and all(isinstance(x, str) and x == vals[0] for x in vals) else vals
         st = fleetframe.Stream(msg_type, msg_type, vi[order], np.asarray(t_s, float)[idx_a], sq[idx_a], fcols)
-        self.publish_frame(kind, list(names), {msg_type: st}, gated=True)
+        self.publish_frame(kind, names, {msg_type: st}, gated=True)
 
     def _release_held(self, held: list) -> int:
         """Publish outputs held during a hand-over; those of a mirrored type go out as one frame too."""

@@ -411,6 +411,22 @@ class _Heads(msgspec.Struct):
 
 
 _heads_dec = msgspec.msgpack.Decoder(_Heads)
+
+
+class _ShardOnly(msgspec.Struct):
+    shard: Any = None
+
+
+_shard_dec = msgspec.msgpack.Decoder(_ShardOnly)
+
+
+def shard_of(payload: bytes) -> str | None:
+    """The shard a frame says it comes from, read without anything else (None: not a map, or no string shard)."""
+    try:
+        s = _shard_dec.decode(payload).shard
+    except (msgspec.DecodeError, msgspec.ValidationError):
+        return None
+    return s if isinstance(s, str) else None
 _names_dec = msgspec.msgpack.Decoder(list[str])
 #: a vehicle list's msgpack bytes -> its names, for :func:`last_rows` (unchecked: a reader builds keys with checks)
 _HEAD_VEHICLES: dict[bytes, list[str]] = {}

@@ -681,6 +681,24 @@ def test_a_frames_vehicles_are_admitted_as_one_by_one(tmp_path, monkeypatch):
     assert mask.tolist() == one_by_one
     assert any(one_by_one[30:]) and not all(one_by_one[30:])  # new vehicles: the owner's taken at once
     assert a.owned == b.owned and a.seen == b.seen and a.stats["not_owned"] == b.stats["not_owned"]
+    # the same list again: the same answer (kept), counted the same; any change of the holdings makes it anew
+    not_owned = b.stats["not_owned"]
+    assert b.admitted(cars, key) is mask
+    assert b.stats["not_owned"] == 2 * not_owned  # (each frame counts the vehicles not held here)
+    for change in (lambda g: g.owned.discard(mine[0]), lambda g: g.warming.pop(cars[3]),
+                   lambda g: g.arm.__setitem__(cars[7], ("dmc-2", 5.0, 0.0)), lambda g: g.passed.discard(cars[6]),
+                   lambda g: g.release.__delitem__(cars[5]), lambda g: g.owned.update([cars[8]])):
+        change(a)
+        change(b)
+        again = b.admitted(cars, key)
+        assert again is not mask and again.tolist() == [a.admits(key(v)) for v in cars]
+        mask = again
+    # heard per vehicle list: a vehicle of a list heard is heard then, one of no list is not
+    import time as _time
+
+    t0 = _time.monotonic()
+    b.admitted(cars, key)
+    assert b._heard_at(cars[20]) >= t0 and b._heard_at("car-999") is None
 
 
 def test_a_new_vehicle_is_taken_at_once_by_its_owner_even_after_an_incomplete_round(tmp_path, monkeypatch):
@@ -952,3 +970,32 @@ def test_rounds_ask_for_the_held_tables_once_a_held_period_and_a_member_answers_
     assert "held" not in g.control({"op": "g_state", "held": False})
     assert "held" in g.control({"op": "g_state", "held": True})
     assert "held" in g.control({"op": "g_state"})  # a member that does not say gets it (as before)
+
+
+def test_the_output_watch_passes_over_frames_of_members_whose_journal_is_on_this_host(tmp_path, monkeypatch):
+    """A failover from a member whose seq journal is on this host reads the journal (every output is written there
+    before it is put): that member's frames, and this member's own, are passed over from their shard alone; a
+    member on another host (no journal here) is watched."""
+    import numpy as np
+
+    from magmesh.group_member import GroupMember
+    from schemas import frame
+
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
+    (tmp_path / "journal").mkdir()
+    (tmp_path / "journal" / "dmc_detector.dmc-2.seq").write_bytes(b"")
+
+    def dmc_frame(shard, vehicle, seq, t):
+        one = np.array([0.0])
+        st = frame.Stream("dmc", "dmc", np.array([0], np.uint32), np.array([t]), np.array([seq], np.int64),
+                          {"dm_nt": np.zeros((1, 2)), "ddm_nt_s": np.zeros((1, 2)), "dh_rad": one, "ddh_rad_s": one,
+                           "heading_rad": one, "stage1_pass": np.array([True]), "credibility": one + 1.0,
+                           "valid": np.array([True]), "impl": "threshold", "param_source": "manifest"})
+        return frame.encode(shard, "dmc", 0, [vehicle], {"dmc": st})
+
+    g = GroupMember(_Rt(), "dmc")
+    assert g.role == "dmc_detector" and frame.shard_of(dmc_frame("dmc-3", "car-3", 1, 1.0)) == "dmc-3"
+    g._out_sub = _Sub([_Smp(dmc_frame("dmc-2", "car-2", 7, 1.0)), _Smp(dmc_frame("dmc-3", "car-3", 8, 1.0)),
+                       _Smp(dmc_frame(g.me, "car-1", 9, 1.0))])
+    g._observe()
+    assert set(g.seen_out) == {"car-3"} and g.seen_out["car-3"] == {"magmesh/car-3/dmc": (8, 1.0)}

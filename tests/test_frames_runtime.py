@@ -263,6 +263,14 @@ def test_publish_rows_fast_path_and_mirror(tmp_path, monkeypatch):
     got = sorted(zip([f.vehicles[i] for i in st.vi.tolist()], st.t_s.tolist(), st.seq.tolist(), strict=True))
     assert got == [("car-1", 1.0, 0), ("car-2", 1.0, 0), ("car-2", 1.02, 1)]
     assert r.journal.load()["o" + keys.dmc("car-2")] == 1
+    # the next frames carry the same vehicle list (one object while no vehicle comes: readers keep their state per
+    # list), rows of a vehicle not in it a longer one
+    sent = []
+    monkeypatch.setattr(r, "publish_frame", lambda kind, vehicles, streams_, gated=False: sent.append(vehicles))
+    r.publish_rows("dmc", [keys.dmc("car-1")], ["car-1"], [1.04], _dmc_cols(1), mirror="dmc")
+    r.publish_rows("dmc", [keys.dmc("car-2")], ["car-2"], [1.04], _dmc_cols(1), mirror="dmc")
+    r.publish_rows("dmc", [keys.dmc("van-1")], ["van-1"], [1.04], _dmc_cols(1), mirror="dmc")
+    assert sent[0] is sent[1] and sent[0] == f.vehicles and sent[2] == [*f.vehicles, "van-1"]
     # an invalid row (credibility outside [0, 1]) goes through the validating path: refused, counted
     bad = _dmc_cols(1)
     bad["credibility"] = [1.5]
