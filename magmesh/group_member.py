@@ -1074,6 +1074,7 @@ class GroupMember:
         return box[0] if done.wait(timeout) and box else None
 
     def _run(self) -> None:
+        zconf.os_thread_name("mm-group")
         while not self._stop.wait(self.period_s):
             try:
                 self._round()

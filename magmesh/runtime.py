@@ -1615,7 +1615,13 @@ class Runner:
                 j.set("f" + key, self._first_rx[key])
 
     def _spawn(self, target: Callable, *args: Any) -> None:
-        t = threading.Thread(target=target, args=args, daemon=True)
+        what = {"s": "data", "__control__": "control"}.get(args[1], args[1]) if len(args) > 1 else "worker"
+
+        def named() -> None:
+            zconf.os_thread_name(f"mm-read-{what}" if target == self._reader else f"mm-{what}")
+            target(*args)
+
+        t = threading.Thread(target=named, daemon=True, name=f"magmesh-{what}")
         t.start()
         self.threads.append(t)
 
@@ -2542,6 +2548,7 @@ class Runner:
         return float(t) if t else None
 
     def loop(self) -> None:
+        zconf.os_thread_name("mm-main")
         tick = self.tick_period()
         next_tick = time.monotonic() + (tick or 0)
         due_at = getattr(self.svc, "tick_due_at", None)  # a service's next deadline: the tick runs then, not later

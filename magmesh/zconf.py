@@ -33,6 +33,20 @@ WAIT_BEFORE_CLOSE_US = 30_000_000
 _LOG_STARTED = False
 
 
+def os_thread_name(name: str) -> None:
+    """Name the calling thread for the OS (``top -H``, ``/proc/PID/task/*/comm``; 15 bytes), so a process's CPU
+    shows per thread: its main loop, its reader threads, the group's rounds (Zenoh's own are rx-/tx-/net-/app-).
+    Linux only; anywhere else, or if the call fails, nothing happens."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).prctl(15, name.encode()[:15], 0, 0, 0)  # PR_SET_NAME
+    except Exception:  # noqa: BLE001 - a name is a convenience
+        pass
+
+
 def start_zenoh_log() -> None:
     """Zenoh's own log to stderr (a process's log file): errors by default, more with ``RUST_LOG``, e.g.
     ``RUST_LOG=warn,zenoh_transport=debug`` shows every link opened, closed or expired. Once per process."""
