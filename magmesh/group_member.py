@@ -248,6 +248,7 @@ class GroupMember:
         self.rt = rt
         self._gen = 0  # bumped by every change of the holdings (owned, seen, warming, arm, release, passed)
         self._adm: dict[int, tuple[list, int, Any, int]] = {}  # id(list) -> (list, _gen, mask, not owned)
+        self._plain_set: tuple[int, set[str]] | None = None  # (_gen, vehicles held with no hand-over under way)
         self._heard_lists: dict[int, list] = {}  # id(list) -> [list, when a frame of it was last heard, its set]
         self.rt = rt
         self.name = keys.check_id(name, "group name")
@@ -266,7 +267,8 @@ class GroupMember:
         #: vehicle -> (holder, cut, since) awaiting the takeover
         self.arm: dict[str, tuple[str, float, float]] = _TrackedDict(self._changed)
         self.held: list[tuple] = []
-        self.post_cut: dict[str, float] = {}  # after a hand-over: outputs before the cut were the holder's
+        #: after a hand-over: outputs before the cut were the holder's
+        self.post_cut: dict[str, float] = _TrackedDict(self._changed)
         self.release: dict[str, float] = _TrackedDict(self._changed)  # vehicle -> cut: this instance hands it over
         self.release_to: dict[str, str] = {}  # vehicle -> the member it is handed over to
         #: outputs of a vehicle being handed over at or after its cut: published only if the hand-over fails (the
@@ -441,6 +443,21 @@ class GroupMember:
         vehicle and no hand-over of it is under way (what :meth:`gate` would say for any ``t_s``)."""
         return vehicle in self.owned and vehicle not in self.post_cut and vehicle not in self.release \
             and vehicle not in self.arm and vehicle not in self.warming and self._flowing(vehicle)
+
+    def plain_many(self, vehicles: Any) -> dict[str, bool]:
+        """:meth:`plain` for each of ``vehicles`` (a frame's, once each): the vehicles held with no hand-over under
+        way are kept as one set until the holdings change, and while this member is not cut off and no output is
+        held after a pause, flowing is one time for them all (what :meth:`_flowing` notes vehicle by vehicle)."""
+        c = self._plain_set
+        if c is None or c[0] != self._gen:
+            held = self.owned - self.post_cut.keys() - self.release.keys() - self.arm.keys() - self.warming.keys()
+            c = self._plain_set = (self._gen, held)
+        held = c[1]
+        if self.cut_off_since is not None or self.paused:
+            return {v: v in held and self._flowing(v) for v in vehicles}
+        out = {v: v in held for v in vehicles}
+        self.last_out.update(dict.fromkeys((v for v, ok in out.items() if ok), time.monotonic()))
+        return out
 
     def _flowing(self, v: str) -> bool:
         """Whether an output of held vehicle ``v`` goes out now: False while its outputs are held after a pause

@@ -928,6 +928,18 @@ class Runner:
         good = js >= 0
         arr[js[good]] = last[good]
 
+    def _plain_many(self, vehicles: list[str]) -> dict[str, bool]:
+        """:meth:`_plain` for every vehicle of ``vehicles``, each once."""
+        vs = dict.fromkeys(vehicles)
+        if self.mode != "active":
+            return dict.fromkeys(vs, False)
+        blocked = (self.cut.keys() | self.recovering.keys()) & vs.keys() if (self.cut or self.recovering) else ()
+        ask = [v for v in vs if v not in blocked] if blocked else vs
+        out = self.group.plain_many(ask) if self.group is not None else dict.fromkeys(ask, True)
+        for v in blocked:
+            out[v] = False
+        return out
+
     def _plain(self, vehicle: str) -> bool:
         """Whether every output of ``vehicle`` goes out now, whatever its time (no hand-over of it under way)."""
         if self.mode != "active" or vehicle in self.cut or vehicle in self.recovering:
@@ -943,8 +955,10 @@ class Runner:
         g_vi, starts, ends = st.groups()
         keep = np.zeros(st.n, bool)
         slow = []
-        for i, a, b in zip(g_vi.tolist(), starts.tolist(), ends.tolist(), strict=True):
-            if self._plain(vehicles[i]):
+        gi = g_vi.tolist()
+        plain = self._plain_many([vehicles[i] for i in gi])
+        for i, a, b in zip(gi, starts.tolist(), ends.tolist(), strict=True):
+            if plain[vehicles[i]]:
                 keep[a:b] = True
             else:
                 slow.extend(range(a, b))
@@ -1022,7 +1036,7 @@ class Runner:
         if self.reconcile_pending or bad:
             slow, rows = list(range(n)), ()
         elif self._gated() or self.recovering:  # rows of vehicles in a hand-over (or just resumed) one by one
-            plain = {v: self._plain(v) for v in set(vehicles)}
+            plain = self._plain_many(vehicles)
             slow = [i for i in range(n) if not plain[vehicles[i]]]
             if slow:
                 rows = [i for i in range(n) if plain[vehicles[i]]]

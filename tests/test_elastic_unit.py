@@ -999,3 +999,31 @@ def test_the_output_watch_passes_over_frames_of_members_whose_journal_is_on_this
                        _Smp(dmc_frame(g.me, "car-1", 9, 1.0))])
     g._observe()
     assert set(g.seen_out) == {"car-3"} and g.seen_out["car-3"] == {"magmesh/car-3/dmc": (8, 1.0)}
+
+
+def test_plain_many_says_what_plain_says_vehicle_by_vehicle(tmp_path, monkeypatch):
+    """A frame's vehicles judged at once (the held-and-no-hand-over set kept until the holdings change) give what
+    plain() gives one by one, in every state, before and after a change, and with outputs held after a pause."""
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
+    cars = [f"car-{i}" for i in range(12)]
+
+    def setup():
+        g, rt, posted = _member("dmc-1", ["dmc-1", "dmc-2"], {})
+        g.owned.update(cars[:9])
+        g.post_cut[cars[1]] = 5.0
+        g.release[cars[2]] = 5.0
+        g.arm[cars[3]] = ("dmc-2", 5.0, 0.0)
+        g.warming[cars[4]] = "dmc-2"
+        return g
+
+    a, b = setup(), setup()
+    assert b.plain_many(cars) == {v: a.plain(v) for v in cars}
+    assert sum(b.plain_many(cars).values()) == 5 and set(b.last_out) == set(a.last_out)
+    for g in (a, b):
+        g.post_cut.pop(cars[1])
+        g.owned.discard(cars[0])
+    assert b.plain_many(cars) == {v: a.plain(v) for v in cars}
+    for g in (a, b):  # cut off, and a vehicle whose outputs paused: held until a round shows nobody ahead
+        g.cut_off_since = 1.0
+        g.last_out[cars[5]] -= 10.0
+    assert b.plain_many(cars) == {v: a.plain(v) for v in cars} and not b.plain_many(cars)[cars[5]]
