@@ -953,16 +953,13 @@ class Runner:
         from .frames import stream_key
 
         g_vi, starts, ends = st.groups()
-        keep = np.zeros(st.n, bool)
-        slow = []
         gi = g_vi.tolist()
         plain = self._plain_many([vehicles[i] for i in gi])
-        for i, a, b in zip(gi, starts.tolist(), ends.tolist(), strict=True):
-            if plain[vehicles[i]]:
-                keep[a:b] = True
-            else:
-                slow.extend(range(a, b))
-        for i in slow:
+        ok = np.fromiter((plain[vehicles[i]] for i in gi), bool, len(gi))
+        if ok.all():
+            return st
+        keep = np.repeat(ok, ends - starts)  # (each vehicle's rows are one run: rows are sorted by vehicle)
+        for i in np.flatnonzero(~keep).tolist():
             v = vehicles[int(st.vi[i])]
             k = stream_key(kind, v, name)
             t = float(st.t_s[i])

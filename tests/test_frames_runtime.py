@@ -323,6 +323,23 @@ def test_publish_rows_in_a_group_gates_only_vehicles_in_a_hand_over(tmp_path, mo
     assert sorted(st.seq.tolist()) == [0, 0, 1] and st.n == 3
 
 
+def test_a_frames_rows_are_gated_only_for_vehicles_in_a_hand_over(tmp_path, monkeypatch):
+    """publish_frame in a group: the rows of plainly held vehicles pass whole (every row of a vehicle in one run),
+    each row of a vehicle in a hand-over goes through the gate (car-2: published before its cut at 1.01 s only),
+    and a frame whose vehicles are all held plainly is passed on as it is."""
+    svc = _FrameSvc(instance="cal-1")
+    r, _ = _runner(svc, tmp_path, monkeypatch)
+    r.group = _Group()
+    r.group.plain = lambda v: v != "car-2"
+    st = _mag_rows([(0, 1.0, -1), (0, 1.02, -1), (1, 1.0, -1), (1, 1.02, -1), (2, 1.0, -1), (2, 1.04, -1)])
+    kept = r._gate_frame_rows("cal", "mag/1", VEH, st)
+    assert [(VEH[v], t) for v, t in zip(kept.vi.tolist(), kept.t_s.tolist(), strict=True)] == [
+        ("car-1", 1.0), ("car-1", 1.02), ("car-2", 1.0), ("van-1", 1.0), ("van-1", 1.04)]
+    assert r.group.calls == [("car-2", 1.0), ("car-2", 1.02)]
+    only_plain = _mag_rows([(0, 1.0, -1), (2, 1.0, -1)])
+    assert r._gate_frame_rows("cal", "mag/1", VEH, only_plain) is only_plain
+
+
 class _Admit:
     """A group member holding only the vehicles in ``held``; records which frames' vehicle lists it was asked."""
 
