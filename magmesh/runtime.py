@@ -49,6 +49,9 @@ from .frames import SeqTable, StreamKeys
 
 #: samples a reader thread hands to the main loop at once (what has arrived, up to this many)
 READ_BATCH = 64
+#: queued input samples and frames the loop takes in one turn (:meth:`Runner.loop`): what waited together is handled
+#: together, a key's frames as one run
+DRAIN_ITEMS = 256
 #: a mirrored frame kind's vehicle list is started anew once it would name more than twice the vehicles this
 #: instance holds, and this many (``_mirror_rows``)
 MIRROR_LIST_MIN = 64
@@ -219,6 +222,17 @@ def frame_kinds_for(subscriptions: list[str]) -> list[str]:
         if k not in out:
             out.append(k)
     return out
+
+
+def _mergeable(a: tuple[Any, Any], b: tuple[Any, Any]) -> bool:
+    """Whether two decoded frames of one key can be handled as one (:meth:`Runner.handle_frames`): the same
+    vehicle list (the same object: a publisher's list is kept until a vehicle comes), the same group holdings and,
+    for every stream both carry, the same columns."""
+    fa, ma = a
+    fb, mb = b
+    if fb.vehicles is not fa.vehicles or (ma is not mb and (ma is None or mb is None or not np.array_equal(ma, mb))):
+        return False
+    return all(fa.streams[n].cols.keys() == st.cols.keys() for n, st in fb.streams.items() if n in fa.streams)
 
 
 def drop_category(reason: str) -> str:
@@ -728,6 +742,8 @@ class Runner:
         self._raw_batch_keys: dict[str, KeyInfo] = {}  # raw/batch keys already checked (a service taking them)
         self.mirrors: dict[str, str] = {}  # message type -> frame kind its rows are mirrored in (publish_rows)
         self._mirror_lists: dict[str, tuple[list[str], dict[str, int]]] = {}  # kind -> its frames' vehicle list
+        self._pending_ev: list = []  # an event taken from the queue while draining input, handled next
+        self.frames_merged = 0  # frames handled within a run of their key's frames (handle_frames)
         service._rt = self
 
     # ---- output ---------------------------------------------------------------------------
@@ -1832,10 +1848,63 @@ class Runner:
         holds), each vehicle's stream seq tracked as for single samples (gaps counted as loss, the journal
         written after the handler), then handed to ``on_frame`` whole or to the per-vehicle handlers.
         ``shed``: the same, but the rows go to no handler and are counted lost as ``shed_behind``."""
+        got = self._frame_in(key, payload)
+        if got is not None:
+            self._frame_rows(key, got[0], got[1], shed)
+
+    def handle_frames(self, key: str, payloads: list[bytes]) -> None:
+        """Frames of one key that waited in the queue together, in their order: each decoded, checked and counted
+        as alone (:meth:`_frame_in`), then each run of them that carries the same vehicle list, the same group
+        holdings and the same columns handled as one frame (:meth:`_frame_rows`): each stream's rows in one
+        array, each vehicle's in time order, seqs tracked across them as across frames. A service that fell
+        behind its input so pays a frame's fixed costs (decoding aside) once per run, not once per frame."""
+        run: list[tuple[Any, Any]] = []
+        for p in payloads:
+            self._cur_key, self._cur_rejected = key, False
+            try:
+                got = self._frame_in(key, p)
+            except Exception as e:  # noqa: BLE001 - counted as lost, as handle_sample does
+                self._handler_failed(key, e)
+                continue
+            if got is None:
+                continue
+            if run and not _mergeable(run[0], got):
+                self._frame_run(key, run)
+                run = []
+            run.append(got)
+        if run:
+            self._frame_run(key, run)
+        self._cur_key = None
+
+    def _frame_run(self, key: str, run: list[tuple[Any, Any]]) -> None:
+        self._cur_key, self._cur_rejected = key, False
+        try:
+            if len(run) == 1:
+                self._frame_rows(key, run[0][0], run[0][1], False)
+                return
+            frs = [f for f, _ in run]
+            streams: dict[str, fleetframe.Stream] = {}
+            for name in dict.fromkeys(n for f in frs for n in f.streams):
+                parts = [f.streams[name] for f in frs if name in f.streams and f.streams[name].n]
+                if not parts:
+                    continue
+                st = fleetframe.concat(parts) if len(parts) > 1 else parts[0]
+                if len(parts) > 1:
+                    st = st.take(np.argsort(st.vi, kind="stable"))  # (each part by vehicle, then time)
+                streams[name] = st
+            last = frs[-1]
+            self.frames_merged += len(run) - 1
+            self._frame_rows(key, fleetframe.Frame(last.shard, last.kind, max(f.t_s for f in frs), last.seq,
+                                                   last.vehicles, streams), run[0][1], False)
+        except Exception as e:  # noqa: BLE001 - counted as lost on the frame key, never fatal
+            self._handler_failed(key, e)
+
+    def _frame_in(self, key: str, payload: bytes) -> tuple[Any, Any] | None:
+        """A frame decoded, checked and counted (its seq): ``(frame, the group's admitted mask or None)``, or None
+        when it is refused or holds none of this member's vehicles."""
         info = keys.parse(key)
         kind = info.rest[1]
-        now = time.monotonic()
-        self.key_seen[key] = now
+        self.key_seen[key] = time.monotonic()
         admitted = None
         if self.group is not None:
             pk = fleetframe.peek(payload)
@@ -1845,7 +1914,7 @@ class Runner:
                 admitted = self._group_admitted(pk[3], kind, pk[4])
                 if not admitted.any():
                     self._frame_seen(key, pk[2])
-                    return
+                    return None
         try:
             fr = fleetframe.decode(payload, where=key)
         except SchemaError as e:
@@ -1853,19 +1922,26 @@ class Runner:
             self.count_in[key].n += 1
             self.drops[key][f"rejected:{reject_code(e)}"] += 1
             self.log_limited("frame-refused", "refused a frame on %s: %s", key[:200], e)
-            return
+            return None
         if fr.kind != kind or fr.shard != info.rest[0]:
             self.rejects_total += 1
             self.count_in[key].n += 1
             self.drops[key]["rejected:key"] += 1
             self.log_limited("frame-refused", "refused a frame on %s: it says shard %r, kind %r", key[:200],
                              fr.shard[:64], fr.kind)
-            return
+            return None
         self._frame_seen(key, fr.seq)
         if self.group is not None and admitted is None:
             admitted = self._group_admitted(fr.vehicles, kind, list(fr.streams))
         if admitted is not None and not admitted.any():
-            return  # another group member's vehicles only (co-partitioned stages: another member's upstream shard)
+            return None  # another group member's vehicles only (co-partitioned stages: another member's shard)
+        return fr, admitted
+
+    def _frame_rows(self, key: str, fr: Any, admitted: Any, shed: bool) -> None:
+        """A decoded frame (or a run of them, :meth:`handle_frames`) cut to the streams and vehicles this service
+        takes, seq-tracked, handed to the service and journalled."""
+        kind = fr.kind
+        now = time.monotonic()
         taken: dict[str, fleetframe.Stream] = {}
         done: list[tuple[StreamKeys, np.ndarray, np.ndarray]] = []
         vmask = np.zeros(len(fr.vehicles), bool)
@@ -2341,6 +2417,7 @@ class Runner:
                 "frames_out": self.frames_out,
                 "frames_missed": self.frames_missed,
                 "frames_shed": self.frames_shed,
+                "frames_merged": self.frames_merged,  # frames handled within a run of queued frames of their key
                 "out_total": sum(c.n for c in list(self.count_out.values())) + self.evicted_out,
                 # per-vehicle rows numbered (in out) but not put while no subscriber matched their key: skipped by
                 # design, nothing lost (a subscriber that comes sees the key's seq from where it stands)
@@ -2572,10 +2649,13 @@ class Runner:
             timeout = max(0.0, next_tick - time.monotonic()) if tick else 0.5
             if self._cal_parked or self._cal_ask is not None:
                 timeout = min(timeout, 0.05)  # parked cal/params wait for answers (_cal_poll)
-            try:
-                ev = self.q.get(timeout=timeout)
-            except queue.Empty:
-                ev = None
+            if self._pending_ev:
+                ev = self._pending_ev.pop()
+            else:
+                try:
+                    ev = self.q.get(timeout=timeout)
+                except queue.Empty:
+                    ev = None
             if ev is not None:
                 if ev[0] == "S":
                     self.cur_queued_at = ev[2]
@@ -2586,8 +2666,19 @@ class Runner:
                         for k, p in ev[1]:
                             self.handle_sample(k, p, shed=True)
                     else:
-                        for k, p in ev[1]:
-                            self.handle_sample(k, p)
+                        items = list(ev[1])
+                        # input that queued meanwhile goes with it (frames of one key then handled as one run);
+                        # anything else (a query, a group step, input to shed) waits for the next turn, in order
+                        while len(items) < DRAIN_ITEMS:
+                            try:
+                                nxt = self.q.get_nowait()
+                            except queue.Empty:
+                                break
+                            if nxt[0] != "S" or (shed_after and self._behind(nxt[2], shed_after)):
+                                self._pending_ev.append(nxt)
+                                break
+                            items.extend(nxt[1])
+                        self._handle_items(items)
                     self.cur_queued_at = None
                 elif ev[0] == "s":
                     self.handle_sample(ev[1], ev[2])
@@ -2617,6 +2708,29 @@ class Runner:
                     self.evict_idle()
                 except Exception as e:  # noqa: BLE001 - freeing memory must never stop the service
                     self.last_error = f"eviction failed: {type(e).__name__}: {e}"
+
+    def _handle_items(self, items: list[tuple[str, bytes]]) -> None:
+        """Queued input in order; consecutive fleet frames (no other input between them) grouped by key, each
+        key's frames in their order and handled as runs (:meth:`handle_frames`). Frames of different keys come
+        from different publishers, between which Zenoh keeps no order either."""
+        seg: dict[str, list[bytes]] = {}
+        for k, p in items:
+            if k.startswith(_FLEET):
+                seg.setdefault(k, []).append(p)
+                continue
+            if seg:
+                self._handle_segment(seg)
+                seg = {}
+            self.handle_sample(k, p)
+        if seg:
+            self._handle_segment(seg)
+
+    def _handle_segment(self, seg: dict[str, list[bytes]]) -> None:
+        for k, ps in seg.items():
+            if len(ps) == 1:
+                self.handle_sample(k, ps[0])
+            else:
+                self.handle_frames(k, ps)
 
     def _safe_tick(self) -> None:
         try:

@@ -391,8 +391,34 @@ def test_one_stalls_backlog_is_worked_off_not_shed(tmp_path, monkeypatch):
     r.q.put(("S", [(FKEY, _clean_frame(3, {"mag/1": _mag_rows([(0, 4.0, 3)])}))], now))
     r.q.put(("stop",))
     r.loop()
-    assert [f.seq for f in svc.got] == [0, 1, 2, 3]
+    # (queued together: handled as one run of the key's frames, every row in its order)
+    assert [t for f in svc.got for t in f.streams["mag/1"].t_s.tolist()] == [1.0, 2.0, 3.0, 4.0]
+    assert r.frames_in == 4 and r.frames_merged == 3 and not r.drops[FKEY].get("upstream_gap")
     assert not r.drops[FKEY].get("shed_behind") and r.frames_shed == 0 and r._behind_since is None
+
+
+def test_frames_that_queued_together_are_handled_as_one_run_per_key_and_list(tmp_path, monkeypatch):
+    """Frames of one key that waited in the queue together reach the service as one frame (each stream's rows by
+    vehicle, then time; seqs tracked across them, a lost frame between them still counted); a frame with another
+    vehicle list starts a new run, another key's frames make their own, and input that is not a frame keeps its
+    place (frames before it are handled before it)."""
+    svc = _FrameSvc(instance="f-1")
+    r, _ = _runner(svc, tmp_path, monkeypatch)
+    other = keys.fleet_frame("ingest-2", "clean")
+    f0 = _clean_frame(0, {"mag/1": _mag_rows([(0, 1.0, 0), (1, 1.0, 5)]), "imu": _imu_rows([(1, 1.0, 0)])})
+    f1 = _clean_frame(1, {"mag/1": _mag_rows([(0, 1.02, 1), (1, 1.02, 6)])})
+    f3 = _clean_frame(3, {"mag/1": _mag_rows([(0, 1.06, 3)])})  # (frame 2 lost: car-1's seq 2 never came)
+    g0 = frame.encode("ingest-2", "clean", 0, ["car-9"], {"mag/1": _mag_rows([(0, 1.0, 0)])})
+    longer = frame.encode("ingest-1", "clean", 4, [*VEH, "car-7"], {"mag/1": _mag_rows([(3, 1.08, 0)])})
+    r._handle_items([(FKEY, f0), (other, g0), (FKEY, f1), (FKEY, f3), (FKEY, longer)])
+    assert [(f.shard, f.seq) for f in svc.got] == [("ingest-1", 3), ("ingest-1", 4), ("ingest-2", 0)]
+    run = svc.got[0]
+    m = run.streams["mag/1"]
+    assert [(run.vehicles[v], t, q) for v, t, q in zip(m.vi.tolist(), m.t_s.tolist(), m.seq.tolist(), strict=True)] \
+        == [("car-1", 1.0, 0), ("car-1", 1.02, 1), ("car-1", 1.06, 3), ("car-2", 1.0, 5), ("car-2", 1.02, 6)]
+    assert run.streams["imu"].n == 1 and r.frames_merged == 2 and r.frames_in == 5
+    assert r.drops[keys.clean_mag("car-1", "1")]["upstream_gap"] == 1  # as if the frames had come one by one
+    assert r.frames_missed == 1
 
 
 def test_a_frame_that_waited_too_long_is_shed_counted_and_its_seqs_tracked(tmp_path, monkeypatch):
