@@ -285,7 +285,7 @@ class GroupMember:
                       "duplicates_dropped": 0, "suppressed": 0, "takeover_s_max": 0.0, "last_takeover_s": None,
                       "rounds": 0, "rounds_incomplete": 0, "liveliness_lapses": 0, "reclaimed": 0,
                       "failovers_from_mesh": 0, "held_after_pause": 0, "duplicates_behind": 0,
-                      "alarms_sent_again": 0}
+                      "alarms_sent_again": 0, "output_watch": False}
         # what the mesh showed of the vehicles other members hold, for a failover from a member whose journal is not
         # on this host (another host, or another state directory): see _mesh_state
         self.seen_out: dict[str, dict[str, tuple[int, float]]] = {}  # vehicle -> output key -> (seq, t_s) last seen
@@ -293,6 +293,7 @@ class GroupMember:
         self.snap: dict[str, dict] = {}  # member -> its vehicles' input seqs and counts, from its last g_state answer
         self.in_rate: dict[str, tuple[float, int, float, int]] = {}  # input key -> (t0, seq0, t1, seq1) of two answers
         self._out_sub: Any = None
+        self._out_kexpr: str | None = None  # the role's fleet frames, watched while a member is elsewhere
         self._alarm_sub: Any = None
         self._alarm_watch_t: tuple[float, float] | None = None  # alarm watch: (first read, last read), wall s
         self._stop = threading.Event()
@@ -967,13 +968,36 @@ class GroupMember:
                 kinds.add(t[len(fleet_t):])
             elif t == alarm_t and getattr(o, "source", None):
                 sources.add(o.source)
+        if len(kinds) == 1:
+            self._out_kexpr = keys.fleet_frames(next(iter(kinds)))
         try:
-            if len(kinds) == 1:
-                self._out_sub = self.rt.session.declare_subscriber(
-                    keys.fleet_frames(next(iter(kinds))), zenoh.handlers.RingChannel(4096))
             if len(sources) == 1:
                 self._alarm_sub = self.rt.session.declare_subscriber(
                     keys.alarm("*", next(iter(sources))), zenoh.handlers.RingChannel(4096))
+        except Exception as e:  # noqa: BLE001 - a failover then finds only journals on this host
+            self.rt.last_error = f"group output watch failed: {type(e).__name__}: {e}"[:500]
+
+    def _watch_outputs(self) -> None:
+        """The frames watch is declared while another live member keeps its journal elsewhere (another host,
+        another state directory: a failover from it reads what the mesh showed) and undeclared while every other
+        member's journal is on this host, where a failover reads it: a member does not take in the others' whole
+        output (at 1,000 vehicles, two ingest members' clean frames are megabytes a second) for nothing. A member
+        that joins from elsewhere is watched from the next round, seconds before it holds a vehicle (it warms
+        first). Own frames are never delivered to it (``allowed_origin``: remote sessions only)."""
+        if self._out_kexpr is None:
+            return
+        need = any(not self._journalled_here(m) for m in self.live if m != self.me)
+        try:
+            if need and self._out_sub is None:
+                import zenoh
+
+                self._out_sub = self.rt.session.declare_subscriber(
+                    self._out_kexpr, zenoh.handlers.RingChannel(4096), allowed_origin=zenoh.Locality.REMOTE)
+                self.stats["output_watch"] = True
+            elif not need and self._out_sub is not None:
+                sub, self._out_sub = self._out_sub, None
+                sub.undeclare()
+                self.stats["output_watch"] = False
         except Exception as e:  # noqa: BLE001 - a failover then finds only journals on this host
             self.rt.last_error = f"group output watch failed: {type(e).__name__}: {e}"[:500]
 
@@ -987,9 +1011,13 @@ class GroupMember:
         # newest first: a vehicle's row per stream is taken from the newest frame that has one (last_rows' taken).
         # Frames of this member, and of members whose seq journal is on this host (a failover from them reads the
         # journal, where every output is written before it is put), are passed over from their shard alone.
-        payloads = [smp.payload.to_bytes() for smp in _pending(self._out_sub)]
+        got = [(str(smp.key_expr), smp) for smp in _pending(self._out_sub)]
         taken: dict = {}
-        for p in reversed(payloads):
+        for key, smp in reversed(got):
+            parts = key.split("/")  # (magmesh/fleet/{shard}/{kind}: the shard from the key, no payload read)
+            if self._journalled_here(parts[2] if len(parts) == 4 and parts[1] == keys.FLEET else None):
+                continue
+            p = smp.payload.to_bytes()
             if self._journalled_here(frame.shard_of(p)):
                 continue
             try:
@@ -1114,6 +1142,7 @@ class GroupMember:
         return zconf.control_request(self.rt.session, self.role, inst, req, timeout)
 
     def _round(self) -> None:
+        self._watch_outputs()
         self._observe()
         live = self._live_members()
         now = time.monotonic()

@@ -1027,3 +1027,50 @@ def test_plain_many_says_what_plain_says_vehicle_by_vehicle(tmp_path, monkeypatc
         g.cut_off_since = 1.0
         g.last_out[cars[5]] -= 10.0
     assert b.plain_many(cars) == {v: a.plain(v) for v in cars} and not b.plain_many(cars)[cars[5]]
+
+
+def test_the_frames_watch_is_declared_only_while_another_member_keeps_its_journal_elsewhere(tmp_path, monkeypatch):
+    """Every other live member journalled on this host: no frames watch (a failover reads the journals); one that
+    is not (another host): the watch is declared, for remote publishers only (own frames never delivered), and
+    undeclared again once that member is journalled here."""
+    import zenoh
+
+    from magmesh import group_member as gm
+
+    monkeypatch.setenv("MAGMESH_STATE_DIR", str(tmp_path))
+    (tmp_path / "journal").mkdir()
+    declared, undeclared = [], []
+
+    class _W:
+        def undeclare(self):
+            undeclared.append(self)
+
+        def try_recv(self):
+            return None
+
+    class _Sess:
+        def declare_subscriber(self, kexpr, handler, **kw):
+            declared.append((kexpr, kw))
+            return _W()
+
+    class _RtS(_Rt):
+        session = _Sess()
+
+    g = gm.GroupMember(_RtS(), "dmc")
+    g._out_kexpr = "magmesh/fleet/*/dmc"
+    g.live = {"dmc-1", "dmc-2"}
+    journal = tmp_path / "journal" / "dmc_detector.dmc-2.seq"
+    journal.write_bytes(b"")
+    g._watch_outputs()
+    assert declared == [] and g._out_sub is None
+    journal.unlink()
+    g._journal_seen.clear()
+    g._watch_outputs()
+    assert declared == [("magmesh/fleet/*/dmc", {"allowed_origin": zenoh.Locality.REMOTE})] and g._out_sub is not None
+    assert g.stats["output_watch"] is True
+    g._watch_outputs()
+    assert len(declared) == 1  # (declared once)
+    journal.write_bytes(b"")
+    g._journal_seen.clear()
+    g._watch_outputs()
+    assert len(undeclared) == 1 and g._out_sub is None and g.stats["output_watch"] is False
