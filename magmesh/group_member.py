@@ -124,114 +124,41 @@ def _is_params(key: str) -> bool:
     return len(parts) > 3 and parts[2] == "cal" and parts[3] == "params"
 
 
-class _Tracked:
-    """A set or dict of a member's holdings that calls ``on_change`` after every change: a frame's admitted mask
-    (:meth:`GroupMember.admitted`) is kept per vehicle list and recomputed only when one of them changed."""
+def _notifying(base: type, name: str) -> Callable:
+    """``base``'s method ``name``, then the container's ``on_change`` (every method that changes a set or dict)."""
+    method = getattr(base, name)
+
+    def changed(self: Any, *a: Any, **kw: Any) -> Any:
+        out = method(self, *a, **kw)
+        self._on()
+        return out
+
+    changed.__name__ = name
+    return changed
 
 
-class _TrackedSet(set, _Tracked):
+class _TrackedSet(set):
+    """A set of a member's holdings that calls ``on_change`` after every change: a frame's admitted mask
+    (:meth:`GroupMember.admitted`) is kept per vehicle list and made again only when one of them changed."""
+
     def __init__(self, on_change: Callable[[], None]):
         super().__init__()
         self._on = on_change
 
-    def add(self, x: Any) -> None:
-        super().add(x)
-        self._on()
 
-    def discard(self, x: Any) -> None:
-        super().discard(x)
-        self._on()
+class _TrackedDict(dict):
+    """A dict of a member's holdings that calls ``on_change`` after every change (see :class:`_TrackedSet`)."""
 
-    def remove(self, x: Any) -> None:
-        super().remove(x)
-        self._on()
-
-    def pop(self) -> Any:
-        x = super().pop()
-        self._on()
-        return x
-
-    def clear(self) -> None:
-        super().clear()
-        self._on()
-
-    def update(self, *others: Any) -> None:
-        super().update(*others)
-        self._on()
-
-    def difference_update(self, *others: Any) -> None:
-        super().difference_update(*others)
-        self._on()
-
-    def intersection_update(self, *others: Any) -> None:
-        super().intersection_update(*others)
-        self._on()
-
-    def symmetric_difference_update(self, other: Any) -> None:
-        super().symmetric_difference_update(other)
-        self._on()
-
-    def __ior__(self, other: Any) -> _TrackedSet:
-        super().__ior__(other)
-        self._on()
-        return self
-
-    def __iand__(self, other: Any) -> _TrackedSet:
-        super().__iand__(other)
-        self._on()
-        return self
-
-    def __isub__(self, other: Any) -> _TrackedSet:
-        super().__isub__(other)
-        self._on()
-        return self
-
-    def __ixor__(self, other: Any) -> _TrackedSet:
-        super().__ixor__(other)
-        self._on()
-        return self
-
-
-class _TrackedDict(dict, _Tracked):
     def __init__(self, on_change: Callable[[], None]):
         super().__init__()
         self._on = on_change
 
-    def __setitem__(self, k: Any, v: Any) -> None:
-        super().__setitem__(k, v)
-        self._on()
 
-    def __delitem__(self, k: Any) -> None:
-        super().__delitem__(k)
-        self._on()
-
-    def pop(self, *a: Any) -> Any:
-        x = super().pop(*a)
-        self._on()
-        return x
-
-    def popitem(self) -> Any:
-        x = super().popitem()
-        self._on()
-        return x
-
-    def setdefault(self, k: Any, default: Any = None) -> Any:
-        x = super().setdefault(k, default)
-        self._on()
-        return x
-
-    def clear(self) -> None:
-        super().clear()
-        self._on()
-
-    def update(self, *a: Any, **kw: Any) -> None:
-        super().update(*a, **kw)
-        self._on()
-
-    def __ior__(self, other: Any) -> _TrackedDict:
-        super().__ior__(other)
-        self._on()
-        return self
+for _name in ("add", "discard", "remove", "pop", "clear", "update", "difference_update", "intersection_update",
+              "symmetric_difference_update", "__ior__", "__iand__", "__isub__", "__ixor__"):
+    setattr(_TrackedSet, _name, _notifying(set, _name))
+for _name in ("__setitem__", "__delitem__", "pop", "popitem", "setdefault", "clear", "update", "__ior__"):
+    setattr(_TrackedDict, _name, _notifying(dict, _name))
 
 
 #: how long (s) a member takes another member's seq journal as there or not on this host (:meth:`_observe`)
