@@ -119,6 +119,9 @@ def _pending(sub: Any):
         yield smp
 
 
+_BATCH_SUFFIX = "/" + keys.BATCH
+
+
 def _is_params(key: str) -> bool:
     parts = key.split("/")
     return len(parts) > 3 and parts[2] == "cal" and parts[3] == "params"
@@ -259,7 +262,7 @@ class GroupMember:
         (a take-over is not delayed behind the others' samples). Parameter sets always go on (kept for a take);
         a sample skipped just before this member takes its vehicle over is counted by the take-over's seq gap.
         ``payload`` (Zenoh's, of a skipped sample): the last :data:`HEARD_KEEP` of the key are kept undecoded
-        (:meth:`_heard_seq`)."""
+        (:meth:`_heard_seq`), batches not (only single samples are read back)."""
         v = vehicle_of(key)
         # in the order a vehicle goes through them (warming, taking, held, releasing): each state change enters
         # the next before it leaves the last, so a check made while the loop moves it still finds it
@@ -268,7 +271,8 @@ class GroupMember:
             return False
         self.heard_t[v] = time.monotonic()
         self.skipped_early += 1
-        if payload is not None:
+        # (a batch is never read back: _heard_seq reads the seq of single samples only)
+        if payload is not None and not key.endswith(_BATCH_SUFFIX):
             buf = self.heard_buf.get(key)
             if buf is None and len(self.heard_buf) < HEARD_KEYS_MAX:
                 # (one reader thread per subscription: a key is only ever appended to by one)
