@@ -945,11 +945,12 @@ class GroupMember:
         got = [(str(smp.key_expr), smp) for smp in _pending(self._out_sub)]
         taken: dict = {}
         for key, smp in reversed(got):
-            parts = key.split("/")  # (magmesh/fleet/{shard}/{kind}: the shard from the key, no payload read)
-            if self._journalled_here(parts[2] if len(parts) == 4 and parts[1] == keys.FLEET else None):
+            parts = key.split("/")  # (magmesh/fleet/{shard}/{kind}: the shard from the key, no payload copied)
+            keyed = len(parts) == 4 and parts[1] == keys.FLEET
+            if keyed and self._journalled_here(parts[2]):
                 continue
             p = smp.payload.to_bytes()
-            if self._journalled_here(frame.shard_of(p)):
+            if not keyed and self._journalled_here(frame.shard_of(p)):
                 continue
             try:
                 shard, kind, rows = frame.last_rows(p, taken)

@@ -945,7 +945,8 @@ class Runner:
         arr[js[good]] = last[good]
 
     def _plain_many(self, vehicles: list[str]) -> dict[str, bool]:
-        """:meth:`_plain` for every vehicle of ``vehicles``, each once."""
+        """Per vehicle of ``vehicles`` (each once): whether every output of it goes out now, whatever its time (this
+        instance is active, and no hand-over of it is under way)."""
         vs = dict.fromkeys(vehicles)
         if self.mode != "active":
             return dict.fromkeys(vs, False)
@@ -955,12 +956,6 @@ class Runner:
         for v in blocked:
             out[v] = False
         return out
-
-    def _plain(self, vehicle: str) -> bool:
-        """Whether every output of ``vehicle`` goes out now, whatever its time (no hand-over of it under way)."""
-        if self.mode != "active" or vehicle in self.cut or vehicle in self.recovering:
-            return False
-        return self.group is None or self.group.plain(vehicle)
 
     def _gate_frame_rows(self, kind: str, name: str, vehicles: list[str], st: Any) -> Any:
         """The rows of a frame that are this instance's to publish now (see :meth:`publish`); rows to hold are
@@ -1142,8 +1137,8 @@ class Runner:
             if len(names) + len(fresh) > max(MIRROR_LIST_MIN, 2 * len(self.vehicle_state)):
                 names, index = [], {}  # (vehicles gone for good are left out: started anew)
                 fresh = list(dict.fromkeys(vehicles[i] for i in idx))
-            names = [*names, *fresh]
-            index = {**index, **{v: len(index) + j for j, v in enumerate(fresh)}}
+            index.update(zip(fresh, range(len(names), len(names) + len(fresh)), strict=True))
+            names = [*names, *fresh]  # (a new list object: readers key their state by the list)
             self._mirror_lists[kind] = (names, index)
         vi = np.fromiter((index[vehicles[i]] for i in idx), np.uint32, len(idx))
         order = np.argsort(vi, kind="stable")

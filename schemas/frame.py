@@ -427,6 +427,8 @@ def shard_of(payload: bytes) -> str | None:
     except (msgspec.DecodeError, msgspec.ValidationError):
         return None
     return s if isinstance(s, str) else None
+
+
 _names_dec = msgspec.msgpack.Decoder(list[str])
 #: a vehicle list's msgpack bytes -> its names, for :func:`last_rows` (unchecked: a reader builds keys with checks)
 _HEAD_VEHICLES: dict[bytes, list[str]] = {}
