@@ -1077,3 +1077,42 @@ def test_the_frames_watch_is_declared_only_while_another_member_keeps_its_journa
     g._journal_seen.clear()
     g._watch_outputs()
     assert len(undeclared) == 1 and g._out_sub is None and g.stats["output_watch"] is False
+
+
+def test_a_settled_member_rounds_less_often_and_wakes_for_what_must_not_wait(monkeypatch):
+    """Rounds every period_s while anything moves, every IDLE_PERIOD_S once the membership and holdings stayed the
+    same for STEADY_AFTER_S; a hand-over request and a token that comes or goes wake the round at once."""
+    import magmesh.group_member as gm
+
+    g, rt, posted = _member("dmc-1", ["dmc-1", "dmc-2"], {})
+    g.complete = True
+    clock = [1000.0]
+    monkeypatch.setattr(gm.time, "monotonic", lambda: clock[0])
+    assert g._busy()  # the membership just seen: not settled yet
+    clock[0] += gm.STEADY_AFTER_S + 0.1
+    assert not g._busy()
+    g.owned.add("car-1")  # the holdings changed: busy again for STEADY_AFTER_S
+    assert g._busy()
+    clock[0] += gm.STEADY_AFTER_S + 0.1
+    assert not g._busy()
+    g.warming["car-2"] = "dmc-2"  # a hand-over under way
+    assert g._busy()
+    del g.warming["car-2"]
+    assert g._busy()  # (a change is seen by the round after it; settled STEADY_AFTER_S from there)
+    clock[0] += gm.STEADY_AFTER_S + 0.1
+    assert not g._busy()
+    g._dead_since["dmc-3"] = clock[0]  # a member went a moment ago
+    assert g._busy()
+    clock[0] += gm.STEADY_AFTER_S + 0.1
+    assert not g._busy()  # ... long ago: settled again
+    g.complete = False  # a member did not answer
+    assert g._busy()
+    g.complete = True
+    assert not g._busy()
+    # a request of another member wakes the round; a plain state query does not
+    g._wake.clear()
+    g.control({"op": "g_state"})
+    assert not g._wake.is_set()
+    g.control({"op": "g_done", "vehicles": []})
+    assert g._wake.is_set()
+    assert g.status()["round_s"] == g.period_s
