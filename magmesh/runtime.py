@@ -695,6 +695,8 @@ class Runner:
         # vehicle -> lost_during_restart | lost_in_takeover: resumed from a journal, no output yet (count_join_loss)
         self.recovering: dict[str, str] = {}
         self.group = None  # magmesh.group_member.GroupMember when the service runs in a group (--group)
+        self.frame_subs = None  # magmesh.frame_subs.FrameSubscriptions: a group member's fleet-frame subscriptions
+        self._frame_resumed = False  # the frame being taken in is the first of its key since a narrowing
         self.resumed_from: dict | None = None  # what the journal of the run before a crash said
         self.clean_stop = False
         self.n_sent = 0  # outputs sent by this process (the journal's witness of a sample handled when killed)
@@ -1559,9 +1561,22 @@ class Runner:
         return st
 
     # ---- input ----------------------------------------------------------------------------
-    def _data_reader(self, handle: Any) -> None:
+    def _data_reader(self, handle: Any, after: tuple = (), done: threading.Event | None = None) -> None:
         """Samples of one subscription into the queue: whatever has arrived, up to :data:`READ_BATCH` at once
-        (one queue operation for many samples; the loop handles them in arrival order)."""
+        (one queue operation for many samples; the loop handles them in arrival order). ``after``: start only once
+        these readers are drained (a subscription replacing others: magmesh/frame_subs.py); ``done`` is set when
+        this one is (its channel closed and emptied)."""
+        try:
+            for e in after:
+                while not e.wait(0.2):
+                    if self.stop_event.is_set():
+                        return
+            self._data_read(handle)
+        finally:
+            if done is not None:
+                done.set()
+
+    def _data_read(self, handle: Any) -> None:
         first = self._first_rx
         while not self.stop_event.is_set():
             try:
@@ -1596,9 +1611,9 @@ class Runner:
                 except queue.Full:
                     continue
 
-    def _reader(self, handle: Any, kind: str) -> None:
+    def _reader(self, handle: Any, kind: str, after: tuple = (), done: threading.Event | None = None) -> None:
         if kind == "s":
-            self._data_reader(handle)
+            self._data_reader(handle, after, done)
             return
         while not self.stop_event.is_set():
             try:
@@ -1899,14 +1914,23 @@ class Runner:
         when it is refused or holds none of this member's vehicles."""
         info = keys.parse(key)
         kind = info.rest[1]
-        self.key_seen[key] = time.monotonic()
+        fs = self.frame_subs
+        if fs is not None:
+            # a key not received for a while because this member narrowed its subscriptions: the frames between
+            # were skipped by design (none of its vehicles), not missed
+            self._frame_resumed = self.key_seen.get(key, float("inf")) < fs.switched_at
+        now = self.key_seen[key] = time.monotonic()
         admitted = None
         if self.group is not None:
             pk = fleetframe.peek(payload)
             if pk is not None and pk[0] == info.rest[0] and pk[1] == kind:
+                if fs is not None and fs.duplicate(key, pk[2], self.frame_seq_in.get(key)):
+                    return None  # delivered again while the subscriptions changed (magmesh/frame_subs.py)
                 # in a group, a frame of none of this member's vehicles (co-partitioned stages: another member's
                 # upstream shard) is seen from its header alone; its owner decodes and checks the rest
                 admitted = self._group_admitted(pk[3], kind, pk[4])
+                if fs is not None:
+                    fs.noted(kind, pk[0], bool(admitted.any()), now)
                 if not admitted.any():
                     self._frame_seen(key, pk[2])
                     return None
@@ -1987,7 +2011,7 @@ class Runner:
         """A frame taken in on ``key``: counted, and the frames missed before it (a gap in its seq)."""
         self.frames_in += 1
         last = self.frame_seq_in.get(key)
-        if last is not None and seq > last + 1:
+        if last is not None and seq > last + 1 and not self._frame_resumed:
             self.frames_missed += seq - last - 1
         self.frame_seq_in[key] = seq
 
@@ -2413,6 +2437,8 @@ class Runner:
                 "frames_missed": self.frames_missed,
                 "frames_shed": self.frames_shed,
                 "frames_merged": self.frames_merged,  # frames handled within a run of queued frames of their key
+                # a group member's frame subscriptions: the kinds narrowed to one upstream shard (magmesh/frame_subs.py)
+                "frame_subs": self.frame_subs.status() if self.frame_subs is not None else None,
                 "out_total": sum(c.n for c in list(self.count_out.values())) + self.evicted_out,
                 # per-vehicle rows numbered (in out) but not put while no subscriber matched their key: skipped by
                 # design, nothing lost (a subscriber that comes sees the key's seq from where it stands)
@@ -2583,10 +2609,13 @@ class Runner:
         # contract v3: the per-vehicle clean/, cal/mag and dmc streams also travel in fleet frames (ingest's
         # output = frames, calibration's and the detector's frames); a service subscribed to them takes those
         # frames too, filtered here to the vehicles and streams it subscribes to
+        frame_kinds: list[str] = []
         if svc.FRAME_INPUT and svc.DECODE_INPUTS:
             kinds = frame_kinds_for(svc.subscriptions())
-            for kind in kinds:
-                subs.append(keys.fleet_frames(kind))
+            frame_kinds = list(kinds)
+            if not svc.group:  # (a group member's: magmesh/frame_subs.py, below)
+                for kind in kinds:
+                    subs.append(keys.fleet_frames(kind))
             if "dmc" in kinds:
                 # the detector publishes every verdict per vehicle (for outside users) and in its dmc frames with
                 # the same seq: a service takes them from the frames only, never twice
@@ -2618,6 +2647,12 @@ class Runner:
             from .group_member import GroupMember
 
             self.group = GroupMember(self, svc.group)
+            if frame_kinds:
+                # every shard's frames, or only its own co-partitioned shard's once that is safe
+                from .frame_subs import FrameSubscriptions
+
+                self.frame_subs = FrameSubscriptions(self, frame_kinds)
+                self.frame_subs.start()
             self.group.start()
         svc.log.info("started %s/%s (impl %s) on %s", svc.role, svc.instance, svc.impl,
                      ", ".join(svc.subscriptions()) or "no subscriptions")
