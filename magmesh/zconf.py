@@ -48,7 +48,8 @@ def os_thread_name(name: str) -> None:
 
 
 def start_zenoh_log() -> None:
-    """Zenoh's own log to stderr (a process's log file): errors by default, more with ``RUST_LOG``, e.g.
+    """Zenoh's own log (Rust's tracing writes it to stdout: a service's log file; a command run with ``--json``
+    sends it to stderr, magmesh_cli/cli.py ``json_stdout``): errors by default, more with ``RUST_LOG``, e.g.
     ``RUST_LOG=warn,zenoh_transport=debug`` shows every link opened, closed or expired. Once per process."""
     global _LOG_STARTED
     if not _LOG_STARTED:

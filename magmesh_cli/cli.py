@@ -68,6 +68,22 @@ def _terminated(signum, frame) -> None:
     raise KeyboardInterrupt
 
 
+def json_stdout() -> None:
+    """With ``--json`` the command's stdout carries its JSON alone: whatever else writes to file descriptor 1 goes
+    to stderr — Zenoh's own log among them (Rust's tracing writes there, e.g. a "timer overrun" under load, which
+    once made a benchmark's JSON unreadable), and programs started with the process's stdout. Python's print still
+    reaches the real stdout."""
+    try:
+        if sys.stdout is None or sys.stdout.fileno() != 1:
+            return  # (done before)
+    except (AttributeError, OSError, ValueError):  # (stdout replaced: a test's capture)
+        return
+    sys.stdout.flush()
+    keep = os.dup(1)
+    os.dup2(2, 1)
+    sys.stdout = os.fdopen(keep, "w", encoding="utf-8", errors="backslashreplace", buffering=1)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv_ = sys.argv[1:] if argv is None else argv
     first = next((a for a in argv_ if not a.startswith("-")), None)
@@ -85,6 +101,8 @@ def main(argv: list[str] | None = None) -> int:
     if problem is not None:
         print(f"magmesh {args.command}: {problem}", file=sys.stderr, flush=True)
         return 2
+    if getattr(args, "json", False) is True:
+        json_stdout()
     if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL and threading.current_thread() is threading.main_thread():
         # SIGTERM (kill, a job's timeout) ends a command as Ctrl-C does: what it started is stopped on the way out
         # (a benchmark's or an evaluation's services run in sessions of their own, which no signal to this

@@ -457,3 +457,15 @@ def test_recording_counts_samples_missed_in_transit(tmp_path):
     from magmesh_cli.commands.record import format_counts
 
     assert "MISSED in transit (gaps in seq, never received): 2" in format_counts(c, "r.mcap")
+
+
+def test_json_output_is_only_the_json_whatever_else_writes_to_stdout():
+    """With --json, what writes to file descriptor 1 besides the command's print (Zenoh's own log, programs started
+    with its stdout) goes to stderr: the JSON stays readable."""
+    code = ("import os, subprocess, sys; from magmesh_cli.cli import json_stdout; json_stdout(); "
+            "os.write(1, b'rust log line\\n'); subprocess.run([sys.executable, '-c', 'print(\"child\")']); "
+            "print('{\"ok\": true}')")
+    r = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout == '{"ok": true}\n'
+    assert "rust log line" in r.stderr and "child" in r.stderr
