@@ -2807,6 +2807,8 @@ class Runner:
             svc.on_stop()
         except Exception as e:
             svc.log.error("on_stop failed: %s", e)
+        if self.frame_subs is not None:
+            self.frame_subs.stop()
         if self.group is not None:
             self.group.stop()
         store = self.__dict__.get("_alarm_store")

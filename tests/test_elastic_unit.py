@@ -1116,3 +1116,66 @@ def test_a_settled_member_rounds_less_often_and_wakes_for_what_must_not_wait(mon
     g.control({"op": "g_done", "vehicles": []})
     assert g._wake.is_set()
     assert g.status()["round_s"] == g.period_s
+
+
+def test_a_member_narrows_its_frames_to_its_own_upstream_shard_only_when_co_partitioned_and_settled():
+    """magmesh/frame_subs.py: narrowed per kind to the one upstream shard with this member's number when every
+    upstream shard seen has a number of this group and this member's vehicles came from that shard alone; widened
+    when the group is not settled or a token comes or goes."""
+    from types import SimpleNamespace
+
+    from magmesh import frame_subs as fsm
+
+    g = SimpleNamespace(me="dmc-1", members=["dmc-1", "dmc-2"], ready=True, complete=True, round_s=1.0,
+                        idle_period_s=1.0, leaving=False, owned={"car-1"})
+    rt = SimpleNamespace(group=g, svc=SimpleNamespace(instance="dmc-1"), last_error=None)
+    fs = fsm.FrameSubscriptions(rt, ["clean", "cal"])
+    switched: list = []
+
+    def switch(narrow):
+        switched.append(dict(narrow))
+        fs.narrow = dict(narrow)
+
+    fs._switch = switch
+    t0 = fs.changed_at
+    now = t0 + fsm.NARROW_AFTER_S + 1.0
+
+    def frames(kind, shards, mine):
+        for s in shards:
+            fs.noted(kind, s, s in mine, t0 + 0.5)
+
+    frames("clean", ["ingest-1", "ingest-2"], {"ingest-1"})
+    frames("cal", ["cal-1", "cal-2"], {"cal-1", "cal-2"})  # this member's vehicles in both: not co-partitioned
+    fs._step(t0 + 1.0)
+    assert switched == []  # not settled long enough since the last change
+    fs._step(now)
+    assert switched == [{"clean": "ingest-1"}]
+    fs._step(now + 0.1)
+    assert len(switched) == 1  # nothing new to narrow
+    g.round_s = 0.2  # the group is busy (a hand-over under way): every shard again
+    fs._step(now + 0.2)
+    assert switched[-1] == {}
+    # upstream shards numbered unlike this group (three ingest members, two here): every shard
+    g.round_s = 1.0
+    t0 = fs.changed_at
+    now = t0 + fsm.NARROW_AFTER_S + 1.0
+    frames("clean", ["ingest-1", "ingest-2", "ingest-3"], {"ingest-1"})
+    fs._step(now)
+    assert switched[-1] == {}
+    # an upstream stage that is not a group (one shard with no number): every shard
+    fs2 = fsm.FrameSubscriptions(rt, ["clean"])
+    fs2._switch = lambda narrow: switched.append(("fs2", narrow))
+    fs2.noted("clean", "ingest", True, fs2.changed_at + 0.5)
+    fs2._step(fs2.changed_at + fsm.NARROW_AFTER_S + 1.0)
+    assert not any(isinstance(x, tuple) for x in switched)
+    # a token that comes or goes: the change time moves and the switch thread is woken
+    import time
+
+    before = time.monotonic()
+    fs._on_token(None)
+    assert fs._wide.is_set() and fs.changed_at >= before
+    # a frame delivered twice around a switch is taken once; a newer one always
+    fs.dedupe_until = float("inf")
+    assert fs.duplicate("magmesh/fleet/ingest-1/clean", 7, 7) and not fs.duplicate("magmesh/fleet/ingest-1/clean", 8, 7)
+    fs.dedupe_until = 0.0
+    assert not fs.duplicate("magmesh/fleet/ingest-1/clean", 3, 7)  # (outside a switch: the seq checks count it)
