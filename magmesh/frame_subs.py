@@ -155,7 +155,7 @@ class FrameSubscriptions:
 
     def _settled(self) -> bool:
         g = self.rt.group
-        return g is not None and g.ready and g.complete and g.round_s >= g.idle_period_s and not g.leaving
+        return g is not None and g.ready and g.complete and g.settled and not g.leaving
 
     def _step(self, now: float) -> None:
         g = self.rt.group

@@ -242,6 +242,7 @@ class GroupMember:
         self._steady_key: tuple = ()
         self.idle_period_s = max(period_s, IDLE_PERIOD_S)
         self.round_s = period_s  # the wait before the next round (status)
+        self.settled = False  # as of the last round: nothing under way (see _busy; magmesh/frame_subs.py reads it)
         self._thread: threading.Thread | None = None
         self._dead_since: dict[str, float] = {}  # member -> when its liveliness was seen gone
         self._leaving_seen: set[str] = set()
@@ -559,7 +560,7 @@ class GroupMember:
                 "vehicles": sorted(self.owned)[:1000], "vehicles_total": len(self.owned),
                 "seen": sorted(self.seen)[:1000], "seen_total": len(self.seen),
                 "warming": sorted(self.warming), "taking": sorted(self.arm), "releasing": sorted(self.release),
-                "round_s": self.round_s, **self.stats, "not_owned": self.stats["not_owned"] + self.skipped_early}
+                "round_s": self.round_s, "settled": self.settled, **self.stats, "not_owned": self.stats["not_owned"] + self.skipped_early}
 
     def _clear_vehicle(self, v: str) -> None:
         """Forget what this instance knew of ``v``'s streams (seq tracking, times): a later take starts clean."""
@@ -1076,7 +1077,8 @@ class GroupMember:
     def _run(self) -> None:
         zconf.os_thread_name("mm-group")
         while not self._stop.is_set():
-            self.round_s = self.period_s if self._busy() else self.idle_period_s
+            self.settled = not self._busy()
+            self.round_s = self.idle_period_s if self.settled else self.period_s
             self._wake.wait(self.round_s)
             self._wake.clear()
             if self._stop.is_set():

@@ -1126,8 +1126,8 @@ def test_a_member_narrows_its_frames_to_its_own_upstream_shard_only_when_co_part
 
     from magmesh import frame_subs as fsm
 
-    g = SimpleNamespace(me="dmc-1", members=["dmc-1", "dmc-2"], ready=True, complete=True, round_s=1.0,
-                        idle_period_s=1.0, leaving=False, owned={"car-1"})
+    g = SimpleNamespace(me="dmc-1", members=["dmc-1", "dmc-2"], ready=True, complete=True, settled=True,
+                        leaving=False, owned={"car-1"})
     rt = SimpleNamespace(group=g, svc=SimpleNamespace(instance="dmc-1"), last_error=None)
     fs = fsm.FrameSubscriptions(rt, ["clean", "cal"])
     switched: list = []
@@ -1152,11 +1152,11 @@ def test_a_member_narrows_its_frames_to_its_own_upstream_shard_only_when_co_part
     assert switched == [{"clean": "ingest-1"}]
     fs._step(now + 0.1)
     assert len(switched) == 1  # nothing new to narrow
-    g.round_s = 0.2  # the group is busy (a hand-over under way): every shard again
+    g.settled = False  # the group is busy (a hand-over under way): every shard again
     fs._step(now + 0.2)
     assert switched[-1] == {}
     # upstream shards numbered unlike this group (three ingest members, two here): every shard
-    g.round_s = 1.0
+    g.settled = True
     t0 = fs.changed_at
     now = t0 + fsm.NARROW_AFTER_S + 1.0
     frames("clean", ["ingest-1", "ingest-2", "ingest-3"], {"ingest-1"})
