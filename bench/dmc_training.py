@@ -160,6 +160,9 @@ class Metrics:
     n_valid: int
     n_good: int
     wp_max_deg: float = float("nan")  # worst heading error of the valid samples
+    #: 95th percentile of the valid samples' heading error (the paper does not say which statistic its WP is;
+    #: docs/methods.md "How hard the test data are")
+    wp_p95_deg: float = float("nan")
     onset_delay_s: float | None = None  # median delay from a disturbance's start to the alarm
     missed_zones: int | None = 0
     false_alarms: int | None = 0
@@ -178,7 +181,8 @@ def metrics(valid: np.ndarray, err_deg: np.ndarray) -> Metrics:
     wp = float(np.sqrt(np.mean(err_deg[valid] ** 2))) if nv else float("nan")
     wpm = float(np.mean(err_deg[valid])) if nv else float("nan")
     wpx = float(np.max(err_deg[valid])) if nv else float("nan")
-    return Metrics(float(rp), float(mp), wp, wpm, int(len(valid)), nv, ng, wpx)
+    wp95 = float(np.percentile(err_deg[valid], 95)) if nv else float("nan")
+    return Metrics(float(rp), float(mp), wp, wpm, int(len(valid)), nv, ng, wpx, wp_p95_deg=wp95)
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
