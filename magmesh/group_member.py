@@ -95,7 +95,9 @@ REPUBLISH_MARGIN_S = 0.5
 #: vehicle they hold, the part of an answer that grows with the fleet); the other rounds ask for membership and
 #: hand-overs only. Asked every round (0.2 s), building, encoding and reading it took about 30 % of a core across the
 #: four stages' members at 600 vehicles, two per stage (``magmesh bench mesh``); a failover from the mesh estimates
-#: what its holder handled after the last table from the key's rate (:meth:`GroupMember._mesh_state`)
+#: what its holder handled after the last table from the key's rate (:meth:`GroupMember._mesh_state`). Asked only
+#: while another live member keeps its seq journal elsewhere: a failover from a member journalled on this host reads
+#: the journal
 HELD_PERIOD_S = 1.0
 
 #: how often (wall s) a settled member runs its round: no hand-over, take-over, pause or warm-up under way here, every
@@ -1144,7 +1146,11 @@ class GroupMember:
         for m in live:
             self._dead_since.pop(m, None)
         self.live = live
-        ask_held = now - self._held_asked >= HELD_PERIOD_S
+        # the held tables serve a failover from what the mesh showed (_mesh_state): asked for only while another
+        # live member keeps its seq journal elsewhere (a failover from a member journalled here reads its journal;
+        # building, sending and reading the tables was most of a settled round's cost)
+        ask_held = now - self._held_asked >= HELD_PERIOD_S and \
+            any(not self._journalled_here(m) for m in live if m != self.me)
         if ask_held:
             self._held_asked = now
         for inst in sorted(live - {self.me} - set(states)):
