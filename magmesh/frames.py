@@ -34,6 +34,13 @@ def stream_key(kind: str, vehicle: str, name: str) -> str:
     return keys.clean_mag(vehicle, sensor) if head == "mag" else getattr(keys, f"clean_{head}")(vehicle)
 
 
+def _vehicle_part(k: str) -> str:
+    """The second chunk of a key (``magmesh/{vehicle}/...``: the vehicle), or the key itself."""
+    a = k.find("/")
+    b = k.find("/", a + 1)
+    return k[a + 1:b] if 0 <= a < b else k
+
+
 class SeqTable(MutableMapping):
     """key → last input seq handled. Keys that frames carry live in slots of an array (``slots_for``), the rest
     in a dict; both read and write like one dict (the group, restart and eviction code uses it so)."""
@@ -49,6 +56,9 @@ class SeqTable(MutableMapping):
         self.td: dict[str, float] = {}
         self.free: list[int] = []
         self.generation = 0  # bumped when a slot is freed: cached slot arrays must be rebuilt
+        #: vehicle -> its keys that have a slot or a dict entry (``keys_with``: a take-over clears one vehicle's
+        #: keys; a scan of every key per vehicle took seconds when a group member took 500 new vehicles)
+        self.vidx: dict[str, set[str]] = {}
 
     # ---- the arrays -----------------------------------------------------------------------------
     def slots_for(self, names: list[str]) -> np.ndarray:
@@ -77,6 +87,7 @@ class SeqTable(MutableMapping):
                 self.tarr = grown_t
         self.names[s] = k
         self.slot[k] = s
+        self.vidx.setdefault(_vehicle_part(k), set()).add(k)
         v = self.d.pop(k, None)
         self.arr[s] = NONE if v is None else int(v)
         self.tarr[s] = self.td.pop(k, np.nan)
@@ -85,6 +96,8 @@ class SeqTable(MutableMapping):
     def free_slot(self, k: str) -> None:
         s = self.slot.pop(k, None)
         if s is not None:
+            if k not in self.d:
+                self._unindex(k)
             self.names[s] = None
             self.arr[s] = NONE
             self.tarr[s] = np.nan
@@ -130,9 +143,25 @@ class SeqTable(MutableMapping):
         v = self.arr[s]
         return default if v == NONE else int(v)
 
+    def keys_with(self, pre: str) -> list[str]:
+        """The keys held (with a seq) that start with ``pre`` = ``magmesh/{vehicle}/``: from the vehicle's index,
+        not a scan of every key."""
+        ks = self.vidx.get(_vehicle_part(pre))
+        return [k for k in list(ks) if k.startswith(pre) and k in self] if ks else []
+
+    def _unindex(self, k: str) -> None:
+        v = _vehicle_part(k)
+        ks = self.vidx.get(v)
+        if ks is not None:
+            ks.discard(k)
+            if not ks:
+                del self.vidx[v]
+
     def __setitem__(self, k: str, v: int) -> None:
         s = self.slot.get(k)
         if s is None:
+            if k not in self.d:
+                self.vidx.setdefault(_vehicle_part(k), set()).add(k)
             self.d[k] = v
         else:
             self.arr[s] = int(v)
@@ -142,6 +171,7 @@ class SeqTable(MutableMapping):
         if s is None:
             del self.d[k]
             self.td.pop(k, None)
+            self._unindex(k)
             return
         if self.arr[s] == NONE:
             raise KeyError(k)

@@ -255,6 +255,7 @@ class GroupMember:
         self._tokens: set[str] = set()  # live instances of the role (liveliness tokens)
         self._token_sub: Any = None
         self._token_q: deque = deque()  # (instance, gone) as the token subscriber's callback got them
+        self._files_cache: tuple | None = None  # (state dir, when listed, journals, alarm files): _state_files
         self._started = time.monotonic()
         self.skipped_early = 0  # counted by the reader threads (see skips)
         #: vehicle -> when its input last reached this member while another held it (monotonic s; noted by the
@@ -568,8 +569,9 @@ class GroupMember:
         """Forget what this instance knew of ``v``'s streams (seq tracking, times): a later take starts clean."""
         rt = self.rt
         pre = f"{keys.ROOT}/{v}/"
-        for k in [k for k in rt.in_seq if k.startswith(pre)]:
-            del rt.in_seq[k]
+        tab = rt.in_seq
+        for k in tab.keys_with(pre) if hasattr(tab, "keys_with") else [k for k in tab if k.startswith(pre)]:
+            del tab[k]
         rt.first_in_t.pop(v, None)
         rt.last_in_t.pop(v, None)
 
@@ -1318,6 +1320,22 @@ class GroupMember:
         return any(k.startswith(pre) and m.get("state") == "raised" for k, (_s, m) in list(self.seen_alarm.items())) \
             or bool(self._dead_state(v)["raised"])
 
+    def _state_files(self, d: Any, fresh: bool = False) -> tuple[list, list]:
+        """The group's seq journals and alarm files in the state directory ``d``. Listed again when the live
+        members changed or a second passed (or ``fresh``), else kept: :meth:`_dead_state` runs for every vehicle
+        taken at first sight, and listing the directories for each of 500 new vehicles held a member's loop up for
+        a second. Only the files of members that are not live are read, and a member's files are written while it
+        is live: a listing made since the live members last changed has every one of them."""
+        now = time.monotonic()
+        live = frozenset(self.live)
+        c = self._files_cache
+        if fresh or c is None or c[0] != d or c[1] != live or now - c[2] >= 1.0:
+            journals = sorted((d / "journal").glob(f"{self.role}.{self.name}-*.seq"))
+            alarms = sorted({f.with_suffix(".json") for pat in ("json", "log")
+                             for f in (d / "alarms").glob(f"{self.role}.{self.name}-*.{pat}")})
+            c = self._files_cache = (d, live, now, journals, alarms)
+        return c[3], c[4]
+
     def _dead_state(self, v: str, only: str | None = None) -> dict:
         """What the members of the group that are not live persisted about vehicle ``v``: seq journals (the
         sample a member was handling when killed counts as handled when an output went out after it began) and
@@ -1332,7 +1350,8 @@ class GroupMember:
         alarm_seq: dict[str, int] = {}
         first_rx: dict[str, int] = {}
         d = state_dir()
-        for f in sorted((d / "journal").glob(f"{self.role}.{self.name}-*.seq")):
+        journals, alarm_files = self._state_files(d, fresh=only is not None)
+        for f in journals:
             inst = f.name[len(self.role) + 1:-len(".seq")]
             if (inst != only) if only is not None else (inst in self.live):
                 continue
@@ -1361,9 +1380,7 @@ class GroupMember:
             out["inputs"].setdefault(k, s - 1)
         from .alarmstore import load
 
-        names = {f.with_suffix(".json") for pat in ("json", "log")
-                 for f in (d / "alarms").glob(f"{self.role}.{self.name}-*.{pat}")}
-        for f in sorted(names):
+        for f in alarm_files:
             inst = f.name[len(self.role) + 1:-len(".json")]
             if (inst != only) if only is not None else (inst in self.live):
                 continue

@@ -468,3 +468,21 @@ def test_shedding_is_a_setting_zero_never_sheds(tmp_path, monkeypatch):
     r.q.put(("stop",))
     r.loop()
     assert len(svc.got) == 1 and not r.drops[FKEY].get("shed_behind") and runtime.SHED_AFTER_S > 0
+
+
+def test_seq_table_finds_one_vehicles_keys_from_its_index():
+    """SeqTable.keys_with: a vehicle's keys (slot or dict), none of another vehicle's, none deleted."""
+    from magmesh.frames import SeqTable
+
+    t = SeqTable(capacity=2)
+    t.slots_for(["magmesh/car-1/clean/mag/1", "magmesh/car-2/clean/mag/1", "magmesh/car-10/clean/imu"])
+    t["magmesh/car-1/clean/mag/1"] = 4
+    t["magmesh/car-10/clean/imu"] = 7
+    t["magmesh/car-1/cal/mag/2"] = 3  # a dict entry
+    assert sorted(t.keys_with("magmesh/car-1/")) == ["magmesh/car-1/cal/mag/2", "magmesh/car-1/clean/mag/1"]
+    assert t.keys_with("magmesh/car-2/") == []  # a slot with no seq yet
+    del t["magmesh/car-1/cal/mag/2"]
+    t.free_slot("magmesh/car-1/clean/mag/1")
+    assert t.keys_with("magmesh/car-1/") == [] and "car-1" not in t.vidx
+    assert t.keys_with("magmesh/car-10/") == ["magmesh/car-10/clean/imu"]
+    assert sorted(t) == sorted(k for v in ("car-1", "car-2", "car-10") for k in t.keys_with(f"magmesh/{v}/"))
