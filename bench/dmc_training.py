@@ -178,11 +178,12 @@ def metrics(valid: np.ndarray, err_deg: np.ndarray) -> Metrics:
     nv, ng = int(valid.sum()), int(good.sum())
     rp = 100.0 * (valid & good).sum() / ng if ng else float("nan")
     mp = 100.0 * (valid & ~good).sum() / nv if nv else 0.0
-    wp = float(np.sqrt(np.mean(err_deg[valid] ** 2))) if nv else float("nan")
-    wpm = float(np.mean(err_deg[valid])) if nv else float("nan")
-    wpx = float(np.max(err_deg[valid])) if nv else float("nan")
-    wp95 = float(np.percentile(err_deg[valid], 95)) if nv else float("nan")
-    return Metrics(float(rp), float(mp), wp, wpm, int(len(valid)), nv, ng, wpx, wp_p95_deg=wp95)
+    if not nv:
+        nan = float("nan")
+        return Metrics(float(rp), float(mp), nan, nan, int(len(valid)), nv, ng, nan, wp_p95_deg=nan)
+    e = err_deg[valid]  # the accepted samples' errors: RMS, mean, worst, 95th percentile
+    return Metrics(float(rp), float(mp), float(np.sqrt(np.mean(e ** 2))), float(np.mean(e)), int(len(valid)), nv, ng,
+                   float(np.max(e)), wp_p95_deg=float(np.percentile(e, 95)))
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:

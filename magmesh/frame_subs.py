@@ -126,10 +126,9 @@ class FrameSubscriptions:
                     sub.undeclare()
                 except Exception as e:  # noqa: BLE001 - closing: the session goes with it
                     log.debug("undeclaring %s: %s", k, e)
-            widened = len(narrow) < len(self.narrow) or any(self.narrow.get(k) != s for k, s in narrow.items()
-                                                            if k in self.narrow)
+            widened = not narrow or not narrow.items() >= self.narrow.items()  # (narrowed: kinds only added)
             self.narrow = dict(narrow)
-        if widened or not narrow:
+        if widened:
             self.stats["widened"] += 1
         else:
             self.stats["narrowed"] += 1
