@@ -74,12 +74,12 @@ class Inbox:
             return [msgpack.unpackb(b) for k, b in self.items if k == key]
 
 
-def wait_until(pred, timeout: float) -> bool:
+def wait_until(pred, timeout: float, interval: float = 0.05) -> bool:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if pred():
             return True
-        time.sleep(0.05)
+        time.sleep(interval)
     return pred()
 
 
@@ -163,10 +163,18 @@ def test_secured_mesh_carries_the_cars_full_stream(secured):
         return (n(car, "out", keys.raw_mag("car-1", "1")), n(ing, "out", keys.clean_mag("car-1", "1")),
                 n(det, "out", keys.dmc("car-1")))
 
-    expected = int(DRIVE_S * 50)  # 50 Hz magnetometer, one drive
+    expected = int(DRIVE_S * 50) + 1  # 50 Hz magnetometer, one drive (both ends sampled)
     assert wait_until(lambda: counts()[0] >= expected, 120), f"the car did not finish its drive: {counts()}"
-    assert wait_until(lambda: len(set(counts())) == 1, 30), f"published / cleaned / dmc differ: {counts()}"
-    published, cleaned, epochs = counts()
+    last: list = [None]
+
+    def settled() -> bool:  # the three equal, and still so a second later (the car's last sample may be in flight)
+        now = counts()
+        same = len(set(now)) == 1 and now == last[0]
+        last[0] = now
+        return same
+
+    assert wait_until(settled, 30, interval=1.0), f"published / cleaned / dmc differ: {counts()}"
+    published, cleaned, epochs = last[0]
     assert published >= expected and published == cleaned == epochs
     seqs = [m["seq"] for m in secured["dmc"].msgs(keys.dmc("car-1"))]
     assert seqs and seqs[-1] == epochs - 1, "the operator did not see the last dmc epoch"
