@@ -580,16 +580,19 @@ def bench(vehicles: list[int], duration_s: float = 15.0, repeat: int = 1, stages
                             sink=sink)
     say(f"saturation: limit (same hops, no processing), {n_sat} vehicles ({wire})")
     lim_max = _median_case("limit", n_sat, duration_s, True, stages, repeat, tmp, wire, window_s, frame_s)
-    by_k = {}
-    for k in instances:
-        rows = []
-        for n in vehicles:
+    # the instance counts side by side: each vehicle count is run for every instance count before the next, so a
+    # machine that slows down (or speeds up) within the bench weighs on every count alike
+    rows_k: dict[int, list[dict]] = {k: [] for k in instances}
+    for n in vehicles:
+        for k in instances:
             say(f"paced at sensor rates: pipeline, {n} vehicles ({wire})"
                 + (f", {k} instance{'s' if k > 1 else ''} per stage" if k > 1 or len(instances) > 1 else ""))
             r = _median_case("pipeline", n, duration_s, False, stages, repeat, tmp, wire, window_s, frame_s,
                              instances=k, warmup_s=warmup_s, sink=sink)
             r["sustained"] = _sustained(r, p99_ms)
-            rows.append(r)
+            rows_k[k].append(r)
+    by_k = {}
+    for k, rows in rows_k.items():
         ok_k = [r["vehicles"] for r in rows if r["sustained"]]
         by_k[str(k)] = {"scaling": rows, "max_vehicles": max(ok_k) if ok_k else 0}
     table = by_k[str(instances[0])]["scaling"]
