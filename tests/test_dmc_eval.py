@@ -70,8 +70,8 @@ def _check(r: dict) -> None:
     assert set(eval_dmc.PAPER_CONDITIONS) <= set(cond) and cond["paper"] == eval_dmc.PAPER_CONDITIONS
     assert 0.0 < cond["bad_pct"] < 100.0 and cond["field_unit_nt"] == r["field_unit_nt"]
     # hiding from the DMC needs the strength test *and* the heading test passed: never more than from one compass
-    assert cond["dmc_hidden_bad_per_good_2000nt_8deg"] <= cond["hidden_bad_per_good_2000nt"]
-    assert cond["hidden_bad_per_good_400nt"] <= cond["hidden_bad_per_good_2000nt"]
+    assert cond["dmc_hidden_bad_per_good_200units_8deg"] <= cond["hidden_bad_per_good_200units"]
+    assert cond["hidden_bad_per_good_40units"] <= cond["hidden_bad_per_good_200units"]
     # the paper's own experiment (turntable): every row, with the paper's figure beside
     lab = r["lab"]
     assert not set(lab["judged"]) & set(lab["train"]) and all("magnet" not in d for d in lab["judged"])
@@ -117,10 +117,11 @@ def test_conditions_count_hidden_bad_samples():
     err, dm = d.heading_err_deg, np.abs(d.true_dm_nt).max(axis=1)
     good = err < T.GOOD_DEG
     assert c["bad_pct"] == pytest.approx(100.0 * (~good).mean(), abs=0.01)
-    assert c["hidden_bad_per_good_2000nt"] == pytest.approx(((~good) & (dm < 2000.0)).sum() / good.sum(), abs=1e-4)
+    loose = 200.0 * eval_dmc.FIELD_UNIT_NT  # the paper's loosest strength threshold, 200 of its field units
+    assert c["hidden_bad_per_good_200units"] == pytest.approx(((~good) & (dm < loose)).sum() / good.sum(), abs=1e-4)
     # a coarser field unit widens the strength thresholds: at least as many bad samples hide
     c100 = eval_dmc.conditions([d], field_unit_nt=100.0)
-    assert c100["hidden_bad_per_good_2000nt"] >= c["hidden_bad_per_good_2000nt"]
+    assert c100["hidden_bad_per_good_200units"] >= c["hidden_bad_per_good_200units"]
     assert c100["good_strength_changed_pct"] <= c["good_strength_changed_pct"]
 
 

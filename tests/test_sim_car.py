@@ -428,8 +428,17 @@ def test_turntable_samples_every_10_degrees_and_quiet_turns_are_clean():
     tru = np.degrees(np.abs(maths.angle_diff(maths.mag_heading_flu(b[:, 0], b[:, 1], r.declination_rad),
                                              r.heading_rad[~quiet])))
     assert tru.max() > 25.0
-    # the output unit of the HMR3300: multiples of 10 nT
-    assert np.allclose(r.mag_b_nt["2"] / 10.0, np.round(r.mag_b_nt["2"] / 10.0))
+    # the compass's output unit (multiples of it) and field range (±2 gauss per axis)
+    u = r.settings.mag_resolution_nt
+    assert np.allclose(r.mag_b_nt["2"] / u, np.round(r.mag_b_nt["2"] / u))
+    assert np.abs(r.mag_b_nt["2"]).max() <= r.settings.mag_range_nt + u
+    # the rate gyro carries the table's turn: what it integrates over the run is the table's turn, off by no more
+    # than four of its bias's σ times the run's length
+    from services.dmc_detector.quasistatic import gyro_heading
+
+    turned = np.degrees(gyro_heading(r.gyro_t_s, r.gyro_rad_s, r.t_s)[-1])
+    table = np.degrees(np.unwrap(r.heading_rad)[-1] - r.heading_rad[0])
+    assert abs(turned - table) < 4 * r.settings.gyro_bias_deg_s * r.t_s[-1]
 
 
 def test_turntable_is_deterministic_and_rejects_unknown_runs():
