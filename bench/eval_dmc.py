@@ -54,8 +54,8 @@ UNSEEN_QUICK = [("paper_b", 11, 0), ("paper_c", 11, 0), ("paper_c", 14, 6)]
 #: the paper's own experiment (sim_publishers.car.turntable): trained on one run (its Table 4 protocol: sample 1),
 #: judged on runs of the other kinds of source and other seeds; seeds 101–103 calibrated the simulator
 LAB_TRAIN = ("magnet", 1)
-#: turns per turntable run: 72 (an hour and a quarter of table time); with 24 the same settings' RP and MP moved by
-#: 5-10 points from one three-seed set to the next
+#: turns per turntable run: 72 (2.5 hours of table time at 126 s a turn); with 24 the same settings' RP and MP moved
+#: by several points from one three-seed set to the next
 LAB_TURNS = 72
 LAB_JUDGED_FULL = [("cabinet", 11), ("cabinet", 12), ("mixed", 11), ("mixed", 12), ("mixed", 13)]
 LAB_JUDGED_QUICK = [("cabinet", 11), ("mixed", 11)]
@@ -315,9 +315,8 @@ def lab_rows(judged_spec, unit: float) -> dict:
             _against_paper(row)
             out["baselines"][key].append(row)
     loose = core.Thresholds(200 * unit, 100 * unit, 8.0, 8.0)
-    # the paper's FCM as it states it: clusters ordered by the size of their centres, the two smallest make up K_c.
-    # (magmesh's order by the training run's heading error, the streets' default, keeps one cluster here: the
-    # undisturbed table errs up to about 1.5°, its 2° line leaves one cluster below it, and RP falls to about 38 %)
+    # the paper's FCM as it states it: clusters ordered by the size of their centres, the two smallest make up K_c
+    # (magmesh's order by the training run's heading error, the streets' default, picks the same two on this table)
     model = T.train_fcm(train, T.DEFAULT_FEATURE_SET, use_reference=False, loose=loose,
                         feature_settings=T.lab_feature_settings(float(train[0].t_s[1] - train[0].t_s[0])))
     m = T.evaluate(T.fcm_valid(judged, model), judged)
