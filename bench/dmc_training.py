@@ -146,7 +146,8 @@ def simulate_lab(run: str, seed: int, turns: int = 24, **overrides) -> DriveData
     true_dh = maths.angle_diff(np.arctan2(b1[:, 1], b1[:, 0]), np.arctan2(b2[:, 1], b2[:, 0]))
     active = r.source_kind != "none"
     return DriveData(f"lab_{run}/seed{seed}", f"lab_{run}", seed, f, err, r.t_s, err >= 2.0, active,
-                     gyro_t_s=r.gyro_t_s, gyro_rad_s=r.gyro_rad_s, true_heading_rad=r.heading_rad, true_dm_nt=true_dm, true_dh_rad=np.asarray(true_dh),
+                     gyro_t_s=r.gyro_t_s, gyro_rad_s=r.gyro_rad_s, true_heading_rad=r.heading_rad,
+                     true_dm_nt=true_dm, true_dh_rad=np.asarray(true_dh),
                      declination_rad=float(r.declination_rad))
 
 
