@@ -125,6 +125,13 @@ def _row(name: str, m, **extra) -> dict:
     return {"name": name, **m.as_dict(), **extra}
 
 
+def paper_sets(unit_nt: float) -> list:
+    """The paper's four threshold sets (its Table 1, loosest first) in nT at ``unit_nt`` per field unit."""
+    from services.dmc_detector import core
+
+    return [core.Thresholds(a * unit_nt, b * unit_nt, c, d) for a, b, c, d in core.PAPER_TABLE1_SETS]
+
+
 def _against_paper(row: dict) -> None:
     """A baseline row's place against the paper's range: ``inside_paper_range`` per figure (WP both as RMS and as
     a 95 % bound, the reading under which the paper's tables hang together: docs/methods.md "Which statistic WP
@@ -300,21 +307,20 @@ def conditions(drives, field_unit_nt: float = FIELD_UNIT_NT) -> dict:
 def lab_rows(judged_spec, unit: float) -> dict:
     """The baselines, FCM and its gain on the paper's turntable experiment (runs it never trained on)."""
     from bench import dmc_training as T
-    from services.dmc_detector import core
 
     train = [T.simulate_lab(*LAB_TRAIN, turns=LAB_TURNS)]
     judged = [T.simulate_lab(run, seed, turns=LAB_TURNS) for run, seed in judged_spec]
     out: dict = {"train": [d.name for d in train], "judged": [d.name for d in judged],
                  "conditions": conditions(judged, unit), "baselines": {"single_threshold": [], "dmc_threshold": []}}
-    for i, (a, b, c, d) in enumerate(core.PAPER_TABLE1_SETS):
-        th = core.Thresholds(a * unit, b * unit, c, d)
+    sets = paper_sets(unit)
+    for i, th in enumerate(sets):
         thr = {"dm_nt": th.dm_nt, "ddm_nt_s": th.ddm_nt_s, "dh_deg": th.dh_deg, "ddh_deg_s": th.ddh_deg_s}
         for key, valid, paper in (("single_threshold", T.single_valid(judged, th), PAPER_TABLE2[i]),
                                   ("dmc_threshold", T.threshold_valid(judged, th), PAPER_TABLE1[i])):
             row = _row(f"paper_set{i + 1}", T.evaluate(valid, judged), thresholds=thr, paper=paper)
             _against_paper(row)
             out["baselines"][key].append(row)
-    loose = core.Thresholds(200 * unit, 100 * unit, 8.0, 8.0)
+    loose = sets[0]  # the paper's loosest set: the FCM's and the gyro-checked stage's stage 1
     # the paper's FCM as it states it: clusters ordered by the size of their centres, the two smallest make up K_c
     # (magmesh's order by the training run's heading error, the streets' default, picks the same two on this table)
     model = T.train_fcm(train, T.DEFAULT_FEATURE_SET, use_reference=False, loose=loose,
@@ -446,7 +452,7 @@ def stage_gain_against_thresholds(drives, valid_of, loose=None, scales=CURVE_SCA
 
 def run(args: argparse.Namespace) -> dict:
     from bench import dmc_training as T
-    from services.dmc_detector import core, fcm, quasistatic
+    from services.dmc_detector import fcm, quasistatic
 
     t_start = time.perf_counter()
     quick = bool(getattr(args, "quick", False))
@@ -459,8 +465,7 @@ def run(args: argparse.Namespace) -> dict:
 
     # baselines: the paper's threshold sets, one compass (its Table 2) and the DMC stage 1 (its Table 1)
     unit = float(getattr(args, "field_unit_nt", FIELD_UNIT_NT))
-    sets = [(f"paper_set{i + 1}", core.Thresholds(a * unit, b * unit, c, d))
-            for i, (a, b, c, d) in enumerate(core.PAPER_TABLE1_SETS)]
+    sets = [(f"paper_set{i + 1}", th) for i, th in enumerate(paper_sets(unit))]
     single_rows, dmc_rows = [], []
     for i, (name, th) in enumerate(sets):
         thr = {"dm_nt": th.dm_nt, "ddm_nt_s": th.ddm_nt_s, "dh_deg": th.dh_deg, "ddh_deg_s": th.ddh_deg_s}

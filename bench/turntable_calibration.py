@@ -41,15 +41,13 @@ def rows(settings: dict, unit_nt: float, seeds=SEEDS, runs=RUNS, turns=TURNS) ->
     """(per threshold set and detector: kind, set, RP, MP, WP95, paper range), undisturbed error p99."""
     from bench import dmc_training as T
     from bench import eval_dmc as E
-    from services.dmc_detector import core
 
     drives = [T.simulate_lab(r, s, turns=turns, mag_resolution_nt=unit_nt, **settings) for r in runs for s in seeds]
     err = np.concatenate([d.heading_err_deg for d in drives])
     quiet = ~np.concatenate([d.source_active for d in drives])
     q99 = float(np.percentile(err[quiet], 99)) if quiet.any() else float("nan")
     out = []
-    for i, (a, b, c, d) in enumerate(core.PAPER_TABLE1_SETS):
-        th = core.Thresholds(a * unit_nt, b * unit_nt, c, d)
+    for i, th in enumerate(E.paper_sets(unit_nt)):
         for kind, valid, paper in (("single", T.single_valid(drives, th), E.PAPER_TABLE2[i]),
                                    ("dmc", T.threshold_valid(drives, th), E.PAPER_TABLE1[i])):
             m = T.metrics(valid, err)

@@ -563,15 +563,15 @@ class GroupMember:
                 "vehicles": sorted(self.owned)[:1000], "vehicles_total": len(self.owned),
                 "seen": sorted(self.seen)[:1000], "seen_total": len(self.seen),
                 "warming": sorted(self.warming), "taking": sorted(self.arm), "releasing": sorted(self.release),
-                "round_s": self.round_s, "settled": self.settled, **self.stats, "not_owned": self.stats["not_owned"] + self.skipped_early}
+                "round_s": self.round_s, "settled": self.settled,
+                **self.stats, "not_owned": self.stats["not_owned"] + self.skipped_early}
 
     def _clear_vehicle(self, v: str) -> None:
         """Forget what this instance knew of ``v``'s streams (seq tracking, times): a later take starts clean."""
         rt = self.rt
         pre = f"{keys.ROOT}/{v}/"
-        tab = rt.in_seq
-        for k in tab.keys_with(pre) if hasattr(tab, "keys_with") else [k for k in tab if k.startswith(pre)]:
-            del tab[k]
+        for k in rt.in_seq.keys_with(pre):
+            del rt.in_seq[k]
         rt.first_in_t.pop(v, None)
         rt.last_in_t.pop(v, None)
 

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from magmesh import groups
+from magmesh.frames import SeqTable
 from magmesh.journal import Journal
 from magmesh_cli.supervisor import ManifestError, Supervisor, command_for, load_manifest
 
@@ -251,7 +252,8 @@ def test_a_restarted_member_taking_back_a_vehicle_nobody_took_counts_the_gap_fro
 
     m1, m2, other = "magmesh/car-1/clean/mag/1", "magmesh/car-1/clean/mag/2", "magmesh/car-2/clean/mag/1"
     rt = _Rt()
-    rt.in_seq = {m1: 100, m2: 99, other: 5}
+    rt.in_seq = SeqTable()  # (what the runtime keeps)
+    rt.in_seq.update({m1: 100, m2: 99, other: 5})
     rt.resumed_in = {m1, m2, other}
     rt.vehicle_state, rt.first_in_t, rt.last_in_t = {}, {"car-1": 1.0}, {"car-1": 2.0}
     rt.recovering, rt.takeover_in = {}, set()
@@ -370,7 +372,7 @@ class _RoundRt(_Rt):
         self.lock = threading.Lock()
         self.last_in_t, self.first_in_t = {}, {}
         self.seq, self.alarm_published, self.raised, self.drops = {}, {}, {}, defaultdict(dict)
-        self.in_seq, self.resumed_in, self.takeover_in, self.recovering = {}, set(), set(), {}
+        self.in_seq, self.resumed_in, self.takeover_in, self.recovering = SeqTable(), set(), set(), {}
         self.vehicle_state, self.journal, self.alarm_adopted = {}, None, 0
         self.reconcile_pending, self.released = {}, []
 
