@@ -255,7 +255,7 @@ class GroupMember:
         self._tokens: set[str] = set()  # live instances of the role (liveliness tokens)
         self._token_sub: Any = None
         self._token_q: deque = deque()  # (instance, gone) as the token subscriber's callback got them
-        self._files_cache: tuple | None = None  # (state dir, when listed, journals, alarm files): _state_files
+        self._files_cache: tuple | None = None  # (state dir, live set, when listed, journals, alarm files): _state_files
         self._started = time.monotonic()
         self.skipped_early = 0  # counted by the reader threads (see skips)
         #: vehicle -> when its input last reached this member while another held it (monotonic s; noted by the
