@@ -287,40 +287,70 @@ def gyro_track_valid(drives: list[DriveData], stage1: Thresholds, settings=None)
 
 
 #: the settings the gyro-checked second stage chooses from, on its training drives only (``choose_gyro_track``):
-#: the stage-1 set (the paper's loosest, scaled) and the stage's own gate and time constants
-GYRO_TRACK_GRID = {"stage1_scale": (1.0, 1.5, 2.0), "gate_deg": (3.0, 4.0, 5.0), "blend_tau_s": (2.0, 5.0),
-                   "bias_tau_s": (100.0, 300.0), "trust_dm_nt": (300.0, 600.0)}
+#: the stage-1 set (the paper's loosest, scaled) and, per way of carrying the reference heading, that way's gate and
+#: time constants. The "consensus" reference estimates the undisturbed compass heading itself, so its gate is not
+#: chosen but the accuracy asked for: a good heading errs by < 5°, less the compensated compass's own undisturbed
+#: error (about 1°) — 4°; the "blend" reference follows the compass within seconds, its gate a tolerance of that
+#: (chosen)
+GYRO_TRACK_GRID = {"stage1_scale": (1.0, 1.5, 2.0), "reference": ("blend",), "gate_deg": (3.0, 4.0, 5.0),
+                   "blend_tau_s": (2.0, 5.0), "bias_tau_s": (100.0, 300.0), "trust_dm_nt": (300.0, 600.0)}
+GYRO_TRACK_CONSENSUS_GRID = {"stage1_scale": (1.0, 1.5, 2.0), "reference": ("consensus",), "gate_deg": (4.0,),
+                             "consensus_window_s": (250.0, 400.0),
+                             "consensus_scale_deg": (1.5, 3.0)}
+#: the consensus fit's inlier band is two thirds of its biweight scale (1° at 1.5°, 2° at 3°)
+CONSENSUS_INLIER_OF_SCALE = 2.0 / 3.0
 #: its training drives: the FCM's training layout (paper_a), three seeds, none of them judged
 GYRO_TRACK_TRAIN_DRIVES = (("paper_a", 1), ("paper_a", 2), ("paper_a", 3))
 #: its operating rule: the highest RP on the training drives with MP at most this (ties: lower MP, then WP)
 GYRO_TRACK_MAX_TRAIN_MP_PCT = 2.0
 
 
-def choose_gyro_track(drives: list[DriveData], loose: Thresholds | None = None,
-                      max_mp_pct: float = GYRO_TRACK_MAX_TRAIN_MP_PCT) -> dict:
-    """Choose the second stage's settings on ``drives`` (training drives only): every point of GYRO_TRACK_GRID,
-    the highest RP with MP ≤ ``max_mp_pct`` (none within it: the lowest MP). Returns the chosen stage-1 thresholds, settings, their training
-    metrics and the grid's size."""
+def gyro_track_grid() -> list[tuple[float, object]]:
+    """Every (stage-1 scale, GyroTrackSettings) of the two grids, in a fixed order."""
     import itertools
 
-    from services.dmc_detector.quasistatic import GyroTrackSettings, gyro_track_batch
+    from services.dmc_detector.quasistatic import GyroTrackSettings
+
+    out = []
+    for grid in (GYRO_TRACK_GRID, GYRO_TRACK_CONSENSUS_GRID):
+        keys = list(grid)
+        for values in itertools.product(*(grid[k] for k in keys)):
+            p = dict(zip(keys, values, strict=True))
+            k = p.pop("stage1_scale")
+            if "consensus_scale_deg" in p:
+                p["consensus_inlier_deg"] = round(p["consensus_scale_deg"] * CONSENSUS_INLIER_OF_SCALE, 6)
+            out.append((k, GyroTrackSettings(**p)))
+    return out
+
+
+def score_gyro_track(drives: list[DriveData], loose: Thresholds | None = None) -> list[tuple[float, object, Metrics]]:
+    """(stage-1 scale, settings, metrics on ``drives``) for every point of the grids (training drives only)."""
+    from services.dmc_detector.quasistatic import gyro_track_batch
 
     loose = loose or fcm.LOOSE
     err = np.concatenate([d.heading_err_deg for d in drives])
-    keys = list(GYRO_TRACK_GRID)
-    stage1 = {k: [core.threshold_test(d.features, loose.scaled(k)) for d in drives]
-              for k in GYRO_TRACK_GRID["stage1_scale"]}
-    best = None
-    lowest = None  # the lowest MP of the grid, taken when no setting keeps within the cap
-    n = 0
-    for values in itertools.product(*(GYRO_TRACK_GRID[k] for k in keys)):
-        p = dict(zip(keys, values, strict=True))
-        k = p.pop("stage1_scale")
-        st = GyroTrackSettings(**p)
+    stage1: dict[float, list] = {}
+    out = []
+    for k, st in gyro_track_grid():
+        if k not in stage1:
+            stage1[k] = [core.threshold_test(d.features, loose.scaled(k)) for d in drives]
         v = np.concatenate([gyro_track_batch(d.features, stage1[k][i], d.gyro_t_s, d.gyro_rad_s, st).valid
                             for i, d in enumerate(drives)])
-        m = metrics(v, err)
-        n += 1
+        out.append((k, st, metrics(v, err)))
+    return out
+
+
+def choose_gyro_track(drives: list[DriveData], loose: Thresholds | None = None,
+                      max_mp_pct: float = GYRO_TRACK_MAX_TRAIN_MP_PCT, scored=None) -> dict:
+    """Choose the second stage's settings on ``drives`` (training drives only): every point of the grids, the
+    highest RP with MP ≤ ``max_mp_pct`` (none within it: the lowest MP). ``scored``: ``score_gyro_track``'s result
+    for the same drives, to choose under another cap without running the grid again. Returns the chosen stage-1
+    thresholds, settings, their training metrics and the grid's size."""
+    loose = loose or fcm.LOOSE
+    scored = scored if scored is not None else score_gyro_track(drives, loose)
+    best = None
+    lowest = None  # the lowest MP of the grid, taken when no setting keeps within the cap
+    for k, st, m in scored:
         low_key = (m.mp_pct, -m.rp_pct, m.wp_deg)
         if lowest is None or low_key < lowest[0]:
             lowest = (low_key, k, st, m)
@@ -331,8 +361,8 @@ def choose_gyro_track(drives: list[DriveData], loose: Thresholds | None = None,
             best = (key, k, st, m)
     within = best is not None
     _, k, st, m = best if within else lowest
-    return {"stage1": loose.scaled(k), "stage1_scale": k, "settings": st, "train_metrics": m, "grid_size": n,
-            "within_cap": within,
+    return {"stage1": loose.scaled(k), "stage1_scale": k, "settings": st, "train_metrics": m,
+            "grid_size": len(scored), "within_cap": within, "scored": scored,
             "rule": f"highest RP on the training drives with MP ≤ {max_mp_pct:g} % (ties: lower MP, then WP); "
                     "if no setting keeps within it, the lowest MP"}
 

@@ -19,14 +19,18 @@ Keys of ``--json``:
   quasistatic                 the one-magnetometer detector of §2 (paper's form and the project's)
   quasistatic_broad           the same on real recordings (BROAD): handheld IMU board, magnets (full run only)
   second_stage                magmesh's own second stage (gyro_track): the compass heading checked against a heading
-                              carried by the gyro from the last trusted epochs; settings chosen on training drives of
-                              the training layout only (rule and grid recorded); same drives and keys as fcm_unseen
+                              the gyro carries, either pulled towards each trusted epoch (reference "blend") or fitted
+                              to the stage-1 epochs of the last minutes (reference "consensus"); the reference and its
+                              settings chosen on training drives of the training layout only (rule and grids
+                              recorded); same drives and keys as fcm_unseen
   second_stage_gain           as fcm_gain, for second_stage (threshold curve up to twice the loose set)
   fcm_speed                   10,000 × 2 samples: this FCM vs scikit-fuzzy and a plain loop implementation
 
   lab                         the paper's own experiment (sim_publishers.car.turntable): its conditions, baselines,
                               fcm_unseen and fcm_gain as above, and second_stage / second_stage_gain (the table's rate
-                              gyro; settings chosen on magnet runs)
+                              gyro; settings chosen on magnet runs by the same grids and rule; second_stage also carries
+                              meets_paper_table4 — RP above, MP and WP95 below the paper's Table 4 ranges — and, reported
+                              only, rule_sensitivity and gate_sensitivity)
 
 Threshold sets: the paper's field units are HMR3300 output units, 32 nT each (FIELD_UNIT_NT); headings in degrees.
 RP, MP, WP as the paper defines them ("good" = heading error < 5°); WP is the RMS heading error of the samples
@@ -38,6 +42,7 @@ disturbance zone to the alarm (negative: the alarm was raised on the approach).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import time
 
@@ -59,6 +64,8 @@ LAB_TRAIN = ("magnet", 1)
 LAB_TURNS = 72
 LAB_JUDGED_FULL = [("cabinet", 11), ("cabinet", 12), ("mixed", 11), ("mixed", 12), ("mixed", 13)]
 LAB_JUDGED_QUICK = [("cabinet", 11), ("mixed", 11)]
+#: more sets of judged runs (cabinet and mixed, these seeds): the experiment repeated, for its seed-to-seed spread
+LAB_MORE_SEED_SETS = ((21, 22, 23), (31, 32, 33))
 #: the runs the gyro-checked second stage chooses its settings on (magnet runs, as the FCM's training run)
 LAB_GYRO_TRACK_TRAIN = [("magnet", 1), ("magnet", 2), ("magnet", 3)]
 #: the paper's figures per threshold set: [min, max] over its three samples (Table 1: DMC, Table 2: one compass)
@@ -98,6 +105,8 @@ CURVE_SCALES = tuple(round(0.2 + 0.05 * i, 2) for i in range(17))
 SECOND_STAGE_CURVE_SCALES = tuple(round(0.2 + 0.05 * i, 2) for i in range(37))
 #: other caps on the training MP, to show how the second stage's result depends on its operating rule (reported only)
 SECOND_STAGE_RULE_CAPS = (1.0, 3.0)
+#: other gates for the chosen setting, to show how the turntable's result depends on it (reported only)
+SECOND_STAGE_GATE_SENSITIVITY_DEG = (3.0, 3.5, 4.5, 5.0)
 
 
 def _positive(text: str) -> float:
@@ -130,6 +139,19 @@ def paper_sets(unit_nt: float) -> list:
     from services.dmc_detector import core
 
     return [core.Thresholds(a * unit_nt, b * unit_nt, c, d) for a, b, c, d in core.PAPER_TABLE1_SETS]
+
+
+def _brief(st) -> dict:
+    """The settings of a gyro_track choice that the grids vary (the reference's own only)."""
+    keys = ("reference", "gate_deg") + (("consensus_window_s", "consensus_scale_deg", "consensus_inlier_deg")
+                                        if st.reference == "consensus" else ("blend_tau_s", "bias_tau_s", "trust_dm_nt"))
+    return {k: getattr(st, k) for k in keys}
+
+
+def _beats(row: dict, paper: dict) -> bool:
+    """Whether a row's RP is above the paper's range and its MP and WP (as a 95 % bound) below it."""
+    return bool(row["rp_pct"] > paper["rp_pct"][1] and row["mp_pct"] < paper["mp_pct"][0]
+                and row["wp_p95_deg"] < paper["wp_deg"][0])
 
 
 def _against_paper(row: dict) -> None:
@@ -340,7 +362,8 @@ def lab_rows(judged_spec, unit: float) -> dict:
 
     mt = T.evaluate(track_valid(judged), judged)
     m1 = T.evaluate(T.threshold_valid(judged, pick["stage1"]), judged)
-    st = pick["settings"]
+    st, tm = pick["settings"], pick["train_metrics"]
+    err = np.concatenate([d.heading_err_deg for d in judged])
     out["second_stage"] = {
         "name": "gyro_track", "rp_pct": round(mt.rp_pct, 3), "mp_pct": round(mt.mp_pct, 3),
         "wp_deg": round(mt.wp_deg, 3), "wp_p95_deg": round(mt.wp_p95_deg, 3),
@@ -350,9 +373,64 @@ def lab_rows(judged_spec, unit: float) -> dict:
         "stage1_alone": {"rp_pct": round(m1.rp_pct, 3), "mp_pct": round(m1.mp_pct, 3), "wp_deg": round(m1.wp_deg, 3)},
         "settings": {k: getattr(st, k) for k in st.__dataclass_fields__},
         "chosen_on": [d.name for d in track_train], "selection_rule": pick["rule"], "within_cap": pick["within_cap"],
+        "grid_size": pick["grid_size"],
+        "on_training_runs": {"rp_pct": round(tm.rp_pct, 3), "mp_pct": round(tm.mp_pct, 3),
+                             "wp_deg": round(tm.wp_deg, 3)},
         "drives": out["judged"], "paper": PAPER_FCM_UNSEEN}
+    out["second_stage"]["meets_paper_table4"] = _beats(out["second_stage"], PAPER_FCM_UNSEEN)
+    # how much the outcome depends on choices not made on the training runs (reported only, never chosen from):
+    # the operating rule's cap, and the gate of the chosen setting
+    sens = []
+    for cap in SECOND_STAGE_RULE_CAPS:
+        alt = T.choose_gyro_track(track_train, loose=loose, max_mp_pct=cap, scored=pick["scored"])
+        ma = T.metrics(T.gyro_track_valid(judged, alt["stage1"], alt["settings"]), err)
+        sens.append({"max_train_mp_pct": cap, "within_cap": alt["within_cap"], "stage1_scale": alt["stage1_scale"],
+                     "settings": _brief(alt["settings"]), "rp_pct": round(ma.rp_pct, 3),
+                     "mp_pct": round(ma.mp_pct, 3), "wp_deg": round(ma.wp_deg, 3), "wp_p95_deg": round(ma.wp_p95_deg, 3)})
+    out["second_stage"]["rule_sensitivity"] = sens
+    gates = []
+    for g in SECOND_STAGE_GATE_SENSITIVITY_DEG:
+        sg = dataclasses.replace(st, gate_deg=g)
+        ma = T.metrics(T.gyro_track_valid(judged, pick["stage1"], sg), err)
+        gates.append({"gate_deg": g, "rp_pct": round(ma.rp_pct, 3), "mp_pct": round(ma.mp_pct, 3),
+                      "wp_deg": round(ma.wp_deg, 3), "wp_p95_deg": round(ma.wp_p95_deg, 3)})
+    out["second_stage"]["gate_sensitivity"] = gates
     out["second_stage_gain"] = stage_gain_against_thresholds(judged, track_valid, loose,
                                                              scales=SECOND_STAGE_CURVE_SCALES)
+    # the whole experiment again on other seeds (cabinet and mixed runs, never used to choose or design anything):
+    # how far the headline moves from one set of runs to the next
+    sets = [{"seeds": [d.seed for d in judged if d.layout == "lab_mixed"], "drives": out["judged"],
+             **_lab_set_rows(judged, model, track_valid, loose)}]
+    for seeds in LAB_MORE_SEED_SETS:
+        runs = [T.simulate_lab(run, sd, turns=LAB_TURNS) for run in ("cabinet", "mixed") for sd in seeds]
+        sets.append({"seeds": list(seeds), "drives": [d.name for d in runs],
+                     **_lab_set_rows(runs, model, track_valid, loose)})
+    out["seed_sets"] = sets
+    met = sum(x["second_stage"]["meets_paper_table4"] for x in sets)
+    out["second_stage"]["meets_paper_table4_seed_sets"] = f"{met}/{len(sets)}"
+    for key in ("rp_gained_at_equal_mp_pct", "mp_saved_at_equal_rp_pct"):
+        for name in ("second_stage", "fcm"):
+            vals = [x[f"{name}_gain"][key] for x in sets]
+            vals = [v for v in vals if v is not None]
+            out[f"{name}_gain"][f"seed_set_spread_{key}"] = round(float(np.std(vals)), 3) if len(vals) > 1 else None
+            out[f"{name}_gain"][f"seed_set_values_{key}"] = vals
+    return out
+
+
+def _lab_set_rows(runs, model, track_valid, loose) -> dict:
+    """The FCM and the gyro-checked stage on one set of turntable runs, each with its gain over the threshold curve."""
+    from bench import dmc_training as T
+
+    err = np.concatenate([d.heading_err_deg for d in runs])
+    out = {}
+    for name, valid, scales in (("fcm", T.fcm_valid(runs, model), CURVE_SCALES),
+                                ("second_stage", track_valid(runs), SECOND_STAGE_CURVE_SCALES)):
+        m = T.metrics(valid, err)
+        row = {"rp_pct": round(m.rp_pct, 3), "mp_pct": round(m.mp_pct, 3), "wp_deg": round(m.wp_deg, 3),
+               "wp_p95_deg": round(m.wp_p95_deg, 3)}
+        row["meets_paper_table4"] = _beats(row, PAPER_FCM_UNSEEN)
+        out[name] = row
+        out[f"{name}_gain"] = _gain(threshold_curve(runs, loose, scales), m.rp_pct, m.mp_pct)
     return out
 
 
@@ -550,12 +628,11 @@ def run(args: argparse.Namespace) -> dict:
     # how much the outcome depends on the operating rule: the same grid, other caps on the training MP
     sens = []
     for cap in SECOND_STAGE_RULE_CAPS:
-        alt = T.choose_gyro_track(track_train, max_mp_pct=cap)
+        alt = T.choose_gyro_track(track_train, max_mp_pct=cap, scored=pick["scored"])
         ma = T.metrics(T.gyro_track_valid(judged, alt["stage1"], alt["settings"]),
                        np.concatenate([d.heading_err_deg for d in judged]))
         sens.append({"max_train_mp_pct": cap, "within_cap": alt["within_cap"], "stage1_scale": alt["stage1_scale"],
-                     "settings": {k: getattr(alt["settings"], k) for k in ("gate_deg", "blend_tau_s", "bias_tau_s",
-                                                                           "trust_dm_nt")},
+                     "settings": _brief(alt["settings"]),
                      "rp_pct": round(ma.rp_pct, 3), "mp_pct": round(ma.mp_pct, 3), "wp_deg": round(ma.wp_deg, 3)})
     second_stage["rule_sensitivity"] = sens
     a = second_stage["against_its_stage1_alone"]
@@ -703,6 +780,19 @@ def format_text(r: dict) -> str:
                          f"{u0['wp_p95_deg']:.2f}; gain RP at equal MP {g0['pooled']['rp_gained_at_equal_mp_pct']} "
                          f"(spread {g0['spread_rp_gained_at_equal_mp_pct']}), MP saved at equal RP "
                          f"{g0['pooled']['mp_saved_at_equal_rp_pct']} (spread {g0['spread_mp_saved_at_equal_rp_pct']})")
+        ls = lab["second_stage"]
+        lines.append(f"  second_stage: reference {ls['settings']['reference']}, gate {ls['settings']['gate_deg']:g}°, "
+                     f"chosen on {', '.join(ls['chosen_on'])}; against the paper's Table 4 (RP "
+                     f"{rng(ls['paper']['rp_pct'])}, MP {rng(ls['paper']['mp_pct'])}, WP {rng(ls['paper']['wp_deg'])}): "
+                     f"{'beaten' if ls['meets_paper_table4'] else 'NOT beaten'}; other gates (reported only): "
+                     + ", ".join(f"{g['gate_deg']:g}° RP {g['rp_pct']:.1f} MP {g['mp_pct']:.2f}"
+                                 for g in ls["gate_sensitivity"]))
+        for x in lab.get("seed_sets", []):
+            a, b = x["second_stage"], x["fcm"]
+            lines.append(f"  runs of seeds {', '.join(map(str, x['seeds']))}: second_stage RP {a['rp_pct']:.1f} MP "
+                         f"{a['mp_pct']:.2f} WP95 {a['wp_p95_deg']:.2f} ({'beats' if a['meets_paper_table4'] else 'not'} "
+                         f"Table 4; MP saved at equal RP {x['second_stage_gain']['mp_saved_at_equal_rp_pct']}), FCM RP "
+                         f"{b['rp_pct']:.1f} MP {b['mp_pct']:.2f} WP95 {b['wp_p95_deg']:.2f}")
         lines.append("")
     table("Table 3 — FCM on its training drive", r["table3_fcm_train"])
     table("Table 4 — FCM trained once, applied to other drives", r["table4_fcm_apply"])

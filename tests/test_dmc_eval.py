@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 
+from bench import dmc_training as T
 from bench import eval_dmc
 
 
@@ -85,6 +86,24 @@ def _check(r: dict) -> None:
         assert d_row["rp_pct"] <= s_row["rp_pct"] + 1e-9 and d_row["mp_pct"] <= s_row["mp_pct"] + 1e-9
     assert lab["fcm_unseen"]["paper"] == eval_dmc.PAPER_FCM_UNSEEN
     assert [row["drive"] for row in lab["fcm_gain"]["per_drive"]] == lab["judged"]
+    # magmesh's own second stage on the turntable: chosen on magnet runs only, judged on the same runs as the FCM
+    ls = lab["second_stage"]
+    assert ls["drives"] == lab["judged"] and all("magnet" in d for d in ls["chosen_on"])
+    assert ls["grid_size"] == len(T.gyro_track_grid()) and ls["within_cap"] == (ls["on_training_runs"]["mp_pct"] <= 2.0)
+    assert ls["meets_paper_table4"] == (ls["rp_pct"] > 75.1 and ls["mp_pct"] < 5.8 and ls["wp_p95_deg"] < 5.7)
+    gates = ls["gate_sensitivity"]  # a wider gate accepts more: RP and MP rise with it
+    assert [g["gate_deg"] for g in gates] == list(eval_dmc.SECOND_STAGE_GATE_SENSITIVITY_DEG)
+    assert all(a["rp_pct"] <= b["rp_pct"] and a["mp_pct"] <= b["mp_pct"] + 1e-9 for a, b in zip(gates, gates[1:], strict=False))
+    assert [x["max_train_mp_pct"] for x in ls["rule_sensitivity"]] == list(eval_dmc.SECOND_STAGE_RULE_CAPS)
+    # the experiment repeated on other seeds: the judged runs first, then the other sets, none shared
+    sets = lab["seed_sets"]
+    assert sets[0]["drives"] == lab["judged"] and sets[0]["second_stage"]["rp_pct"] == ls["rp_pct"]
+    assert [x["seeds"] for x in sets[1:]] == [list(x) for x in eval_dmc.LAB_MORE_SEED_SETS]
+    names = [d for x in sets for d in x["drives"]]
+    assert len(names) == len(set(names)) and not set(names) & (set(lab["train"]) | set(ls["chosen_on"]))
+    assert ls["meets_paper_table4_seed_sets"] == f"{sum(x['second_stage']['meets_paper_table4'] for x in sets)}/3"
+    assert lab["second_stage_gain"]["seed_set_values_mp_saved_at_equal_rp_pct"][0] == \
+        lab["second_stage_gain"]["pooled"]["mp_saved_at_equal_rp_pct"]
     assert "own experiment" in eval_dmc.format_text(r)
     c = r["fcm_committed_model_unseen"]
     assert c["rp_pct"] == pytest.approx(u["rp_pct"], abs=1e-6), "the committed model is what the recipe trains"
@@ -153,5 +172,10 @@ def test_eval_dmc_full(request):
     assert s["max_centre_diff_vs_loop"] < 1e-9
     if s.get("skfuzzy_ms") is not None:
         assert s["max_centre_diff_vs_skfuzzy"] < 1e-9
+    # the turntable's headline: the gyro-checked stage (its settings from magnet runs) beats the paper's Table 4 on
+    # cabinet and mixed runs, and gains over the threshold stage more than the per-run spread
+    ls = r["lab"]["second_stage"]
+    assert ls["meets_paper_table4"], {k: ls[k] for k in ("rp_pct", "mp_pct", "wp_p95_deg", "settings")}
+    assert r["lab"]["second_stage_gain"]["beats_thresholds_beyond_spread"]
     q = {row["name"]: row for row in r["quasistatic"]}
     assert q["default"]["mp_pct"] <= q["paper_form"]["mp_pct"]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -93,6 +94,66 @@ def test_reseed_after_a_long_disagreement():
     assert not r.valid[(f.t_s > 20.5) & (f.t_s < 39.5)].any() and r.valid[f.t_s > 41].all()
 
 
+CONSENSUS = GyroTrackSettings(reference="consensus")
+
+
+def test_consensus_holds_the_heading_through_long_bends_that_pass_every_field_test():
+    # a cabinet pushed near the table: both compasses bent alike by 3-4° (a good heading, by the paper's 5°) and 7°
+    # (a bad one) for tens of seconds at a time, the field tests all passing (|Δm| = 0: a bend, not a strength change)
+    zones = [(30.0, 70.0, 7.0), (100.0, 140.0, -7.0), (170.0, 200.0, 3.5), (230.0, 270.0, 8.0)]
+
+    def bend(t):
+        out = 0.0 * t
+        for a, b, deg in zones:
+            out = np.where((t >= a) & (t < b), math.radians(deg), out)
+        return out
+
+    f, tg, gyro, _ = _case(300.0, lambda t: 0.8 + 0.004 * np.maximum(t - 5.0, 0.0), bend, gyro_bias_rad_s=0.0003,
+                           seed=4)  # (at rest for the first seconds: the gyro's bias from them)
+    ones = np.ones(f.t_s.size, bool)
+    bad = np.abs(np.degrees(bend(f.t_s))) >= 5.0
+    clean = (np.degrees(bend(f.t_s)) == 0.0) & (f.t_s > 5.0)
+    r = gyro_track_batch(f, ones, tg, gyro, CONSENSUS)
+    assert r.valid[bad].mean() < 0.02 and r.valid[clean].mean() > 0.98
+    # the 3.5° stretch: closer to the undisturbed heading than the gate (4°), accepted, and it never moves the fit
+    assert r.valid[(f.t_s >= 171) & (f.t_s < 200)].mean() > 0.9
+    assert r.valid[(f.t_s >= 231) & (f.t_s < 270)].mean() < 0.02
+    # the blend, re-acquiring on the tight tests after 2 s, follows each bend (the reason for the consensus)
+    blend = gyro_track_batch(f, ones, tg, gyro)
+    assert blend.valid[bad].mean() > 0.5
+
+
+def test_consensus_learns_the_gyros_bias_to_carry_the_heading_through_an_outage():
+    bias = 0.001  # rad/s, 0.057°/s: 5.7° in the 100 s outage when not corrected
+    f, tg, gyro, _ = _case(400.0, lambda t: 2.0 + 0.5 * np.sin(np.maximum(t - 5.0, 0.0) / 40.0), gyro_bias_rad_s=bias,
+                           seed=5)
+    stage1 = ~((f.t_s > 280) & (f.t_s < 380))  # strength changed, the heading right: nothing to fit on
+    st = dataclasses.replace(CONSENSUS, bias_init_s=0.0)  # no rest period: the bias comes from the fit alone
+    r = gyro_track_batch(f, stage1, tg, gyro, st)
+    assert r.valid[(f.t_s > 280) & (f.t_s < 380)].mean() > 0.95
+    # with its slope held (a prior far tighter than the bias), the carried heading drifts out of the gate
+    held = gyro_track_batch(f, stage1, tg, gyro, dataclasses.replace(st, consensus_bias_prior_deg_s=1e-5))
+    assert held.valid[(f.t_s > 350) & (f.t_s < 380)].mean() < 0.2
+
+
+def test_consensus_finds_the_heading_again_after_a_gyro_gap():
+    f, tg, gyro, _ = _case(120.0, lambda t: 1.0 + 0.01 * t, seed=6)
+    keep = (tg < 50.0) | (tg > 52.0)  # two seconds without the gyro: ψ_g jumps, the fit is dropped
+    r = gyro_track_batch(f, np.ones(f.t_s.size, bool), tg[keep], gyro[keep], CONSENSUS)
+    after = f.t_s > 52.0
+    first = int(np.flatnonzero(after & r.valid)[0])
+    assert not r.valid[(f.t_s > 52.0) & (f.t_s < f.t_s[first])].any()  # nothing until six epochs agree again
+    assert f.t_s[first] - 52.0 < 4.0 and r.valid[f.t_s > f.t_s[first]].mean() > 0.98
+
+
+def test_consensus_settings_are_checked():
+    for bad in ({"reference": "kalman"}, {"consensus_min_support": 1}, {"consensus_window_s": 0.0},
+                {"consensus_recent_s": 300.0}, {"consensus_bin_s": -1.0}, {"consensus_scale_deg": math.nan}):
+        with pytest.raises(ValueError):
+            GyroTrackSettings(reference="consensus", **{k: v for k, v in bad.items() if k != "reference"}) \
+                if "reference" not in bad else GyroTrackSettings(**bad)
+
+
 def test_no_gyro_is_an_error():
     f, _, _, _ = _case(10.0, lambda t: 0.0 * t)
     with pytest.raises(ValueError, match="gyro samples"):
@@ -112,12 +173,14 @@ def test_choose_gyro_track_keeps_to_its_rule_on_training_drives_only():
     train = [T.simulate_drive("paper_a", 2, 120.0)]
     pick = T.choose_gyro_track(train, max_mp_pct=2.0)
     m = pick["train_metrics"]
-    assert m.mp_pct <= 2.0 and pick["grid_size"] == int(np.prod([len(v) for v in T.GYRO_TRACK_GRID.values()]))
+    assert m.mp_pct <= 2.0 and pick["grid_size"] == len(T.gyro_track_grid()) == \
+        int(np.prod([len(v) for v in T.GYRO_TRACK_GRID.values()])) + \
+        int(np.prod([len(v) for v in T.GYRO_TRACK_CONSENSUS_GRID.values()]))
     # nothing else on the grid within the MP cap recognises more
     v = T.gyro_track_valid(train, pick["stage1"], pick["settings"])
     assert T.metrics(v, train[0].heading_err_deg).rp_pct == pytest.approx(m.rp_pct)
     assert pick["within_cap"]
-    low = T.choose_gyro_track(train, max_mp_pct=-1.0)  # nothing within: the lowest MP of the grid
+    low = T.choose_gyro_track(train, max_mp_pct=-1.0, scored=pick["scored"])  # nothing within: the lowest MP
     assert not low["within_cap"] and low["train_metrics"].mp_pct <= m.mp_pct
 
 
@@ -165,12 +228,13 @@ def _feed_live(det, t, b_a, b_b, tg, gyro, p, compass_delay_s: float):
     return out
 
 
+@pytest.mark.parametrize("reference", ["blend", "consensus"])
 @pytest.mark.parametrize("compass_delay_s", [0.4, 0.0, -0.6])
-def test_live_detector_decides_as_the_batch_form_whatever_the_arrival_order(compass_delay_s):
+def test_live_detector_decides_as_the_batch_form_whatever_the_arrival_order(compass_delay_s, reference):
     from services.dmc_detector.quasistatic import GyroTrackDetector, GyroTrackDetectorSettings
 
     t, b_a, b_b, tg, gyro, p = _raw_drive()
-    det = GyroTrackDetector(GyroTrackDetectorSettings())
+    det = GyroTrackDetector(GyroTrackDetectorSettings(track=GyroTrackSettings(reference=reference)))
     out = _feed_live(det, t, b_a, b_b, tg, gyro, p, compass_delay_s)
     s = det.settings
     f = core.features_batch(t, b_a, b_b, p, p, settings=s.stage1.features)

@@ -258,6 +258,25 @@ class GyroTrackServiceSettings(Settings):
     max_init_bias_rad_s: float = setting(_GT.max_init_bias_rad_s, "the rest window's median rate is taken for the "
                                          "gyro's bias only if within this and steady (else 0: the stream was joined "
                                          "while the vehicle moved)", gt=0)
+    reference: str = setting(_GT.reference, "how the reference heading is carried: blend (pulled towards each "
+                             "trusted compass heading; the settings above) or consensus (fitted to the stage-1 epochs of "
+                             "the last consensus_window_s, robustly: a source that bends the heading alike for minutes "
+                             "is not taken for it; chosen on the turntable, docs/methods.md#dmc-gyro-track)",
+                             choices=quasistatic.REFERENCES)
+    consensus_window_s: float = setting(_GT.consensus_window_s, "consensus: the stage-1 epochs this far back make up "
+                                        "the fit", gt=0)
+    consensus_recent_s: float = setting(_GT.consensus_recent_s, "consensus: a lost fit is found again among the "
+                                        "stage-1 epochs this recent (at most consensus_window_s)", gt=0)
+    consensus_scale_deg: float = setting(_GT.consensus_scale_deg, "consensus: epochs further than this from the fit "
+                                         "have no weight in it (Tukey's biweight)", gt=0)
+    consensus_inlier_deg: float = setting(_GT.consensus_inlier_deg, "consensus: an epoch within this of the fit "
+                                          "supports it", gt=0)
+    consensus_min_support: int = setting(_GT.consensus_min_support, "consensus: a fit fewer epochs support is lost "
+                                         "(nothing valid until found again)", unit="epochs", lo=2)
+    consensus_bias_prior_deg_s: float = setting(_GT.consensus_bias_prior_deg_s, "consensus: the gyro bias the fit "
+                                                "learns is held to its value at rest by this (1-σ)", gt=0)
+    consensus_bin_s: float = setting(_GT.consensus_bin_s, "consensus: one stage-1 epoch per this much time is kept "
+                                     "(bounded work per epoch)", lo=0)
     max_imu_lag_s: float = setting(10.0, "a compass epoch is decided without the gyro reaching it after this much "
                                    "compass time (counted as imu_lagged_epochs)", gt=0)
 
@@ -273,7 +292,11 @@ class GyroTrackServiceSettings(Settings):
                 reseed_after_s=self.reseed_after_s, reacquire_after_s=self.reacquire_after_s,
                 reacquire_dm_nt=self.reacquire_dm_nt, reacquire_dh_deg=self.reacquire_dh_deg,
                 bias_init_s=self.bias_init_s, trust_dm_nt=self.trust_dm_nt, trust_dh_deg=self.trust_dh_deg,
-                max_gyro_gap_s=self.max_gyro_gap_s, max_init_bias_rad_s=self.max_init_bias_rad_s),
+                max_gyro_gap_s=self.max_gyro_gap_s, max_init_bias_rad_s=self.max_init_bias_rad_s,
+                reference=self.reference, consensus_window_s=self.consensus_window_s,
+                consensus_recent_s=self.consensus_recent_s, consensus_scale_deg=self.consensus_scale_deg,
+                consensus_inlier_deg=self.consensus_inlier_deg, consensus_min_support=self.consensus_min_support,
+                consensus_bias_prior_deg_s=self.consensus_bias_prior_deg_s, consensus_bin_s=self.consensus_bin_s),
             self.max_imu_lag_s)
 
 

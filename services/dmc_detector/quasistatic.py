@@ -220,6 +220,9 @@ class QuasiStaticDetector:
 
 # ---- second stage of the DMC: the heading checked against the gyro's --------------------------
 
+#: how the reference heading is carried: pulled towards each trusted epoch, or fitted to many (GyroTrackSettings)
+REFERENCES = ("blend", "consensus")
+
 
 @dataclass(frozen=True)
 class GyroTrackSettings:
@@ -239,11 +242,23 @@ class GyroTrackSettings:
     max_gyro_gap_s: float = 0.5  # gyro samples further apart (shed, lost, a stalled stream): ψ_ref is lost, seeded again
     max_init_bias_rad_s: float = 0.01  # the rest window's median rate is the bias only when the vehicle stood still:
     # |median| below this (0.57 °/s, above a MEMS gyro's bias) and the rates' spread below half of it; else 0
+    # how ψ_ref is carried (docs/methods.md#dmc-gyro-track): "blend" pulls it towards each trusted compass heading
+    # (the settings above); "consensus" fits it to the stage-1 epochs of the last consensus_window_s, robustly (the
+    # settings below; blend_tau_s, bias_tau_s, reseed/reacquire and trust_* are the blend's only)
+    reference: str = "blend"
+    consensus_window_s: float = 250.0  # ψ_m − ψ_g of the stage-1 epochs this far back make up the fit: a line in t
+    consensus_recent_s: float = 150.0  # a lost fit is found again among the stage-1 epochs this recent
+    consensus_scale_deg: float = 1.5  # Tukey biweight scale of the fit: epochs further off than this have no weight
+    consensus_inlier_deg: float = 1.0  # an epoch within this of the line supports it …
+    consensus_min_support: int = 6  # … and a line with fewer supporters is lost (nothing valid until found again)
+    consensus_bias_prior_deg_s: float = 0.05  # the line's slope (the gyro's bias) is held to its start by this 1-σ
+    consensus_bin_s: float = 0.5  # the fit keeps one stage-1 epoch per this much time (bounded work per epoch)
 
     def __post_init__(self):
         for name in ("gate_deg", "blend_tau_s", "bias_tau_s", "reseed_after_s", "reacquire_after_s",
                      "reacquire_dm_nt", "reacquire_dh_deg", "trust_dm_nt", "trust_dh_deg", "max_gyro_gap_s",
-                     "max_init_bias_rad_s"):
+                     "max_init_bias_rad_s", "consensus_window_s", "consensus_recent_s", "consensus_scale_deg",
+                     "consensus_inlier_deg", "consensus_bias_prior_deg_s"):
             v = getattr(self, name)
             if not (v > 0 and math.isfinite(v)):
                 raise ValueError(f"{name} must be a positive finite number, got {v!r}")
@@ -251,6 +266,15 @@ class GyroTrackSettings:
             raise ValueError(f"gate_deg must be in (0, 90), got {self.gate_deg}")
         if not self.bias_init_s >= 0:
             raise ValueError(f"bias_init_s must be ≥ 0, got {self.bias_init_s}")
+        if self.reference not in REFERENCES:
+            raise ValueError(f"reference must be one of {', '.join(REFERENCES)}, got {self.reference!r}")
+        if not (isinstance(self.consensus_min_support, int) and self.consensus_min_support >= 2):
+            raise ValueError(f"consensus_min_support must be an integer ≥ 2, got {self.consensus_min_support!r}")
+        if not (self.consensus_bin_s >= 0 and math.isfinite(self.consensus_bin_s)):
+            raise ValueError(f"consensus_bin_s must be ≥ 0, got {self.consensus_bin_s!r}")
+        if self.consensus_recent_s > self.consensus_window_s:
+            raise ValueError(f"consensus_recent_s ({self.consensus_recent_s}) must not exceed consensus_window_s "
+                             f"({self.consensus_window_s})")
 
 
 @dataclass
@@ -276,6 +300,8 @@ class GyroTrack:
         self._prev: tuple[float, float] | None = None  # (t, ψ_g) of the previous epoch
         self._disagree_s = self._tight_s = 0.0
         self._gate = math.radians(self.settings.gate_deg)
+        self._fit = OffsetConsensus(self.settings, -self.bias_rad_s) if self.settings.reference == "consensus" \
+            else None
 
     def step(self, t_s: float, psi_m_rad: float, psi_g_rad: float, stage1: bool, dm_nt: float,
              dh_deg: float, gyro_ok: bool = True) -> tuple[bool, bool, float, float]:
@@ -283,6 +309,8 @@ class GyroTrack:
         the worse compass's |Δm| and |Δh| in degrees → (valid, trusted, innovation ψ_m − ψ_ref (rad), ψ_ref (rad;
         nan before the first stage-1 pass)). ``gyro_ok`` false: the gyro does not cover the time since the
         previous epoch (a gap, or not there yet): ψ_ref is lost, and this epoch is judged as the first one."""
+        if self._fit is not None:
+            return self._step_consensus(float(t_s), float(psi_m_rad), float(psi_g_rad), bool(stage1), gyro_ok)
         s = self.settings
         t, pg = float(t_s), float(psi_g_rad)
         prev, self._prev = self._prev, (t, pg)
@@ -318,6 +346,129 @@ class GyroTrack:
             self._tight_s = 0.0
         self.est = est
         return agree, trusted, nu, est
+
+    def _step_consensus(self, t: float, psi_m: float, pg: float, stage1: bool, gyro_ok: bool):
+        """The "consensus" reference: ψ_ref = ψ_g + the line fitted to ψ_m − ψ_g of recent stage-1 epochs."""
+        fit = self._fit
+        if self._prev is None:  # the slope's prior: the bias the record started with (set after construction)
+            fit.slope0 = fit.slope = -self.bias_rad_s
+        self._prev = (t, pg)
+        if not gyro_ok and (fit.n or fit.offset is not None):  # ψ_g jumps across a gap: the fit no longer holds
+            fit.clear()
+            self.lost += 1
+        had = fit.offset is not None
+        offset = fit.step(t, math.remainder(psi_m - pg, 2.0 * math.pi), stage1)
+        self.bias_rad_s = -fit.slope
+        if offset is None:
+            self.est = None
+            return False, False, 0.0, math.nan
+        self.reseeds += had and fit.found_again
+        est = pg + offset
+        nu = math.remainder(psi_m - est, 2.0 * math.pi)
+        agree = abs(nu) < self._gate
+        self.est = est
+        return agree, stage1 and agree, nu, est
+
+
+class OffsetConsensus:
+    """The offset c = ψ_m − ψ_g between compass and gyro headings, fitted over the stage-1 epochs of the last
+    ``consensus_window_s`` as a line c(t) = offset + slope · (t − now) (the slope: minus the gyro's bias) by
+    iteratively re-weighted least squares with Tukey's biweight (scale ``consensus_scale_deg``) and a Gaussian prior
+    on the slope. Undisturbed epochs agree on one line; disturbed ones that stage 1 let through scatter about it
+    (a source's bend differs from one approach to the next), so they carry little or no weight. When fewer than
+    ``consensus_min_support`` epochs lie within ``consensus_inlier_deg`` of the line it is found again: the offset
+    the most recent stage-1 epochs agree on most (a mode search over ``consensus_recent_s``). Pure numpy, one
+    :meth:`step` per epoch, bounded work (one epoch per ``consensus_bin_s`` kept)."""
+
+    ITERATIONS = 3
+    #: the slope prior weighs like this many epochs' residual of one degree at one second from now
+    PRIOR_RESIDUAL_RAD = math.radians(1.0)
+
+    def __init__(self, settings: GyroTrackSettings, slope0_rad_s: float = 0.0):
+        s = settings
+        self.window_s, self.recent_s, self.bin_s = s.consensus_window_s, s.consensus_recent_s, s.consensus_bin_s
+        self.k = math.radians(s.consensus_scale_deg)
+        self.h = math.radians(s.consensus_inlier_deg)
+        self.min_support = s.consensus_min_support
+        self.lam = (self.PRIOR_RESIDUAL_RAD / math.radians(s.consensus_bias_prior_deg_s)) ** 2
+        self.slope0 = self.slope = float(slope0_rad_s)
+        self._t: deque[float] = deque()
+        self._c: deque[float] = deque()
+        self.offset: float | None = None  # at the last step's time
+        self._t_last: float | None = None
+        self.found_again = False  # the last step had to find the line again
+
+    @property
+    def n(self) -> int:
+        return len(self._t)
+
+    def clear(self):
+        self._t.clear()
+        self._c.clear()
+        self.offset = None
+
+    def _residuals(self, ts, cs) -> np.ndarray:
+        return np.remainder(cs - self.offset - self.slope * ts + math.pi, 2.0 * math.pi) - math.pi
+
+    def _support(self, ts, cs) -> int:
+        return int(np.count_nonzero(np.abs(self._residuals(ts, cs)) < self.h))
+
+    def step(self, t: float, c: float, stage1: bool) -> float | None:
+        """One epoch at t with offset c (rad) and its stage-1 verdict → the fitted offset at t (None: no line)."""
+        self.found_again = False
+        if self.offset is not None and self._t_last is not None:
+            self.offset += self.slope * (t - self._t_last)
+        self._t_last = t
+        if stage1 and not (self._t and self.bin_s > 0 and t // self.bin_s == self._t[-1] // self.bin_s):
+            self._t.append(t)
+            self._c.append(c)
+        while self._t and self._t[0] < t - self.window_s:
+            self._t.popleft()
+            self._c.popleft()
+        if len(self._t) < self.min_support:
+            self.offset = None
+            return None
+        ts = np.fromiter(self._t, float, len(self._t)) - t
+        cs = np.fromiter(self._c, float, len(self._c))
+        if self.offset is None or self._support(ts, cs) < self.min_support:
+            if not self._find(ts, cs):
+                self.offset = None
+                return None
+            self.found_again = True
+        for _ in range(self.ITERATIONS):
+            r = self._residuals(ts, cs)
+            u = r / self.k
+            w = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
+            sw = float(w.sum())
+            if sw <= 0.0:
+                break
+            swt, swtt = float(w @ ts), float(w @ (ts * ts))
+            det = sw * (swtt + self.lam) - swt * swt
+            if det <= 0.0:
+                break
+            ra, rb = float(w @ r), float(w @ (r * ts)) - self.lam * (self.slope - self.slope0)
+            self.offset += ((swtt + self.lam) * ra - swt * rb) / det
+            self.slope += (sw * rb - swt * ra) / det
+        if self._support(ts, cs) < self.min_support:
+            self.offset = None
+            return None
+        return self.offset
+
+    def _find(self, ts, cs) -> bool:
+        """The offset most recent stage-1 epochs agree on (within consensus_inlier_deg, the current slope): the
+        epoch with the most such neighbours (the latest on a tie) sets it."""
+        rec = ts > -self.recent_s
+        tr, cr = ts[rec], cs[rec]
+        if tr.size < self.min_support:
+            return False
+        d = cr[:, None] - cr[None, :] - self.slope * (tr[:, None] - tr[None, :])
+        near = np.abs(np.remainder(d + math.pi, 2.0 * math.pi) - math.pi) < self.h
+        cnt = near.sum(axis=1)
+        j = int(np.flatnonzero(cnt == cnt.max())[-1])
+        if cnt[j] < self.min_support:
+            return False
+        self.offset = float(cr[j] - self.slope * tr[j])
+        return True
 
 
 def gyro_heading(t_gyro_s, gyro_rad_s, t_s) -> np.ndarray:
