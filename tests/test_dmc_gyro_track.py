@@ -275,9 +275,11 @@ def test_live_detector_decides_without_a_stalled_gyro_and_counts_it():
     assert det.n_imu_lagged == np.sum((t > tg[keep][-1]) & (t < t[-1] - 2.0))
 
 
-def test_gyro_track_service_pairs_waits_for_the_gyro_and_publishes_valid_messages():
+@pytest.mark.parametrize("reference", ["blend", "consensus"])
+def test_gyro_track_service_pairs_waits_for_the_gyro_and_publishes_valid_messages(reference):
     """The ``gyro_track`` implementation of the dmc_detector role: compasses paired, each epoch decided once the gyro
-    has reached it, published as valid ``dmc`` messages; its alarm names the heading disagreement."""
+    has reached it, published as valid ``dmc`` messages; its alarm names the heading disagreement. Either reference
+    (the setting ``reference``)."""
     from schemas import keys, messages
     from services.dmc_detector.impls import IMPLEMENTATIONS
     from tests.test_dmc_core import _FakeRuntime
@@ -285,7 +287,10 @@ def test_gyro_track_service_pairs_waits_for_the_gyro_and_publishes_valid_message
     t, b_a, b_b, tg, gyro, p = _raw_drive()
     table = {"offset_nt": [0.0, 0.0, 0.0], "matrix": [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0],
              "field_radius_nt": p.field_radius_nt}
-    svc = IMPLEMENTATIONS["gyro_track"](vehicles_config={"car-1": {"mag_params": {"1": table, "2": table}}})
+    cls = IMPLEMENTATIONS["gyro_track"]
+    svc = cls(settings=cls.Settings(reference=reference),
+              vehicles_config={"car-1": {"mag_params": {"1": table, "2": table}}})
+    assert svc.settings.core().track.reference == reference
     assert svc.subscriptions() == [keys.clean_mag("*", "1"), keys.clean_mag("*", "2"), keys.clean_imu("*"),
                                    keys.cal_params("*", "1"), keys.cal_params("*", "2")]
     rt = _FakeRuntime()
