@@ -397,7 +397,7 @@ def lab_rows(judged_spec, unit: float) -> dict:
     out["second_stage"]["gate_sensitivity"] = gates
     out["second_stage_gain"] = stage_gain_against_thresholds(judged, track_valid, loose,
                                                              scales=SECOND_STAGE_CURVE_SCALES)
-    # the whole experiment again on other seeds (cabinet and mixed runs, never used to choose or design anything):
+    # the whole experiment again on other seeds (cabinet and mixed runs; no setting was chosen on them):
     # how far the headline moves from one set of runs to the next
     sets = [{"seeds": [d.seed for d in judged if d.layout == "lab_mixed"], "drives": out["judged"],
              **_lab_set_rows(judged, model, track_valid, loose)}]

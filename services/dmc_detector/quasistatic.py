@@ -381,7 +381,7 @@ class OffsetConsensus:
     :meth:`step` per epoch, bounded work (one epoch per ``consensus_bin_s`` kept)."""
 
     ITERATIONS = 3
-    #: the slope prior weighs like this many epochs' residual of one degree at one second from now
+    #: the slope prior's weight is λ = (this / its 1-σ)²: a slope one σ off its start costs as much as one epoch 1° off
     PRIOR_RESIDUAL_RAD = math.radians(1.0)
 
     def __init__(self, settings: GyroTrackSettings, slope0_rad_s: float = 0.0):
