@@ -287,16 +287,7 @@ class GyroTrackServiceSettings(Settings):
     def core(self, dh_ref_rad: float = 0.0) -> quasistatic.GyroTrackDetectorSettings:
         return quasistatic.GyroTrackDetectorSettings(
             core.ThresholdDetectorSettings(self.thresholds(), self.feature_settings(dh_ref_rad), self.hysteresis()),
-            quasistatic.GyroTrackSettings(
-                gate_deg=self.gate_deg, blend_tau_s=self.blend_tau_s, bias_tau_s=self.bias_tau_s,
-                reseed_after_s=self.reseed_after_s, reacquire_after_s=self.reacquire_after_s,
-                reacquire_dm_nt=self.reacquire_dm_nt, reacquire_dh_deg=self.reacquire_dh_deg,
-                bias_init_s=self.bias_init_s, trust_dm_nt=self.trust_dm_nt, trust_dh_deg=self.trust_dh_deg,
-                max_gyro_gap_s=self.max_gyro_gap_s, max_init_bias_rad_s=self.max_init_bias_rad_s,
-                reference=self.reference, consensus_window_s=self.consensus_window_s,
-                consensus_recent_s=self.consensus_recent_s, consensus_scale_deg=self.consensus_scale_deg,
-                consensus_inlier_deg=self.consensus_inlier_deg, consensus_min_support=self.consensus_min_support,
-                consensus_bias_prior_deg_s=self.consensus_bias_prior_deg_s, consensus_bin_s=self.consensus_bin_s),
+            quasistatic.GyroTrackSettings(**{f: getattr(self, f) for f in _GT.__dataclass_fields__}),
             self.max_imu_lag_s)
 
 
