@@ -30,7 +30,10 @@ Keys of ``--json``:
                               fcm_unseen and fcm_gain as above, and second_stage / second_stage_gain (the table's rate
                               gyro; settings chosen on magnet runs by the same grids and rule; second_stage also carries
                               meets_paper_table4 — RP above, MP and WP95 below the paper's Table 4 ranges — and, reported
-                              only, rule_sensitivity and gate_sensitivity)
+                              only, rule_sensitivity and gate_sensitivity); lab.seed_sets: the FCM and the second stage
+                              on the judged runs and on two more sets of cabinet and mixed runs (LAB_MORE_SEED_SETS), each
+                              with its gain over the threshold curve; fcm_gain / second_stage_gain then also carry the
+                              gains per set and their spread (seed_set_values_*, seed_set_spread_*)
 
 Threshold sets: the paper's field units are HMR3300 output units, 32 nT each (FIELD_UNIT_NT); headings in degrees.
 RP, MP, WP as the paper defines them ("good" = heading error < 5°); WP is the RMS heading error of the samples
