@@ -42,6 +42,12 @@ from schemas import keys
 from .fleet import publish_time, vehicle_ids, window_index
 
 CLK = os.sysconf("SC_CLK_TCK")
+#: ingest's fleet-frame window in the paced runs, s. Every window costs each stage process a fixed amount (checks,
+#: sorting and encoding at ingest, a frame's handling at every stage after it) on top of its rows: at 10 ms windows
+#: and 1,000 vehicles one process per stage took 125-135 % of the two cores (p99 42-70 ms) and two per stage
+#: 178-192 % (p99 95-207 ms); at 20 ms, 113 % (58 ms) and 150 % (57 ms) in one pair of runs. 20 ms keeps p99 well
+#: inside the 100 ms goal in both set-ups (README, "Elastic roles").
+FRAME_WINDOW_S = 0.02
 
 
 def _free_port() -> int:
@@ -287,7 +293,7 @@ WARMUP_S = 10.0
 
 
 def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple[str, ...], tmp: Path,
-             wire: str = "v3", window_s: float = 0.05, frame_s: float = 0.01, warmup_s: float | None = None,
+             wire: str = "v3", window_s: float = 0.05, frame_s: float = FRAME_WINDOW_S, warmup_s: float | None = None,
              extra: int = 0, extra_s: float = 0.0, instances: int = 1, sink: str = "frames") -> dict:
     """One run: ``kind`` is "pipeline", "limit" or "ingest" (ingest alone, fleet frames out). ``window_s``: each
     v2 vehicle's batch window; ``frame_s``: ingest's frame window (the pipeline with v2 runs on fleet frames).
@@ -503,7 +509,7 @@ def _sink(sink: str, wire: str) -> str:
     return sink if wire in ("v2", "v3") else "keys"
 
 
-def _median_case(kind, n, duration_s, max_mode, stages, repeat, tmp, wire="v3", window_s=0.05, frame_s=0.01,
+def _median_case(kind, n, duration_s, max_mode, stages, repeat, tmp, wire="v3", window_s=0.05, frame_s=FRAME_WINDOW_S,
                  instances=1, warmup_s=None, sink="frames") -> dict:
     runs = [run_case(kind, n, duration_s, max_mode, stages, tmp, wire, window_s, frame_s, instances=instances,
                      warmup_s=warmup_s, sink=sink) for _ in range(repeat)]
@@ -521,7 +527,7 @@ def _median_case(kind, n, duration_s, max_mode, stages, repeat, tmp, wire="v3", 
 
 
 def overload_case(n: int, duration_s: float, stages: tuple[str, ...], tmp: Path, wire: str = "v3",
-                  window_s: float = 0.05, frame_s: float = 0.01, p99_ms: float = 100.0, sink: str = "frames") -> dict:
+                  window_s: float = 0.05, frame_s: float = FRAME_WINDOW_S, p99_ms: float = 100.0, sink: str = "frames") -> dict:
     """Twice ``n`` vehicles (the highest sustained load) for a 5 s warm-up and ``duration_s``, then ``n`` alone
     for ``max(10, 1.5 × duration_s)`` s: every stage must live through it, every sample that never came out must
     be counted by a stage under a reason, and the latency of the samples taken in the last half of the calm must
@@ -563,7 +569,7 @@ def _sustained(r: dict, p99_ms: float) -> bool:
 
 def bench(vehicles: list[int], duration_s: float = 15.0, repeat: int = 1, stages: tuple[str, ...] | None = None,
           limit_vehicles: int | None = None, progress=None, wire: str = "v3", window_s: float = 0.05,
-          p99_ms: float = 100.0, v1_ingest: bool = True, frame_s: float = 0.01, overload: bool = True,
+          p99_ms: float = 100.0, v1_ingest: bool = True, frame_s: float = FRAME_WINDOW_S, overload: bool = True,
           overload_vehicles: int | None = None, instances: tuple[int, ...] = (1,), warmup_s: float = WARMUP_S,
           sink: str = "frames") -> dict:
     """The whole bench. ``warmup_s``: of every paced run (see :func:`run_case`). ``instances``: the scaling table

@@ -28,8 +28,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "to end")
     m.add_argument("--window", type=float, default=0.05,
                    help="v2: seconds of samples per vehicle batch (default 0.05)")
-    m.add_argument("--frame-window", type=float, default=0.01,
-                   help="v2: ingest's fleet frame window, s (default 0.01)")
+    m.add_argument("--frame-window", type=float, default=0.02,
+                   help="v2/v3: ingest's fleet frame window, s (default 0.02: every window costs each stage process a "
+                        "fixed amount, which two processes per stage on two cores could not afford at 0.01)")
     m.add_argument("--p99-ms", type=float, default=100.0,
                    help="latency goal a sustained row must meet, raw publish → dmc out p99 (default 100 ms)")
     m.add_argument("--no-v1-ingest", action="store_true",
