@@ -151,6 +151,22 @@ def _brief(st) -> dict:
     return {k: getattr(st, k) for k in keys}
 
 
+def _rule_sensitivity(track_train, judged, pick: dict, loose=None) -> list[dict]:
+    """The gyro-checked stage chosen from the same scored grid under each of SECOND_STAGE_RULE_CAPS, judged on
+    ``judged`` (reported only: how the outcome depends on the operating rule)."""
+    from bench import dmc_training as T
+
+    err = np.concatenate([d.heading_err_deg for d in judged])
+    out = []
+    for cap in SECOND_STAGE_RULE_CAPS:
+        alt = T.choose_gyro_track(track_train, loose=loose, max_mp_pct=cap, scored=pick["scored"])
+        ma = T.metrics(T.gyro_track_valid(judged, alt["stage1"], alt["settings"]), err)
+        out.append({"max_train_mp_pct": cap, "within_cap": alt["within_cap"], "stage1_scale": alt["stage1_scale"],
+                    "settings": _brief(alt["settings"]), "rp_pct": round(ma.rp_pct, 3),
+                    "mp_pct": round(ma.mp_pct, 3), "wp_deg": round(ma.wp_deg, 3), "wp_p95_deg": round(ma.wp_p95_deg, 3)})
+    return out
+
+
 def _beats(row: dict, paper: dict) -> bool:
     """Whether a row's RP is above the paper's range and its MP and WP (as a 95 % bound) below it."""
     return bool(row["rp_pct"] > paper["rp_pct"][1] and row["mp_pct"] < paper["mp_pct"][0]
@@ -383,14 +399,7 @@ def lab_rows(judged_spec, unit: float) -> dict:
     out["second_stage"]["meets_paper_table4"] = _beats(out["second_stage"], PAPER_FCM_UNSEEN)
     # how much the outcome depends on choices not made on the training runs (reported only, never chosen from):
     # the operating rule's cap, and the gate of the chosen setting
-    sens = []
-    for cap in SECOND_STAGE_RULE_CAPS:
-        alt = T.choose_gyro_track(track_train, loose=loose, max_mp_pct=cap, scored=pick["scored"])
-        ma = T.metrics(T.gyro_track_valid(judged, alt["stage1"], alt["settings"]), err)
-        sens.append({"max_train_mp_pct": cap, "within_cap": alt["within_cap"], "stage1_scale": alt["stage1_scale"],
-                     "settings": _brief(alt["settings"]), "rp_pct": round(ma.rp_pct, 3),
-                     "mp_pct": round(ma.mp_pct, 3), "wp_deg": round(ma.wp_deg, 3), "wp_p95_deg": round(ma.wp_p95_deg, 3)})
-    out["second_stage"]["rule_sensitivity"] = sens
+    out["second_stage"]["rule_sensitivity"] = _rule_sensitivity(track_train, judged, pick, loose)
     gates = []
     for g in SECOND_STAGE_GATE_SENSITIVITY_DEG:
         sg = dataclasses.replace(st, gate_deg=g)
@@ -402,8 +411,13 @@ def lab_rows(judged_spec, unit: float) -> dict:
                                                              scales=SECOND_STAGE_CURVE_SCALES)
     # the whole experiment again on other seeds (cabinet and mixed runs; no setting was chosen on them):
     # how far the headline moves from one set of runs to the next
-    sets = [{"seeds": [d.seed for d in judged if d.layout == "lab_mixed"], "drives": out["judged"],
-             **_lab_set_rows(judged, model, track_valid, loose)}]
+    first = {"seeds": [d.seed for d in judged if d.layout == "lab_mixed"], "drives": out["judged"]}
+    for name, row, gain in (("fcm", out["fcm_unseen"], out["fcm_gain"]),
+                            ("second_stage", out["second_stage"], out["second_stage_gain"])):
+        first[name] = {k: row[k] for k in ("rp_pct", "mp_pct", "wp_deg", "wp_p95_deg")}
+        first[name]["meets_paper_table4"] = _beats(row, PAPER_FCM_UNSEEN)
+        first[f"{name}_gain"] = gain["pooled"]
+    sets = [first]
     for seeds in LAB_MORE_SEED_SETS:
         runs = [T.simulate_lab(run, sd, turns=LAB_TURNS) for run in ("cabinet", "mixed") for sd in seeds]
         sets.append({"seeds": list(seeds), "drives": [d.name for d in runs],
@@ -629,15 +643,7 @@ def run(args: argparse.Namespace) -> dict:
         "spread_rp_gained_pct": round(float(np.std([x["rp_gained_pct"] for x in per])), 3),
         "spread_mp_saved_pct": round(float(np.std([x["mp_saved_pct"] for x in per])), 3)}
     # how much the outcome depends on the operating rule: the same grid, other caps on the training MP
-    sens = []
-    for cap in SECOND_STAGE_RULE_CAPS:
-        alt = T.choose_gyro_track(track_train, max_mp_pct=cap, scored=pick["scored"])
-        ma = T.metrics(T.gyro_track_valid(judged, alt["stage1"], alt["settings"]),
-                       np.concatenate([d.heading_err_deg for d in judged]))
-        sens.append({"max_train_mp_pct": cap, "within_cap": alt["within_cap"], "stage1_scale": alt["stage1_scale"],
-                     "settings": _brief(alt["settings"]),
-                     "rp_pct": round(ma.rp_pct, 3), "mp_pct": round(ma.mp_pct, 3), "wp_deg": round(ma.wp_deg, 3)})
-    second_stage["rule_sensitivity"] = sens
+    second_stage["rule_sensitivity"] = _rule_sensitivity(track_train, judged, pick)
     a = second_stage["against_its_stage1_alone"]
     a["beats_it_beyond_spread"] = bool(a["rp_gained_pct"] >= 0 and a["mp_saved_pct"] > a["spread_mp_saved_pct"])
     second_stage["meets_goal"] = bool(second_stage["rp_pct"] > GOAL["rp_pct"] and second_stage["mp_pct"] < GOAL["mp_pct"]

@@ -300,8 +300,7 @@ class GyroTrack:
         self._prev: tuple[float, float] | None = None  # (t, ψ_g) of the previous epoch
         self._disagree_s = self._tight_s = 0.0
         self._gate = math.radians(self.settings.gate_deg)
-        self._fit = OffsetConsensus(self.settings, -self.bias_rad_s) if self.settings.reference == "consensus" \
-            else None
+        self._fit = OffsetConsensus(self.settings) if self.settings.reference == "consensus" else None
 
     def step(self, t_s: float, psi_m_rad: float, psi_g_rad: float, stage1: bool, dm_nt: float,
              dh_deg: float, gyro_ok: bool = True) -> tuple[bool, bool, float, float]:
@@ -350,7 +349,7 @@ class GyroTrack:
     def _step_consensus(self, t: float, psi_m: float, pg: float, stage1: bool, gyro_ok: bool):
         """The "consensus" reference: ψ_ref = ψ_g + the line fitted to ψ_m − ψ_g of recent stage-1 epochs."""
         fit = self._fit
-        if self._prev is None:  # the slope's prior: the bias the record started with (set after construction)
+        if self._prev is None:  # the slope's prior: the bias the record started with (a live detector sets it late)
             fit.slope0 = fit.slope = -self.bias_rad_s
         self._prev = (t, pg)
         if not gyro_ok and (fit.n or fit.offset is not None):  # ψ_g jumps across a gap: the fit no longer holds
@@ -384,14 +383,14 @@ class OffsetConsensus:
     #: the slope prior's weight is λ = (this / its 1-σ)²: a slope one σ off its start costs as much as one epoch 1° off
     PRIOR_RESIDUAL_RAD = math.radians(1.0)
 
-    def __init__(self, settings: GyroTrackSettings, slope0_rad_s: float = 0.0):
+    def __init__(self, settings: GyroTrackSettings):
         s = settings
         self.window_s, self.recent_s, self.bin_s = s.consensus_window_s, s.consensus_recent_s, s.consensus_bin_s
         self.k = math.radians(s.consensus_scale_deg)
         self.h = math.radians(s.consensus_inlier_deg)
         self.min_support = s.consensus_min_support
         self.lam = (self.PRIOR_RESIDUAL_RAD / math.radians(s.consensus_bias_prior_deg_s)) ** 2
-        self.slope0 = self.slope = float(slope0_rad_s)
+        self.slope0 = self.slope = 0.0  # the slope's prior and its fit (GyroTrack sets both from the bias at rest)
         self._t: deque[float] = deque()
         self._c: deque[float] = deque()
         self.offset: float | None = None  # at the last step's time
