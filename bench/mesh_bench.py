@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import statistics
 import subprocess
 import sys
@@ -64,6 +65,42 @@ def _cpu_s(pid: int) -> float:
         return (int(f[11]) + int(f[12])) / CLK
     except (OSError, IndexError):
         return float("nan")
+
+
+#: a stage process's threads by what they do (their OS names: magmesh/zconf.os_thread_name; Zenoh's runtime names
+#: its own rx-N, tx-N, net-N, acc-N, app-N)
+_THREAD_KINDS = (("main", re.compile(r"mm-main$")), ("readers", re.compile(r"mm-read-")),
+                 ("group", re.compile(r"mm-(group|frames)$")), ("zenoh", re.compile(r"(rx|tx|net|acc|app)-\d+$")))
+
+
+def _thread_cpu_s(pid: int) -> dict[str, float]:
+    """CPU seconds of a process's live threads by kind (:data:`_THREAD_KINDS`, the rest as ``other``)."""
+    out: dict[str, float] = {}
+    try:
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return out
+    for tid in tids:
+        try:
+            name = open(f"/proc/{pid}/task/{tid}/comm").read().strip()
+            f = open(f"/proc/{pid}/task/{tid}/stat").read().rsplit(")", 1)[1].split()
+        except OSError:  # (a thread that ended meanwhile)
+            continue
+        kind = next((k for k, rx in _THREAD_KINDS if rx.match(name)), "other")
+        out[kind] = out.get(kind, 0.0) + (int(f[11]) + int(f[12])) / CLK
+    return out
+
+
+def _threads_pct(t0: dict, t1: dict, wall: float) -> dict:
+    """Per stage (a group's members summed), the % of one core each kind of thread took between two
+    :func:`_thread_cpu_s` readings per process (a thread started or ended between them counts from its reading)."""
+    out: dict[str, dict[str, float]] = {}
+    for proc, b in t1.items():
+        a = t0.get(proc, {})
+        d = out.setdefault(proc.split("#")[0], {})
+        for kind, v in b.items():
+            d[kind] = round(d.get(kind, 0.0) + 100 * max(0.0, v - a.get(kind, 0.0)) / wall, 1)
+    return out
 
 
 def _rss_mb(pid: int) -> float:
@@ -380,6 +417,7 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         while time.time() < start_at + warmup_s:
             time.sleep(0.01)
         cpu0 = {k: _cpu_s(p.pid) for k, p in procs.items()}
+        thr0 = {k: _thread_cpu_s(p.pid) for k, p in procs.items()}
         cpu0["fleet"] = _cpu_s(fleet.pid)
         cpu0["router+sink"] = _cpu_s(os.getpid())  # this process: the Zenoh router and the counting sink
         t_start = time.time()
@@ -405,6 +443,7 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
         drained = sink.n >= expected
         t_end = sink.t_last
         cpu1 = {k: _cpu_s(p.pid) for k, p in procs.items()}
+        thr1 = {k: _thread_cpu_s(p.pid) for k, p in procs.items()}
         cpu1["router+sink"] = _cpu_s(os.getpid())
         wall = max(t_end - t_start, 1e-6)
         statuses = {}  # per stage, the status of each member
@@ -477,6 +516,9 @@ def run_case(kind: str, n: int, duration_s: float, max_mode: bool, stages: tuple
             "frame_window_s": frame_s if (kind == "pipeline" and wire in ("v2", "v3")) else None,
             "cpu_pct": _by_stage({k: 100 * (cpu1[k] - cpu0[k]) / wall for k in (*procs, "router+sink")})
                        | {"fleet": round(100 * (cpu_fleet - cpu0["fleet"]) / (duration_s * 0.8), 1)},
+            # the same per stage by kind of thread: the main loop (decoding, the stage's work, publishing), the
+            # input readers, a group's coordination, Zenoh's own runtime, the rest
+            "cpu_threads_pct": _threads_pct(thr0, thr1, wall),
             "rss_mb": _by_stage(rss),
             "instances": instances,
             "alive": alive,

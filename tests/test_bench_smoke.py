@@ -21,6 +21,12 @@ def test_bench_mesh_smoke(wire, sink):
     assert row["outputs"] >= 0.99 * row["expected_outputs"] > 0
     assert res["saturation"]["limit"]["sustained_samples_s"] > 0 and res["ratio_to_limit"] > 0
     assert set(row["cpu_pct"]) >= {"ingest", "dmc_detector", "fleet"}
+    # the same split by kind of thread: each stage's main loop worked, and no kind exceeds the process's whole
+    th = row["cpu_threads_pct"]
+    assert set(th) == {"ingest", "dmc_detector"}, th
+    for stage, kinds in th.items():
+        assert kinds.get("main", 0) > 0 and "zenoh" in kinds, (stage, kinds)
+        assert sum(kinds.values()) <= row["cpu_pct"][stage] + 2.0, (stage, kinds, row["cpu_pct"])
     assert row["wire"] == wire
     assert row["startup_p99_ms"] is not None and row["startup_p99_ms"] > 0  # the warm-up's latency, apart
     if wire != "v1":  # from each batch's real put, and from when it was due (adds the fleet's own lag)
