@@ -5,7 +5,8 @@ Pipeline: fleet (N vehicles: 2 magnetometers at 50 Hz, IMU 100 Hz, GNSS 5 Hz) �
 hops (raw → relay → relay → sink) with no decoding or processing. Both in the same run, on the same machine.
 
 Figures: sustained samples/s end to end (raw samples whose DMC epoch reached the sink), latency of the DMC output
-(raw publish → dmc received) p50/p99, CPU per stage (% of one core), memory per process, messages lost, and the
+(raw publish → dmc received) p50/p99, CPU per stage (% of one core; also by kind of thread: main loop, readers, a
+group's coordination, Zenoh's runtime), memory per process, messages lost, and the
 ratio pipeline / limit. Every figure is a median over ``--repeat`` runs. *Raw publish* is when the fleet really
 put a sample's batch (its put log); the fleet is one process putting every vehicle's batch of a window at once and
 falls behind when the stages share its cores, so the p99 from when each batch was due
