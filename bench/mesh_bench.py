@@ -717,6 +717,11 @@ def format_text(res: dict) -> str:
         if len(by_k) > 1:
             lines += ["", f"{k} instance{'s' if k != '1' else ''} per stage:", "", *head]
         lines += [_row(r) for r in t["scaling"]]
+        if t["scaling"] and t["scaling"][-1].get("cpu_threads_pct"):  # (the largest count: where a set-up fails)
+            r = t["scaling"][-1]
+            per = [f"{stage} " + ", ".join(f"{k} {v:.0f}" for k, v in sorted(kinds.items(), key=lambda x: -x[1])
+                                           if round(v) >= 1) for stage, kinds in r["cpu_threads_pct"].items()]
+            lines.append(f"\nCPU % by kind of thread at {r['vehicles']} vehicles: " + "; ".join(per))
     lines.append(f"\nmax vehicles sustained (zero loss, p99 ≤ {goal:g} ms): "
                  + ("; ".join(f"{t['max_vehicles']} with {k} instance{'s' if k != '1' else ''} per stage"
                               for k, t in by_k.items()) if len(by_k) > 1 else str(res["max_vehicles"])))

@@ -41,7 +41,9 @@ def test_bench_mesh_smoke(wire, sink):
         assert lim["lost"] == max(0, lim["expected_outputs"] - lim["outputs"]), lim
         ing = res["v1_ingest"][0]
         assert ing["kind"] == "ingest" and ing["lost"] == 0 and ing["outputs"] >= 0.99 * ing["expected_outputs"] > 0
-    print("\n" + format_text(res))
+    text = format_text(res)
+    assert "CPU % by kind of thread at 2 vehicles: ingest" in text, text
+    print("\n" + text)
 
 
 def test_bench_cores_smoke():
