@@ -144,6 +144,12 @@ def paper_sets(unit_nt: float) -> list:
     return [core.Thresholds(a * unit_nt, b * unit_nt, c, d) for a, b, c, d in core.PAPER_TABLE1_SETS]
 
 
+def _figures(m) -> dict:
+    """RP, MP, WP (RMS) and WP as a 95 % bound of a Metrics, rounded as the report gives them."""
+    return {"rp_pct": round(m.rp_pct, 3), "mp_pct": round(m.mp_pct, 3), "wp_deg": round(m.wp_deg, 3),
+            "wp_p95_deg": round(m.wp_p95_deg, 3)}
+
+
 def _brief(st) -> dict:
     """The settings of a gyro_track choice that the grids vary (the reference's own only)."""
     keys = ("reference", "gate_deg") + (("consensus_window_s", "consensus_scale_deg", "consensus_inlier_deg")
@@ -162,8 +168,7 @@ def _rule_sensitivity(track_train, judged, pick: dict, loose=None) -> list[dict]
         alt = T.choose_gyro_track(track_train, loose=loose, max_mp_pct=cap, scored=pick["scored"])
         ma = T.metrics(T.gyro_track_valid(judged, alt["stage1"], alt["settings"]), err)
         out.append({"max_train_mp_pct": cap, "within_cap": alt["within_cap"], "stage1_scale": alt["stage1_scale"],
-                    "settings": _brief(alt["settings"]), "rp_pct": round(ma.rp_pct, 3),
-                    "mp_pct": round(ma.mp_pct, 3), "wp_deg": round(ma.wp_deg, 3), "wp_p95_deg": round(ma.wp_p95_deg, 3)})
+                    "settings": _brief(alt["settings"]), **_figures(ma)})
     return out
 
 
@@ -404,8 +409,7 @@ def lab_rows(judged_spec, unit: float) -> dict:
     for g in SECOND_STAGE_GATE_SENSITIVITY_DEG:
         sg = dataclasses.replace(st, gate_deg=g)
         ma = T.metrics(T.gyro_track_valid(judged, pick["stage1"], sg), err)
-        gates.append({"gate_deg": g, "rp_pct": round(ma.rp_pct, 3), "mp_pct": round(ma.mp_pct, 3),
-                      "wp_deg": round(ma.wp_deg, 3), "wp_p95_deg": round(ma.wp_p95_deg, 3)})
+        gates.append({"gate_deg": g, **_figures(ma)})
     out["second_stage"]["gate_sensitivity"] = gates
     out["second_stage_gain"] = stage_gain_against_thresholds(judged, track_valid, loose,
                                                              scales=SECOND_STAGE_CURVE_SCALES)
@@ -443,8 +447,7 @@ def _lab_set_rows(runs, model, track_valid, loose) -> dict:
     for name, valid, scales in (("fcm", T.fcm_valid(runs, model), CURVE_SCALES),
                                 ("second_stage", track_valid(runs), SECOND_STAGE_CURVE_SCALES)):
         m = T.metrics(valid, err)
-        row = {"rp_pct": round(m.rp_pct, 3), "mp_pct": round(m.mp_pct, 3), "wp_deg": round(m.wp_deg, 3),
-               "wp_p95_deg": round(m.wp_p95_deg, 3)}
+        row = _figures(m)
         row["meets_paper_table4"] = _beats(row, PAPER_FCM_UNSEEN)
         out[name] = row
         out[f"{name}_gain"] = _gain(threshold_curve(runs, loose, scales), m.rp_pct, m.mp_pct)

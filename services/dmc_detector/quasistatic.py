@@ -407,7 +407,7 @@ class OffsetConsensus:
         self.offset = None
 
     def _residuals(self, ts, cs) -> np.ndarray:
-        return np.remainder(cs - self.offset - self.slope * ts + math.pi, 2.0 * math.pi) - math.pi
+        return maths.wrap_pi(cs - self.offset - self.slope * ts)
 
     def _support(self, ts, cs) -> int:
         return int(np.count_nonzero(np.abs(self._residuals(ts, cs)) < self.h))
@@ -461,7 +461,7 @@ class OffsetConsensus:
         if tr.size < self.min_support:
             return False
         d = cr[:, None] - cr[None, :] - self.slope * (tr[:, None] - tr[None, :])
-        near = np.abs(np.remainder(d + math.pi, 2.0 * math.pi) - math.pi) < self.h
+        near = np.abs(maths.wrap_pi(d)) < self.h
         cnt = near.sum(axis=1)
         j = int(np.flatnonzero(cnt == cnt.max())[-1])
         if cnt[j] < self.min_support:
